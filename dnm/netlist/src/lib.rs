@@ -1,0 +1,30 @@
+//! The logical layer: netlist files that describe a system's DNMs, its modules and the tasks
+//! that wire them, validated against the module kinds available.
+//!
+//! ```no_run
+//! use dnm_netlist::{Catalog, Netlist};
+//! let catalog = Catalog::new(); // normally the built-in kinds
+//! let netlist = Netlist::load("configs/pipeline.toml", &catalog, &mut |_| Err("no executables".into()))?;
+//! for task in netlist.tasks.values() {
+//!     println!("{}: {} links", task.name, task.links.len());
+//! }
+//! # Ok::<(), dnm_netlist::NetlistError>(())
+//! ```
+//!
+//! Errors name the file, line, column and field, and say what to do; every problem in the file
+//! is reported at once. The validated [`Netlist`] carries a petgraph [`ModuleGraph`] that
+//! placement and routing reuse.
+
+mod error;
+mod model;
+pub mod spec;
+
+pub use error::{Diagnostic, NetlistError};
+pub use model::{
+    Connection, DEFAULT_DNM, Dnm, Link, MAX_NAME_LEN, Module, ModuleGraph, ModuleNode, Netlist,
+    PortRef, RestartMode, RestartPolicy, Task,
+};
+pub use spec::{
+    Catalog, CatalogEntry, KindSource, KindSpec, MessageType, ParamKind, ParamSpec, ParamValue,
+    Payload, PortSpec, Trigger,
+};

@@ -1,0 +1,257 @@
+//! What a module kind declares about itself: its ports, message types, parameters and trigger.
+//!
+//! These are plain data so that the netlist can be validated without starting anything. The
+//! module SDK builds them from Rust types; external module executables print them as JSON.
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+
+/// How a port's payload is laid out in shared memory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "layout")]
+pub enum Payload {
+    /// A fixed-size plain-old-data value of exactly `size_bytes`.
+    Fixed { size_bytes: usize },
+    /// A variable-size byte payload of at most `max_bytes` (images, point clouds, text).
+    Bytes { max_bytes: usize },
+}
+
+impl Payload {
+    /// The largest number of payload bytes a sample of this port can hold.
+    pub fn max_bytes(&self) -> usize {
+        match *self {
+            Payload::Fixed { size_bytes } => size_bytes,
+            Payload::Bytes { max_bytes } => max_bytes,
+        }
+    }
+}
+
+/// The type carried by a port: a schema name and encoding that recordings and other tools use
+/// to decode it, plus its shared-memory layout.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MessageType {
+    /// For example `dnm_msgs/Tick`.
+    pub schema_name: String,
+    /// For example `dnm-pod` (little-endian `repr(C)` layout described by `schema`).
+    pub encoding: String,
+    /// The schema text (field list) for decoders.
+    pub schema: String,
+    pub payload: Payload,
+}
+
+impl MessageType {
+    /// Two ports may be linked when the producer's type is the consumer's type.
+    pub fn compatible_with(&self, input: &MessageType) -> bool {
+        self.schema_name == input.schema_name
+            && self.encoding == input.encoding
+            && match (self.payload, input.payload) {
+                (Payload::Fixed { size_bytes: a }, Payload::Fixed { size_bytes: b }) => a == b,
+                (Payload::Bytes { .. }, Payload::Bytes { .. }) => true,
+                _ => false,
+            }
+    }
+}
+
+impl fmt::Display for MessageType {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.payload {
+            Payload::Fixed { size_bytes } => write!(f, "{} ({size_bytes} B)", self.schema_name),
+            Payload::Bytes { max_bytes } => {
+                write!(f, "{} (bytes, up to {max_bytes} B)", self.schema_name)
+            }
+        }
+    }
+}
+
+/// One input or output port of a kind.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PortSpec {
+    pub name: String,
+    pub message: MessageType,
+}
+
+/// The type of a parameter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ParamKind {
+    Float,
+    Int,
+    Bool,
+    String,
+}
+
+impl fmt::Display for ParamKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            ParamKind::Float => "float",
+            ParamKind::Int => "integer",
+            ParamKind::Bool => "boolean",
+            ParamKind::String => "string",
+        })
+    }
+}
+
+/// A parameter value as given in a netlist.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum ParamValue {
+    Bool(bool),
+    Int(i64),
+    Float(f64),
+    String(String),
+}
+
+impl ParamValue {
+    pub fn kind(&self) -> ParamKind {
+        match self {
+            ParamValue::Bool(_) => ParamKind::Bool,
+            ParamValue::Int(_) => ParamKind::Int,
+            ParamValue::Float(_) => ParamKind::Float,
+            ParamValue::String(_) => ParamKind::String,
+        }
+    }
+
+    /// Converts to the declared kind where that loses nothing (an integer given for a float).
+    pub fn coerce(self, kind: ParamKind) -> Option<ParamValue> {
+        match (self, kind) {
+            (ParamValue::Int(i), ParamKind::Float) => Some(ParamValue::Float(i as f64)),
+            (v, k) if v.kind() == k => Some(v),
+            _ => None,
+        }
+    }
+
+    pub fn as_f64(&self) -> Option<f64> {
+        match *self {
+            ParamValue::Float(v) => Some(v),
+            ParamValue::Int(v) => Some(v as f64),
+            _ => None,
+        }
+    }
+
+    pub fn as_i64(&self) -> Option<i64> {
+        match *self {
+            ParamValue::Int(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    pub fn as_bool(&self) -> Option<bool> {
+        match *self {
+            ParamValue::Bool(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    pub fn as_str(&self) -> Option<&str> {
+        match self {
+            ParamValue::String(v) => Some(v),
+            _ => None,
+        }
+    }
+}
+
+impl fmt::Display for ParamValue {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ParamValue::Bool(v) => write!(f, "{v}"),
+            ParamValue::Int(v) => write!(f, "{v}"),
+            ParamValue::Float(v) => write!(f, "{v}"),
+            ParamValue::String(v) => write!(f, "{v:?}"),
+        }
+    }
+}
+
+/// A declared parameter. Without a default it must be given in the netlist.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ParamSpec {
+    pub name: String,
+    pub kind: ParamKind,
+    pub default: Option<ParamValue>,
+    #[serde(default)]
+    pub doc: String,
+}
+
+/// When a module's step runs.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "mode")]
+pub enum Trigger {
+    /// At a fixed rate; a netlist may override the rate per module.
+    Periodic { rate_hz: f64 },
+    /// Whenever an input connected in the active task has new data.
+    OnInput,
+}
+
+/// Everything the DNM and the validator need to know about a module kind.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct KindSpec {
+    pub name: String,
+    #[serde(default)]
+    pub summary: String,
+    pub inputs: Vec<PortSpec>,
+    pub outputs: Vec<PortSpec>,
+    pub params: Vec<ParamSpec>,
+    pub trigger: Trigger,
+}
+
+impl KindSpec {
+    pub fn input(&self, port: &str) -> Option<&PortSpec> {
+        self.inputs.iter().find(|p| p.name == port)
+    }
+
+    pub fn output(&self, port: &str) -> Option<&PortSpec> {
+        self.outputs.iter().find(|p| p.name == port)
+    }
+
+    pub fn param(&self, name: &str) -> Option<&ParamSpec> {
+        self.params.iter().find(|p| p.name == name)
+    }
+}
+
+/// Where a kind's executable comes from.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "from")]
+pub enum KindSource {
+    /// Compiled into the standard module host shipped with the DNM.
+    BuiltIn,
+    /// An executable built with the module SDK, declared in the netlist.
+    Exec { path: String },
+}
+
+/// A kind and where it runs from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CatalogEntry {
+    pub spec: KindSpec,
+    pub source: KindSource,
+}
+
+/// The module kinds a netlist may use, by name.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Catalog {
+    kinds: BTreeMap<String, CatalogEntry>,
+}
+
+impl Catalog {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Adds or replaces a kind.
+    pub fn insert(&mut self, spec: KindSpec, source: KindSource) {
+        self.kinds
+            .insert(spec.name.clone(), CatalogEntry { spec, source });
+    }
+
+    pub fn get(&self, kind: &str) -> Option<&CatalogEntry> {
+        self.kinds.get(kind)
+    }
+
+    pub fn names(&self) -> impl Iterator<Item = &str> + Clone {
+        self.kinds.keys().map(String::as_str)
+    }
+
+    pub fn iter(&self) -> impl Iterator<Item = &CatalogEntry> {
+        self.kinds.values()
+    }
+}
