@@ -282,7 +282,8 @@ fn duplicate_names_are_reported() {
     let text = format!("{GOOD}\n[task.auto]\nlinks = []\n");
     let e = error_of(&text);
     assert!(e.contains("duplicate key"), "{e}");
-    let last = text.lines().rposition(|l| l == "[task.auto]").unwrap() + 1;
+    let lines: Vec<&str> = text.lines().collect();
+    let last = lines.iter().rposition(|l| *l == "[task.auto]").unwrap() + 1;
     assert!(e.contains(&format!(":{last}:")), "{e}");
 }
 
