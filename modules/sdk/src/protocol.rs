@@ -1,0 +1,210 @@
+//! What a DNM and its module processes say to each other through shared memory.
+//!
+//! Every DNM has its own iceoryx2 namespace (a file prefix), so DNMs on one machine never see
+//! each other's services. Inside it:
+//!
+//! | service                 | pattern    | written by | carries                                   |
+//! |-------------------------|------------|------------|-------------------------------------------|
+//! | `<module>/<port>`       | pub/sub    | module     | the output port's samples (zero-copy)     |
+//! | `<module>/<port>/ev`    | event      | module     | "new sample" after every send             |
+//! | `_dnm/task`             | blackboard | DNM        | the active (revision, task slot) word     |
+//! | `_dnm/plan/<module>`    | pub/sub    | DNM        | the module's [`Plan`] (JSON, history 1)   |
+//! | `_dnm/wake/<module>`    | event      | DNM        | "a new plan is posted" / "stop"           |
+//! | `_dnm/status/<module>`  | pub/sub    | module     | [`Status`] heartbeats and plan acks       |
+//! | `_dnm/ev`               | event      | modules    | "a status was posted"                     |
+//!
+//! A task switch is one store into `_dnm/task`. Modules read that word once per step and pick
+//! every input's source from their plan with it, so a step never mixes two tasks.
+
+use iceoryx2::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use dnm_netlist::{ParamValue, Trigger};
+use std::collections::BTreeMap;
+
+/// Header in front of every port sample.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("dnm::PortHeader")]
+pub struct PortHeader {
+    /// CLOCK_MONOTONIC time the producer sent it, in nanoseconds.
+    pub stamp_ns: u64,
+    /// Per-port sequence number, from 0.
+    pub seq: u64,
+    /// The task word the producer ran under.
+    pub task_word: u64,
+}
+
+/// Largest plan message, in bytes.
+pub const MAX_PLAN_BYTES: usize = 64 * 1024;
+/// Subscribers one output port admits: consumers across all tasks, the DNM, and spares for
+/// recorders and bridges.
+pub const MAX_PORT_SUBSCRIBERS: usize = 16;
+/// Subscribers a large (over 64 KiB) byte port admits: each one reserves whole samples.
+pub const MAX_LARGE_PORT_SUBSCRIBERS: usize = 6;
+/// Payloads above this many bytes use the large-port limits.
+pub const LARGE_PAYLOAD_BYTES: usize = 64 * 1024;
+/// Publishers one output port admits: the module, a replacement starting while the old one is
+/// cleaned up, and a replay.
+pub const MAX_PORT_PUBLISHERS: usize = 3;
+/// Samples a subscriber keeps when it falls behind (then the oldest are overwritten).
+pub const PORT_BUFFER: usize = 4;
+/// Samples a subscriber of a large port keeps.
+pub const LARGE_PORT_BUFFER: usize = 2;
+
+/// (max subscribers, subscriber buffer) of a port with this payload. Shared memory per
+/// publisher is about `subscribers * (buffer + borrowed) + 3` samples of the largest size.
+pub fn port_limits(payload: &dnm_netlist::Payload) -> (usize, usize) {
+    if payload.max_bytes() > LARGE_PAYLOAD_BYTES {
+        (MAX_LARGE_PORT_SUBSCRIBERS, LARGE_PORT_BUFFER)
+    } else {
+        (MAX_PORT_SUBSCRIBERS, PORT_BUFFER)
+    }
+}
+/// Samples a reader may hold at once (the latest value plus one being swapped in).
+pub const PORT_BORROWED: usize = 2;
+/// Modules one DNM hosts at most.
+pub const MAX_MODULES: usize = 256;
+
+/// The active-task word: netlist revision in the high bits, task slot in the low 16.
+pub fn task_word(revision: u64, slot: u16) -> u64 {
+    (revision << 16) | u64::from(slot)
+}
+
+/// Splits a task word into (revision, slot).
+pub fn split_task_word(word: u64) -> (u64, u16) {
+    (word >> 16, (word & 0xffff) as u16)
+}
+
+/// Task slot meaning "no task active": every input is unconnected.
+pub const NO_TASK: u16 = u16::MAX;
+
+pub fn output_service(module: &str, port: &str) -> String {
+    format!("{module}/{port}")
+}
+
+pub fn output_event(module: &str, port: &str) -> String {
+    format!("{module}/{port}/ev")
+}
+
+pub const TASK_SERVICE: &str = "_dnm/task";
+pub const DNM_EVENT: &str = "_dnm/ev";
+
+pub fn plan_service(module: &str) -> String {
+    format!("_dnm/plan/{module}")
+}
+
+pub fn wake_event(module: &str) -> String {
+    format!("_dnm/wake/{module}")
+}
+
+pub fn status_service(module: &str) -> String {
+    format!("_dnm/status/{module}")
+}
+
+/// The iceoryx2 configuration of one DNM's namespace.
+pub fn dnm_config(prefix: &str) -> Result<Config, String> {
+    let mut config = Config::default();
+    config.global.prefix = FileName::new(prefix.as_bytes())
+        .map_err(|e| format!("bad shared-memory prefix `{prefix}`: {e:?}"))?;
+    Ok(config)
+}
+
+/// The shared-memory prefix of a DNM: short, unique per (system, DNM), and a valid file name.
+pub fn dnm_prefix(system: &str, dnm: &str) -> String {
+    format!("dnm_{system}_{dnm}_")
+}
+
+/// Everything a module process needs to start, passed as JSON on its command line.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Launch {
+    pub system: String,
+    pub dnm: String,
+    /// iceoryx2 file prefix of the DNM's namespace.
+    pub prefix: String,
+    pub module: String,
+    pub kind: String,
+    pub params: BTreeMap<String, ParamValue>,
+    pub trigger: Trigger,
+}
+
+/// One candidate source of a module's inputs: an output port of some module.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Source {
+    pub module: String,
+    pub port: String,
+}
+
+/// How one input port is wired in each task slot.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct InputRoute {
+    pub port: String,
+    /// For every task slot, the index into [`Plan::sources`] feeding this input, or none.
+    pub by_slot: Vec<Option<u32>>,
+}
+
+/// The references a module needs for one netlist revision: every source any task may connect
+/// to it, and which source each input reads in each task.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Plan {
+    pub revision: u64,
+    /// Task names by slot.
+    pub tasks: Vec<String>,
+    pub sources: Vec<Source>,
+    pub inputs: Vec<InputRoute>,
+    /// Set when the DNM wants the module to exit cleanly.
+    #[serde(default)]
+    pub stop: bool,
+}
+
+/// Module lifecycle as reported in [`Status`].
+#[repr(u32)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ModuleState {
+    Starting = 0,
+    Running = 1,
+    Stopping = 2,
+    Failed = 3,
+}
+
+impl ModuleState {
+    pub fn from_u32(v: u32) -> Self {
+        match v {
+            1 => ModuleState::Running,
+            2 => ModuleState::Stopping,
+            3 => ModuleState::Failed,
+            _ => ModuleState::Starting,
+        }
+    }
+}
+
+/// A module's heartbeat, published on `_dnm/status/<module>`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[type_name("dnm::Status")]
+pub struct Status {
+    pub pid: u32,
+    /// A [`ModuleState`].
+    pub state: u32,
+    /// The newest plan revision the module has fully prepared (subscribers open).
+    pub plan_revision: u64,
+    /// Steps run so far.
+    pub steps: u64,
+    /// Samples sent on all outputs so far.
+    pub sent: u64,
+    /// CLOCK_MONOTONIC time of the last step, ns.
+    pub last_step_ns: u64,
+    /// Failed steps (the step returned an error).
+    pub step_errors: u64,
+}
+
+/// CLOCK_MONOTONIC now, in nanoseconds: comparable across processes on one machine.
+pub fn monotonic_ns() -> u64 {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `ts` is a valid, writable timespec and CLOCK_MONOTONIC is always supported.
+    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
+    (ts.tv_sec as u64) * 1_000_000_000 + ts.tv_nsec as u64
+}
