@@ -1,0 +1,401 @@
+//! Operating a running system: a Unix socket per system on this machine that takes one JSON
+//! request per line and answers one JSON response per line, and the host that runs a
+//! machine's DNMs behind it.
+//!
+//! ```text
+//! $ echo '{"cmd":"switch","task":"auto"}' | socat - UNIX-CONNECT:/tmp/dnm-run/beetle.sock
+//! ```
+
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::net::{UnixListener, UnixStream};
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{self, Receiver, SyncSender};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use dnm_module::protocol::{DNM_EVENT, dnm_config, dnm_prefix};
+use dnm_netlist::Netlist;
+use iceoryx2::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::{Command, Dnm, DnmOptions, DnmReport, SwitchRecord};
+
+/// A request to a running system.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(tag = "cmd", rename_all = "snake_case")]
+pub enum Request {
+    /// Every hosted DNM's report.
+    Status,
+    /// The netlist text in force.
+    Netlist,
+    /// Switch every hosted DNM to `task`.
+    Switch { task: String },
+    /// Validate and apply a new netlist; `file` names it in errors.
+    Apply { file: String, text: String },
+}
+
+/// The answer to a [`Request`].
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct Response {
+    pub ok: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub revision: Option<u64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub switches: Vec<SwitchRecord>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub dnms: Vec<DnmReport>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub netlist: Option<String>,
+}
+
+impl Response {
+    fn error(msg: impl Into<String>) -> Self {
+        Self {
+            ok: false,
+            error: Some(msg.into()),
+            ..Self::default()
+        }
+    }
+}
+
+/// Failure to reach a running system.
+#[derive(Debug, thiserror::Error)]
+pub enum AdminError {
+    #[error(
+        "no running system `{system}` on this machine ({path}: {reason}); start it with `dnm up NETLIST`"
+    )]
+    NotRunning {
+        system: String,
+        path: String,
+        reason: std::io::Error,
+    },
+    #[error("talking to system `{system}`: {source}")]
+    Io {
+        system: String,
+        source: std::io::Error,
+    },
+    #[error("system `{system}` answered something unreadable: {source}")]
+    Protocol {
+        system: String,
+        source: serde_json::Error,
+    },
+}
+
+/// Folder of the admin sockets: `$DNM_RUN_DIR`, else `/tmp/dnm-run`.
+pub fn run_dir() -> PathBuf {
+    std::env::var_os("DNM_RUN_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| std::env::temp_dir().join("dnm-run"))
+}
+
+pub fn socket_path(system: &str) -> PathBuf {
+    run_dir().join(format!("{system}.sock"))
+}
+
+/// Sends one request to the system's host on this machine and waits for the answer.
+pub fn request(system: &str, req: &Request) -> Result<Response, AdminError> {
+    let path = socket_path(system);
+    let mut stream = UnixStream::connect(&path).map_err(|reason| AdminError::NotRunning {
+        system: system.into(),
+        path: path.display().to_string(),
+        reason,
+    })?;
+    let io = |source| AdminError::Io {
+        system: system.into(),
+        source,
+    };
+    let mut line = serde_json::to_string(req).map_err(|source| AdminError::Protocol {
+        system: system.into(),
+        source,
+    })?;
+    line.push('\n');
+    stream.write_all(line.as_bytes()).map_err(io)?;
+    let mut answer = String::new();
+    BufReader::new(stream).read_line(&mut answer).map_err(io)?;
+    serde_json::from_str(&answer).map_err(|source| AdminError::Protocol {
+        system: system.into(),
+        source,
+    })
+}
+
+struct DnmHandle {
+    name: String,
+    commands: SyncSender<Command>,
+    thread: JoinHandle<()>,
+}
+
+/// Runs the given DNMs of a netlist in this process, one thread each, each in its own
+/// shared-memory namespace, with the system's admin socket. Returns when all DNMs stopped
+/// (SIGINT/SIGTERM).
+pub fn run_host(netlist: Netlist, dnms: &[String], options: DnmOptions) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let mut handles = Vec::new();
+    for name in dnms {
+        let (tx, rx) = mpsc::sync_channel::<Command>(16);
+        let (ready_tx, ready_rx) = mpsc::sync_channel::<Result<(), String>>(1);
+        let netlist = netlist.clone();
+        let options = options.clone();
+        let dnm_name = name.clone();
+        let thread = std::thread::Builder::new()
+            .name(format!("dnm-{name}"))
+            .spawn(move || run_dnm(&netlist, &dnm_name, options, &rx, &ready_tx))
+            .context("spawning DNM thread")?;
+        match ready_rx.recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => {
+                drop(tx);
+                for h in handles {
+                    let h: DnmHandle = h;
+                    drop(h.commands);
+                    let _ = h.thread.join();
+                }
+                let _ = thread.join();
+                anyhow::bail!("DNM `{name}` did not start: {e}");
+            }
+            Err(_) => anyhow::bail!("DNM `{name}` stopped while starting"),
+        }
+        handles.push(DnmHandle {
+            name: name.clone(),
+            commands: tx,
+            thread,
+        });
+    }
+
+    let path = socket_path(&netlist.system);
+    std::fs::create_dir_all(run_dir()).context("creating the admin socket folder")?;
+    if UnixStream::connect(&path).is_ok() {
+        anyhow::bail!(
+            "system `{}` is already running on this machine ({})",
+            netlist.system,
+            path.display()
+        );
+    }
+    let _ = std::fs::remove_file(&path);
+    let listener =
+        UnixListener::bind(&path).with_context(|| format!("binding {}", path.display()))?;
+    tracing::info!(socket = %path.display(), "admin socket ready");
+
+    let senders: Vec<(String, SyncSender<Command>)> = handles
+        .iter()
+        .map(|h| (h.name.clone(), h.commands.clone()))
+        .collect();
+    let system = netlist.system.clone();
+    let hosted: Vec<String> = dnms.to_vec();
+    std::thread::Builder::new()
+        .name("dnm-admin".into())
+        .spawn(move || serve(&listener, &system, &hosted, &senders, netlist))
+        .context("spawning admin thread")?;
+
+    for h in handles {
+        let _ = h.thread.join();
+    }
+    let _ = std::fs::remove_file(&path);
+    Ok(())
+}
+
+fn run_dnm(
+    netlist: &Netlist,
+    name: &str,
+    options: DnmOptions,
+    commands: &Receiver<Command>,
+    ready: &SyncSender<Result<(), String>>,
+) {
+    let started = (|| {
+        let mut dnm = Dnm::new(&netlist.system, name, options)?;
+        let events = dnm.status_listener()?;
+        dnm.apply(netlist, &events)?;
+        Ok::<_, crate::DnmError>((dnm, events))
+    })();
+    let (mut dnm, events) = match started {
+        Ok(x) => x,
+        Err(e) => {
+            let _ = ready.send(Err(e.to_string()));
+            return;
+        }
+    };
+    let _ = ready.send(Ok(()));
+    if let Err(e) = dnm.run(commands, &events) {
+        tracing::error!(dnm = name, "DNM loop failed: {e}");
+    }
+    dnm.shutdown();
+}
+
+/// Wakes the loop of each DNM after a command is queued.
+struct Wakers {
+    _nodes: Vec<Node<ipc::Service>>,
+    notifiers: Vec<iceoryx2::port::notifier::Notifier<ipc::Service>>,
+}
+
+impl Wakers {
+    fn new(system: &str, dnms: &[String]) -> anyhow::Result<Self> {
+        let mut nodes = Vec::new();
+        let mut notifiers = Vec::new();
+        for d in dnms {
+            let config = dnm_config(&dnm_prefix(system, d)).map_err(anyhow::Error::msg)?;
+            let node = NodeBuilder::new()
+                .config(&config)
+                .create::<ipc::Service>()
+                .map_err(|e| anyhow::anyhow!("admin node: {e:?}"))?;
+            let notifier = dnm_module::event_service(&node, DNM_EVENT)?
+                .notifier_builder()
+                .create()
+                .map_err(|e| anyhow::anyhow!("admin notifier: {e:?}"))?;
+            nodes.push(node);
+            notifiers.push(notifier);
+        }
+        Ok(Self {
+            _nodes: nodes,
+            notifiers,
+        })
+    }
+}
+
+fn serve(
+    listener: &UnixListener,
+    system: &str,
+    hosted: &[String],
+    dnms: &[(String, SyncSender<Command>)],
+    mut netlist: Netlist,
+) {
+    let wakers = match Wakers::new(system, hosted) {
+        Ok(w) => w,
+        Err(e) => {
+            tracing::error!("admin socket disabled: {e}");
+            return;
+        }
+    };
+    for stream in listener.incoming() {
+        let Ok(stream) = stream else { continue };
+        let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
+        let mut reader = BufReader::new(&stream);
+        let mut line = String::new();
+        if reader.read_line(&mut line).is_err() {
+            continue;
+        }
+        let response = match serde_json::from_str::<Request>(&line) {
+            Ok(req) => dispatch(req, dnms, &wakers, &mut netlist),
+            Err(e) => Response::error(format!(
+                "bad request `{}`: {e}; send e.g. {{\"cmd\":\"status\"}}",
+                line.trim()
+            )),
+        };
+        let mut out = serde_json::to_string(&response).unwrap_or_else(|e| {
+            format!("{{\"ok\":false,\"error\":\"cannot encode response: {e}\"}}")
+        });
+        out.push('\n');
+        let _ = (&stream).write_all(out.as_bytes());
+    }
+}
+
+/// Sends a command to every hosted DNM and collects the answers.
+fn fan_out<T>(
+    dnms: &[(String, SyncSender<Command>)],
+    wakers: &Wakers,
+    make: impl Fn(SyncSender<T>) -> Command,
+) -> Result<Vec<(String, T)>, String> {
+    let mut waiting = Vec::new();
+    for ((name, tx), waker) in dnms.iter().zip(&wakers.notifiers) {
+        let (rtx, rrx) = mpsc::sync_channel(1);
+        tx.send(make(rtx))
+            .map_err(|_| format!("DNM `{name}` has stopped"))?;
+        let _ = waker.notify();
+        waiting.push((name.clone(), rrx));
+    }
+    waiting
+        .into_iter()
+        .map(|(name, rx)| {
+            rx.recv_timeout(Duration::from_secs(30))
+                .map(|v| (name.clone(), v))
+                .map_err(|_| format!("DNM `{name}` did not answer"))
+        })
+        .collect()
+}
+
+fn dispatch(
+    req: Request,
+    dnms: &[(String, SyncSender<Command>)],
+    wakers: &Wakers,
+    netlist: &mut Netlist,
+) -> Response {
+    match req {
+        Request::Status => match fan_out(dnms, wakers, Command::Status) {
+            Ok(reports) => Response {
+                ok: true,
+                dnms: reports.into_iter().map(|(_, r)| r).collect(),
+                ..Response::default()
+            },
+            Err(e) => Response::error(e),
+        },
+        Request::Netlist => Response {
+            ok: true,
+            netlist: Some(netlist.text.clone()),
+            ..Response::default()
+        },
+        Request::Switch { task } => {
+            if !netlist.tasks.contains_key(&task) {
+                return Response::error(format!(
+                    "unknown task `{task}`; defined tasks: {}",
+                    netlist.tasks.keys().cloned().collect::<Vec<_>>().join(", ")
+                ));
+            }
+            match fan_out(dnms, wakers, |r| Command::Switch(task.clone(), r)) {
+                Ok(results) => {
+                    let mut switches = Vec::new();
+                    for (name, r) in results {
+                        match r {
+                            Ok(s) => switches.push(s),
+                            Err(e) => return Response::error(format!("DNM `{name}`: {e}")),
+                        }
+                    }
+                    Response {
+                        ok: true,
+                        revision: switches.first().map(|s| s.revision),
+                        switches,
+                        ..Response::default()
+                    }
+                }
+                Err(e) => Response::error(e),
+            }
+        }
+        Request::Apply { file, text } => {
+            let new = match crate::parse_netlist(Path::new(&file), &text) {
+                Ok(n) => n,
+                Err(e) => {
+                    return Response::error(format!("netlist refused, nothing changed:\n{e}"));
+                }
+            };
+            if new.system != netlist.system {
+                return Response::error(format!(
+                    "netlist is for system `{}`, this is `{}`; nothing changed",
+                    new.system, netlist.system
+                ));
+            }
+            if let Some((missing, _)) = dnms.iter().find(|(d, _)| new.dnm(d).is_none()) {
+                return Response::error(format!(
+                    "netlist drops DNM `{missing}`, which runs here; nothing changed"
+                ));
+            }
+            let boxed = Box::new(new.clone());
+            match fan_out(dnms, wakers, |r| Command::Apply(boxed.clone(), r)) {
+                Ok(results) => {
+                    let mut revision = None;
+                    for (name, r) in results {
+                        match r {
+                            Ok(rev) => revision = Some(rev),
+                            Err(e) => return Response::error(format!("DNM `{name}`: {e}")),
+                        }
+                    }
+                    *netlist = new;
+                    Response {
+                        ok: true,
+                        revision,
+                        ..Response::default()
+                    }
+                }
+                Err(e) => Response::error(e),
+            }
+        }
+    }
+}

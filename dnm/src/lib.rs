@@ -1,0 +1,90 @@
+//! The connection layer: a database node module (DNM) per computer or process group.
+//!
+//! A DNM hosts its modules as separate processes, each with its own shared memory for its
+//! output ports (iceoryx2). It turns the netlist into references from inputs to outputs, and
+//! prepares, when a netlist is applied, every subscription any defined task needs; switching
+//! the active task is then a single store into a shared task word that every module reads once
+//! per step. It supervises its modules (restarts, CPU, rates) and cleans up the shared memory of
+//! processes that died.
+//!
+//! ```no_run
+//! # fn main() -> anyhow::Result<()> {
+//! use dnm::{Dnm, DnmOptions};
+//! let netlist = dnm::load_netlist("configs/pipeline.toml".as_ref())?;
+//! let mut node = Dnm::new(&netlist.system, "local", DnmOptions::standard()?)?;
+//! let events = node.status_listener()?;
+//! node.apply(&netlist, &events)?;
+//! node.switch("b")?;
+//! # Ok(()) }
+//! ```
+
+pub mod admin;
+mod dnm;
+pub mod plan;
+pub mod procfs;
+
+pub use dnm::{
+    Command, Dnm, DnmError, DnmOptions, DnmReport, ModuleReport, ModuleRunState, SwitchRecord,
+    hosted_modules,
+};
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use dnm_netlist::{KindSpec, Netlist, NetlistError};
+
+impl DnmOptions {
+    /// The module host next to the running executable (or `$DNM_MODULE_HOST`), 5 s to prepare
+    /// a revision, a 100 ms supervision tick.
+    pub fn standard() -> std::io::Result<Self> {
+        Ok(Self {
+            module_host: module_host_path()?,
+            prepare_timeout: Duration::from_secs(5),
+            tick: Duration::from_millis(100),
+        })
+    }
+}
+
+/// Where the standard module host executable is.
+pub fn module_host_path() -> std::io::Result<PathBuf> {
+    if let Some(p) = std::env::var_os("DNM_MODULE_HOST") {
+        return Ok(PathBuf::from(p));
+    }
+    let exe = std::env::current_exe()?;
+    let dir = exe.parent().unwrap_or(Path::new("."));
+    // Test and bench executables live one level down, in `deps/`.
+    for candidate in [dir.join("dnm-module-host"), dir.join("../dnm-module-host")] {
+        if candidate.exists() {
+            return Ok(candidate);
+        }
+    }
+    Err(std::io::Error::new(
+        std::io::ErrorKind::NotFound,
+        format!(
+            "dnm-module-host not found next to {}; build it with `cargo build --workspace` or set DNM_MODULE_HOST",
+            exe.display()
+        ),
+    ))
+}
+
+/// Asks a module executable for its kind (`EXEC describe`).
+pub fn describe_exec(path: &Path) -> Result<KindSpec, String> {
+    let out = std::process::Command::new(path)
+        .arg("describe")
+        .output()
+        .map_err(|e| e.to_string())?;
+    if !out.status.success() {
+        return Err(format!("`describe` exited with {}", out.status));
+    }
+    serde_json::from_slice(&out.stdout).map_err(|e| format!("`describe` printed no kind: {e}"))
+}
+
+/// Loads and validates a netlist against the standard kinds and the executables it declares.
+pub fn load_netlist(path: &Path) -> Result<Netlist, NetlistError> {
+    Netlist::load(path, &dnm_modules::catalog(), &mut describe_exec)
+}
+
+/// Validates netlist text (e.g. sent by an operator) the same way.
+pub fn parse_netlist(path: &Path, text: &str) -> Result<Netlist, NetlistError> {
+    Netlist::parse(path, text, &dnm_modules::catalog(), &mut describe_exec)
+}

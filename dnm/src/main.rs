@@ -1,0 +1,480 @@
+//! `dnm`: check netlists, run a machine's DNMs, and operate the running system.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, bail};
+use clap::{Parser, Subcommand};
+use dnm::admin::{Request, Response, request};
+use dnm::{DnmOptions, DnmReport};
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "dnm",
+    version,
+    about = "Database node modules: host modules in shared memory, switch tasks by references"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Subcommand, Debug)]
+enum Cmd {
+    /// Validate a netlist and print a summary; exits non-zero listing every error.
+    Check {
+        netlist: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Start this machine's DNMs and their modules; run until Ctrl-C.
+    Up {
+        netlist: PathBuf,
+        /// DNMs to run here (default: every DNM of the netlist).
+        #[arg(long = "dnm")]
+        dnms: Vec<String>,
+    },
+    /// Report the running system's DNMs and modules.
+    Status {
+        #[arg(long)]
+        system: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Switch the running system to another task.
+    Switch {
+        #[arg(long)]
+        system: String,
+        task: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Apply a new netlist to the running system (refused with the errors if invalid).
+    Apply {
+        #[arg(long)]
+        system: String,
+        netlist: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Add, remove or replace a module of the running system.
+    Module {
+        #[command(subcommand)]
+        op: ModuleOp,
+    },
+    /// List the standard module kinds.
+    Kinds {
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand, Debug)]
+enum ModuleOp {
+    /// Add a module, optionally linking it into tasks.
+    Add {
+        #[arg(long)]
+        system: String,
+        #[arg(long)]
+        name: String,
+        #[arg(long)]
+        kind: String,
+        #[arg(long)]
+        dnm: Option<String>,
+        /// `key=value`, repeatable.
+        #[arg(long = "param")]
+        params: Vec<String>,
+        /// `TASK:from.port -> to.port`, repeatable. Replaces the link feeding the same input.
+        #[arg(long = "link")]
+        links: Vec<String>,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Remove a module and every link to or from it.
+    Remove {
+        #[arg(long)]
+        system: String,
+        #[arg(long)]
+        name: String,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Replace a module's kind and/or parameters; its links stay.
+    Replace {
+        #[arg(long)]
+        system: String,
+        #[arg(long)]
+        name: String,
+        #[arg(long)]
+        kind: Option<String>,
+        #[arg(long = "param")]
+        params: Vec<String>,
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() -> ExitCode {
+    dnm_module::init_logging();
+    match run(Cli::parse()) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    match cli.command {
+        Cmd::Check { netlist, json } => check(&netlist, json),
+        Cmd::Up { netlist, dnms } => {
+            let n = dnm::load_netlist(&netlist).map_err(|e| anyhow::anyhow!("{e}"))?;
+            let dnms = if dnms.is_empty() {
+                n.dnms.iter().map(|d| d.name.clone()).collect()
+            } else {
+                for d in &dnms {
+                    if n.dnm(d).is_none() {
+                        bail!("netlist {} declares no DNM `{d}`", netlist.display());
+                    }
+                }
+                dnms
+            };
+            let options = DnmOptions::standard().context("locating the module host")?;
+            println!(
+                "system `{}`: DNMs {} up, task {}; Ctrl-C to stop",
+                n.system,
+                dnms.join(", "),
+                n.initial_task().unwrap_or("(none)")
+            );
+            dnm::admin::run_host(n, &dnms, options)?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Cmd::Status { system, json } => {
+            let r = request(&system, &Request::Status)?;
+            answer(&r, json, print_status)
+        }
+        Cmd::Switch { system, task, json } => {
+            let r = request(&system, &Request::Switch { task })?;
+            answer(&r, json, |r| {
+                for s in &r.switches {
+                    println!(
+                        "switched {} -> {} (revision {}) in {} ns",
+                        s.from.as_deref().unwrap_or("(none)"),
+                        s.to,
+                        s.revision,
+                        s.duration_ns
+                    );
+                }
+            })
+        }
+        Cmd::Apply {
+            system,
+            netlist,
+            json,
+        } => {
+            let text = std::fs::read_to_string(&netlist)
+                .with_context(|| format!("reading {}", netlist.display()))?;
+            let r = request(
+                &system,
+                &Request::Apply {
+                    file: netlist.display().to_string(),
+                    text,
+                },
+            )?;
+            answer(&r, json, |r| {
+                println!("applied: revision {}", r.revision.unwrap_or(0))
+            })
+        }
+        Cmd::Module { op } => module_op(op),
+        Cmd::Kinds { json } => {
+            let specs = dnm_modules::registry().specs();
+            if json {
+                println!("{}", serde_json::to_string_pretty(&specs)?);
+            } else {
+                for s in specs {
+                    let ports = |ps: &[dnm_netlist::PortSpec]| {
+                        ps.iter()
+                            .map(|p| format!("{}: {}", p.name, p.message.schema_name))
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    };
+                    println!(
+                        "{:<12} {}\n             in [{}] out [{}]",
+                        s.name,
+                        s.summary,
+                        ports(&s.inputs),
+                        ports(&s.outputs)
+                    );
+                }
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}
+
+fn check(path: &Path, json: bool) -> anyhow::Result<ExitCode> {
+    match dnm::load_netlist(path) {
+        Ok(n) => {
+            if json {
+                let summary = serde_json::json!({
+                    "ok": true,
+                    "system": n.system,
+                    "dnms": n.dnms,
+                    "modules": n.modules,
+                    "tasks": n.tasks,
+                    "initial_task": n.initial_task(),
+                });
+                println!("{}", serde_json::to_string_pretty(&summary)?);
+            } else {
+                println!("{}: system `{}` is valid", path.display(), n.system);
+                for d in &n.dnms {
+                    let mods: Vec<&str> = n.modules_on(&d.name).map(|m| m.name.as_str()).collect();
+                    println!(
+                        "  DNM {}{}: {}",
+                        d.name,
+                        d.parent
+                            .as_ref()
+                            .map(|p| format!(" (under {p})"))
+                            .unwrap_or_default(),
+                        mods.join(", ")
+                    );
+                }
+                for t in n.tasks.values() {
+                    let mark = if Some(t.name.as_str()) == n.initial_task() {
+                        " (initial)"
+                    } else {
+                        ""
+                    };
+                    println!("  task {}{mark}: {} links", t.name, t.links.len());
+                    for l in &t.links {
+                        println!("    {l}");
+                    }
+                }
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e) => {
+            if json {
+                let diags: Vec<_> = e
+                    .diagnostics
+                    .iter()
+                    .map(|d| {
+                        serde_json::json!({
+                            "file": e.file.display().to_string(),
+                            "line": d.location.map(|l| l.0),
+                            "column": d.location.map(|l| l.1),
+                            "field": d.field,
+                            "message": d.message,
+                            "help": d.help,
+                        })
+                    })
+                    .collect();
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(
+                        &serde_json::json!({"ok": false, "errors": diags})
+                    )?
+                );
+            } else {
+                eprint!("{e}");
+            }
+            Ok(ExitCode::FAILURE)
+        }
+    }
+}
+
+fn answer(r: &Response, json: bool, human: impl Fn(&Response)) -> anyhow::Result<ExitCode> {
+    if json {
+        println!("{}", serde_json::to_string_pretty(r)?);
+    } else if r.ok {
+        human(r);
+    } else {
+        eprintln!("error: {}", r.error.as_deref().unwrap_or("unknown"));
+    }
+    Ok(if r.ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
+fn print_status(r: &Response) {
+    for d in &r.dnms {
+        print_dnm(d);
+    }
+}
+
+fn print_dnm(d: &DnmReport) {
+    println!(
+        "DNM {} (system {}, pid {}): revision {}, task {}, cpu {:.1}%, rss {} KiB",
+        d.dnm,
+        d.system,
+        d.pid,
+        d.revision,
+        d.active_task.as_deref().unwrap_or("(none)"),
+        d.cpu_percent,
+        d.memory.map_or(0, |m| m.private_kib())
+    );
+    for m in &d.modules {
+        println!(
+            "  {:<14} {:<12} {:<8} pid {:>7} restarts {:>2} steps {:>8} {:>7.1} Hz cpu {:>5.1}% rss {:>6} KiB",
+            m.name,
+            m.kind,
+            format!("{:?}", m.state).to_lowercase(),
+            m.pid.map(|p| p.to_string()).unwrap_or_else(|| "-".into()),
+            m.restarts,
+            m.steps,
+            m.rate_hz,
+            m.cpu_percent,
+            m.memory.map_or(0, |m| m.private_kib())
+        );
+    }
+}
+
+/// Parses `key=value` into a TOML value (number, boolean, else string).
+fn param_value(kv: &str) -> anyhow::Result<(String, toml::Value)> {
+    let (k, v) = kv
+        .split_once('=')
+        .with_context(|| format!("parameter `{kv}` must be `key=value`"))?;
+    let value = if let Ok(i) = v.parse::<i64>() {
+        toml::Value::Integer(i)
+    } else if let Ok(f) = v.parse::<f64>() {
+        toml::Value::Float(f)
+    } else if let Ok(b) = v.parse::<bool>() {
+        toml::Value::Boolean(b)
+    } else {
+        toml::Value::String(v.to_string())
+    };
+    Ok((k.to_string(), value))
+}
+
+/// Module operations are edits of the running netlist, applied like any netlist: validated
+/// first, refused with the errors if invalid, nothing running lost.
+fn module_op(op: ModuleOp) -> anyhow::Result<ExitCode> {
+    let (system, json) = match &op {
+        ModuleOp::Add { system, json, .. }
+        | ModuleOp::Remove { system, json, .. }
+        | ModuleOp::Replace { system, json, .. } => (system.clone(), *json),
+    };
+    let current = request(&system, &Request::Netlist)?;
+    let text = current.netlist.context("the system sent no netlist")?;
+    let mut doc: toml::Table = text.parse().context("parsing the running netlist")?;
+    let modules = doc
+        .entry("module")
+        .or_insert_with(|| toml::Value::Array(Vec::new()))
+        .as_array_mut()
+        .context("`module` is not an array")?;
+    let what;
+    match op {
+        ModuleOp::Add {
+            name,
+            kind,
+            dnm,
+            params,
+            links,
+            ..
+        } => {
+            let mut m = toml::Table::new();
+            m.insert("name".into(), name.clone().into());
+            m.insert("kind".into(), kind.into());
+            if let Some(d) = dnm {
+                m.insert("dnm".into(), d.into());
+            }
+            let mut p = toml::Table::new();
+            for kv in &params {
+                let (k, v) = param_value(kv)?;
+                p.insert(k, v);
+            }
+            if !p.is_empty() {
+                m.insert("params".into(), p.into());
+            }
+            modules.push(m.into());
+            for l in links {
+                let (task, link) = l
+                    .split_once(':')
+                    .with_context(|| format!("link `{l}` must be `TASK:from.port -> to.port`"))?;
+                let to = link
+                    .split_once("->")
+                    .map(|(_, t)| t.trim().to_string())
+                    .unwrap_or_default();
+                let tasks = doc
+                    .entry("task")
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                    .as_table_mut()
+                    .context("`task` is not a table")?;
+                let t = tasks
+                    .entry(task)
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                    .as_table_mut()
+                    .context("task is not a table")?;
+                let list = t
+                    .entry("links")
+                    .or_insert_with(|| toml::Value::Array(Vec::new()))
+                    .as_array_mut()
+                    .context("links is not an array")?;
+                // The new link takes over the input it feeds.
+                list.retain(|x| {
+                    x.as_str()
+                        .and_then(|s| s.split_once("->"))
+                        .is_none_or(|(_, t)| t.trim() != to)
+                });
+                list.push(link.trim().into());
+            }
+            what = format!("added module `{name}`");
+        }
+        ModuleOp::Remove { name, .. } => {
+            let before = modules.len();
+            modules.retain(|m| m.get("name").and_then(|n| n.as_str()) != Some(name.as_str()));
+            if modules.len() == before {
+                bail!("system `{system}` has no module `{name}`");
+            }
+            if let Some(tasks) = doc.get_mut("task").and_then(|t| t.as_table_mut()) {
+                let prefix = format!("{name}.");
+                for (_, t) in tasks.iter_mut() {
+                    if let Some(list) = t.get_mut("links").and_then(|l| l.as_array_mut()) {
+                        list.retain(|x| {
+                            x.as_str().is_none_or(|s| {
+                                !s.split("->").any(|side| side.trim().starts_with(&prefix))
+                            })
+                        });
+                    }
+                }
+            }
+            what = format!("removed module `{name}`");
+        }
+        ModuleOp::Replace {
+            name, kind, params, ..
+        } => {
+            let m = modules
+                .iter_mut()
+                .find(|m| m.get("name").and_then(|n| n.as_str()) == Some(name.as_str()))
+                .and_then(|m| m.as_table_mut())
+                .with_context(|| format!("system `{system}` has no module `{name}`"))?;
+            if let Some(k) = kind {
+                m.insert("kind".into(), k.into());
+                m.remove("params");
+            }
+            if !params.is_empty() {
+                let mut p = toml::Table::new();
+                for kv in &params {
+                    let (k, v) = param_value(kv)?;
+                    p.insert(k, v);
+                }
+                m.insert("params".into(), p.into());
+            }
+            what = format!("replaced module `{name}`");
+        }
+    }
+    let text = toml::to_string(&doc).context("writing the edited netlist")?;
+    let r = request(
+        &system,
+        &Request::Apply {
+            file: format!("<{system} running netlist, edited>"),
+            text,
+        },
+    )?;
+    answer(&r, json, |r| {
+        println!("{what}: revision {}", r.revision.unwrap_or(0))
+    })
+}
