@@ -1,1 +1,438 @@
+//! The connection layer with real processes and real shared memory: a `dnm up` process hosts
+//! module processes; the test reads their output ports from iceoryx2 like any other reader.
 
+use std::collections::BTreeSet;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+
+use dnm::admin::{Request, Response, request};
+use dnm_module::msg::{PairReading, Tick};
+use dnm_module::port_service;
+use dnm_module::protocol::{PortHeader, dnm_config, dnm_prefix, output_service};
+use dnm_netlist::Payload;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+
+/// Waits for conditions in tests; generous so a loaded machine does not fail them.
+const PATIENCE: Duration = Duration::from_secs(30);
+
+static NEXT: AtomicU32 = AtomicU32::new(0);
+
+const PIPELINE: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "a"
+
+[[dnm]]
+name = "main"
+
+[[module]]
+name = "src_a"
+kind = "ticker"
+rate_hz = 200
+params = { origin = 1 }
+
+[[module]]
+name = "src_b"
+kind = "ticker"
+rate_hz = 200
+params = { origin = 2 }
+
+[[module]]
+name = "relay"
+kind = "relay"
+restart = "always"
+
+[[module]]
+name = "pair"
+kind = "pair"
+
+[task.a]
+links = ["src_a.out -> relay.in", "src_a.out -> pair.a", "src_b.out -> pair.b"]
+
+[task.b]
+links = ["src_b.out -> relay.in", "src_b.out -> pair.a", "src_a.out -> pair.b"]
+"#;
+
+/// A running `dnm up` with a unique system name; stopped with SIGTERM when dropped.
+struct System {
+    name: String,
+    dir: PathBuf,
+    child: Child,
+    node: Node<ipc::Service>,
+}
+
+impl System {
+    fn start(template: &str) -> Self {
+        let name = format!(
+            "t{}x{}",
+            std::process::id(),
+            NEXT.fetch_add(1, Ordering::Relaxed)
+        );
+        let dir = std::env::temp_dir().join(format!("dnm-test-{name}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("netlist.toml");
+        std::fs::write(&path, template.replace("SYSTEM", &name)).unwrap();
+        let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
+            .arg("up")
+            .arg(&path)
+            .env("DNM_MODULE_HOST", env!("CARGO_BIN_EXE_dnm-module-host"))
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap();
+        let config = dnm_config(&dnm_prefix(&name, "main")).unwrap();
+        let node = NodeBuilder::new()
+            .config(&config)
+            .create::<ipc::Service>()
+            .unwrap();
+        let sys = System {
+            name,
+            dir,
+            child,
+            node,
+        };
+        sys.wait_for("all modules running", |r| {
+            r.dnms.iter().all(|d| {
+                d.modules
+                    .iter()
+                    .all(|m| m.state == dnm::ModuleRunState::Running)
+            })
+        });
+        sys
+    }
+
+    fn ask(&self, req: &Request) -> Response {
+        request(&self.name, req).unwrap()
+    }
+
+    fn status(&self) -> dnm::DnmReport {
+        self.ask(&Request::Status).dnms.remove(0)
+    }
+
+    fn wait_for(&self, what: &str, ok: impl Fn(&Response) -> bool) -> Response {
+        let deadline = Instant::now() + PATIENCE;
+        loop {
+            if let Ok(r) = request(&self.name, &Request::Status)
+                && ok(&r)
+            {
+                return r;
+            }
+            assert!(Instant::now() < deadline, "gave up waiting for {what}");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    fn subscribe<M>(&self, module: &str, port: &str) -> Subscriber<ipc::Service, [u8], PortHeader> {
+        let payload = Payload::Fixed {
+            size_bytes: size_of::<M>(),
+        };
+        port_service(&self.node, &output_service(module, port), &payload)
+            .unwrap()
+            .subscriber_builder()
+            .create()
+            .unwrap()
+    }
+
+    fn dnm(&self, args: &[&str]) -> std::process::Output {
+        Command::new(env!("CARGO_BIN_EXE_dnm"))
+            .args(args)
+            .output()
+            .unwrap()
+    }
+}
+
+impl Drop for System {
+    fn drop(&mut self) {
+        // SAFETY: kill(2) on our own child.
+        unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) };
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// Collects values from a subscriber until `enough` says so (or patience runs out).
+fn collect<M: bytemuck::Pod>(
+    sub: &Subscriber<ipc::Service, [u8], PortHeader>,
+    mut enough: impl FnMut(&[M]) -> bool,
+) -> Vec<M> {
+    let mut got = Vec::new();
+    let deadline = Instant::now() + PATIENCE;
+    while !enough(&got) {
+        assert!(
+            Instant::now() < deadline,
+            "gave up collecting samples ({} so far)",
+            got.len()
+        );
+        while let Some(s) = sub.receive().unwrap() {
+            got.push(bytemuck::pod_read_unaligned::<M>(s.payload()));
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    got
+}
+
+fn drain(sub: &Subscriber<ipc::Service, [u8], PortHeader>) {
+    while sub.receive().unwrap().is_some() {}
+}
+
+/// Readings after the last one taken under another slot than `slot`.
+fn settled(readings: &[PairReading], slot: u64) -> usize {
+    readings
+        .iter()
+        .rev()
+        .take_while(|r| r.task_slot == slot)
+        .count()
+}
+
+#[test]
+fn data_flows_and_task_switches_never_mix_sources() {
+    let sys = System::start(PIPELINE);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    let pair = sys.subscribe::<PairReading>("pair", "out");
+
+    // Task `a` (slot 0): the relay forwards src_a; pair reads (src_a, src_b).
+    let ticks = collect::<Tick>(&relay, |t| t.len() >= 20);
+    assert!(ticks.iter().all(|t| t.origin == 1), "{ticks:?}");
+    let seqs: Vec<u64> = ticks.iter().map(|t| t.seq).collect();
+    assert!(
+        seqs.windows(2).all(|w| w[0] < w[1]),
+        "relay output out of order: {seqs:?}"
+    );
+
+    // Switch back and forth many times while data flows. Every step runs under one task and
+    // reads only that task's sources: slot 0 => (1, 2), slot 1 => (2, 1), never a mix.
+    drain(&pair);
+    let mut readings: Vec<PairReading> = Vec::new();
+    for i in 0..20 {
+        let task = if i % 2 == 0 { "b" } else { "a" };
+        let r = sys.ask(&Request::Switch { task: task.into() });
+        assert!(r.ok, "{r:?}");
+        assert_eq!(r.switches[0].to, task);
+        let slot = if task == "a" { 0 } else { 1 };
+        readings.extend(collect::<PairReading>(&pair, |got| settled(got, slot) >= 3));
+    }
+    let slots: BTreeSet<u64> = readings.iter().map(|r| r.task_slot).collect();
+    assert_eq!(slots, BTreeSet::from([0, 1]));
+    for r in &readings {
+        let expected = if r.task_slot == 0 { (1, 2) } else { (2, 1) };
+        assert_eq!((r.a_origin, r.b_origin), expected, "mixed reading {r:?}");
+    }
+
+    // After the last switch (to `a`), the relay reads src_a again, and only src_a.
+    drain(&relay);
+    let after = collect::<Tick>(&relay, |t| t.len() >= 10);
+    assert!(after.iter().skip(1).all(|t| t.origin == 1), "{after:?}");
+    let st = sys.status();
+    assert_eq!(st.active_task.as_deref(), Some("a"));
+    assert_eq!(st.switches.len(), 20);
+}
+
+#[test]
+fn module_added_at_run_time_joins_a_task() {
+    let sys = System::start(PIPELINE);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    collect::<Tick>(&relay, |t| t.len() >= 5);
+
+    let out = sys.dnm(&[
+        "module",
+        "add",
+        "--system",
+        &sys.name,
+        "--name",
+        "src_c",
+        "--kind",
+        "ticker",
+        "--param",
+        "origin=3",
+        "--link",
+        "a:src_c.out -> relay.in",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let st = sys.status();
+    assert_eq!(st.revision, 2);
+    assert!(st.modules.iter().any(|m| m.name == "src_c"));
+
+    // The relay now follows src_c in task `a`.
+    drain(&relay);
+    let ticks = collect::<Tick>(&relay, |t| t.iter().filter(|x| x.origin == 3).count() >= 10);
+    let last = ticks.iter().rev().take(10);
+    assert!(last.clone().all(|t| t.origin == 3), "{ticks:?}");
+
+    // Removing it drops its link; the relay has no source in task `a` then.
+    let out = sys.dnm(&["module", "remove", "--system", &sys.name, "--name", "src_c"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let st = sys.status();
+    assert_eq!(st.revision, 3);
+    assert!(!st.modules.iter().any(|m| m.name == "src_c"));
+}
+
+#[test]
+fn replaced_module_keeps_its_links() {
+    let sys = System::start(PIPELINE);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    collect::<Tick>(&relay, |t| t.len() >= 5);
+    let old_pid = sys
+        .status()
+        .modules
+        .iter()
+        .find(|m| m.name == "src_a")
+        .unwrap()
+        .pid;
+    let out = sys.dnm(&[
+        "module", "replace", "--system", &sys.name, "--name", "src_a", "--param", "origin=7",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let st = sys.wait_for("src_a replaced", |r| {
+        r.dnms[0].modules.iter().any(|m| {
+            m.name == "src_a" && m.state == dnm::ModuleRunState::Running && m.pid != old_pid
+        })
+    });
+    assert_eq!(st.dnms[0].revision, 2);
+    drain(&relay);
+    let ticks = collect::<Tick>(&relay, |t| t.iter().filter(|x| x.origin == 7).count() >= 5);
+    assert!(
+        ticks.iter().rev().take(5).all(|t| t.origin == 7),
+        "{ticks:?}"
+    );
+}
+
+#[test]
+fn killed_module_is_reported_and_restarted_while_others_run() {
+    let sys = System::start(PIPELINE);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    let pair = sys.subscribe::<PairReading>("pair", "out");
+    collect::<Tick>(&relay, |t| t.len() >= 5);
+    let before = sys.status();
+    let victim = before
+        .modules
+        .iter()
+        .find(|m| m.name == "relay")
+        .unwrap()
+        .pid
+        .unwrap();
+    // SAFETY: kill(2) on a module process of our test system.
+    assert_eq!(unsafe { libc::kill(victim as i32, libc::SIGKILL) }, 0);
+
+    // The others keep running while the relay is down.
+    drain(&pair);
+    collect::<PairReading>(&pair, |p| p.len() >= 20);
+
+    let r = sys.wait_for("relay restarted", |r| {
+        r.dnms[0].modules.iter().any(|m| {
+            m.name == "relay" && m.restarts >= 1 && m.state == dnm::ModuleRunState::Running
+        })
+    });
+    let d = &r.dnms[0];
+    let relay_now = d.modules.iter().find(|m| m.name == "relay").unwrap();
+    assert_ne!(relay_now.pid, Some(victim));
+    assert!(
+        relay_now.last_exit.as_deref().unwrap_or("").contains("9"),
+        "exit reported: {:?}",
+        relay_now.last_exit
+    );
+    assert!(
+        d.cleaned_dead_nodes >= 1,
+        "the dead process's shared memory was not cleaned up"
+    );
+    for m in &d.modules {
+        if m.name != "relay" {
+            assert_eq!(m.restarts, 0, "{} restarted", m.name);
+            let was = before.modules.iter().find(|b| b.name == m.name).unwrap();
+            assert_eq!(m.pid, was.pid);
+        }
+    }
+    // And data flows through the new relay process.
+    drain(&relay);
+    collect::<Tick>(&relay, |t| t.len() >= 10);
+}
+
+#[test]
+fn bad_netlist_is_refused_and_the_running_task_continues() {
+    let sys = System::start(PIPELINE);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    collect::<Tick>(&relay, |t| t.len() >= 5);
+    let before = sys.status();
+
+    let bad = PIPELINE
+        .replace("SYSTEM", &sys.name)
+        .replace("\"src_b.out -> relay.in\"", "\"src_x.out -> relay.in\"");
+    let path = sys.dir.join("bad.toml");
+    std::fs::write(&path, &bad).unwrap();
+    let out = sys.dnm(&["apply", "--system", &sys.name, path.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    let line = bad.lines().position(|l| l.contains("src_x")).unwrap() + 1;
+    assert!(err.contains(&format!("bad.toml:{line}:")), "{err}");
+    assert!(err.contains("unknown module `src_x`"), "{err}");
+    assert!(err.contains("nothing changed"), "{err}");
+
+    let after = sys.status();
+    assert_eq!(after.revision, before.revision);
+    assert_eq!(after.active_task, before.active_task);
+    for (a, b) in after.modules.iter().zip(&before.modules) {
+        assert_eq!(
+            (a.pid, a.restarts),
+            (b.pid, b.restarts),
+            "{} was disturbed",
+            a.name
+        );
+    }
+    drain(&relay);
+    let ticks = collect::<Tick>(&relay, |t| t.len() >= 10);
+    assert!(ticks.iter().all(|t| t.origin == 1));
+
+    // Unknown tasks are refused too.
+    let r = sys.ask(&Request::Switch { task: "c".into() });
+    assert!(!r.ok && r.error.unwrap().contains("unknown task `c`"));
+}
+
+#[test]
+fn check_reports_errors_with_location_and_exit_code() {
+    let dir = std::env::temp_dir().join(format!("dnm-check-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let good = dir.join("good.toml");
+    std::fs::write(&good, PIPELINE.replace("SYSTEM", "checked")).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_dnm"))
+        .arg("check")
+        .arg(&good)
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    assert!(String::from_utf8_lossy(&out.stdout).contains("task a (initial): 3 links"));
+
+    let bad = dir.join("bad.toml");
+    std::fs::write(
+        &bad,
+        PIPELINE
+            .replace("SYSTEM", "checked")
+            .replace("kind = \"relay\"", "kind = \"rely\""),
+    )
+    .unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_dnm"))
+        .args(["check", "--json"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let e = &v["errors"][0];
+    assert_eq!(e["field"], "module[2].kind");
+    assert!(e["line"].as_u64().unwrap() > 0);
+    assert!(e["help"].as_str().unwrap().contains("did you mean `relay`"));
+    let _ = std::fs::remove_dir_all(&dir);
+}

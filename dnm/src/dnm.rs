@@ -641,6 +641,14 @@ impl Dnm {
                 Err(e) => tracing::warn!(module = %name, "cannot poll module process: {e}"),
             }
         }
+        for slot in self.modules.values() {
+            if slot.state == ModuleRunState::Starting && slot.child.is_some() {
+                // A (re)started process finds its plan as history once the publisher updates
+                // its connections; then it needs a wake-up to read it.
+                let _ = slot.plan_pub.update_connections();
+                let _ = slot.wake.notify();
+            }
+        }
         if any_died {
             let c = self.node.try_cleanup_dead_nodes();
             self.cleaned += c.cleanups;
