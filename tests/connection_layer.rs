@@ -1,6 +1,8 @@
 //! The connection layer with real processes and real shared memory: a `dnm up` process hosts
 //! module processes; the test reads their output ports from iceoryx2 like any other reader.
 
+#![allow(clippy::unwrap_used)] // test helpers: failing loudly is right
+
 use std::collections::BTreeSet;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};

@@ -365,8 +365,7 @@ fn module_op(op: ModuleOp) -> anyhow::Result<ExitCode> {
         .or_insert_with(|| toml::Value::Array(Vec::new()))
         .as_array_mut()
         .context("`module` is not an array")?;
-    let what;
-    match op {
+    let what = match op {
         ModuleOp::Add {
             name,
             kind,
@@ -421,7 +420,7 @@ fn module_op(op: ModuleOp) -> anyhow::Result<ExitCode> {
                 });
                 list.push(link.trim().into());
             }
-            what = format!("added module `{name}`");
+            format!("added module `{name}`")
         }
         ModuleOp::Remove { name, .. } => {
             let before = modules.len();
@@ -441,7 +440,7 @@ fn module_op(op: ModuleOp) -> anyhow::Result<ExitCode> {
                     }
                 }
             }
-            what = format!("removed module `{name}`");
+            format!("removed module `{name}`")
         }
         ModuleOp::Replace {
             name, kind, params, ..
@@ -463,9 +462,9 @@ fn module_op(op: ModuleOp) -> anyhow::Result<ExitCode> {
                 }
                 m.insert("params".into(), p.into());
             }
-            what = format!("replaced module `{name}`");
+            format!("replaced module `{name}`")
         }
-    }
+    };
     let text = toml::to_string(&doc).context("writing the edited netlist")?;
     let r = request(
         &system,

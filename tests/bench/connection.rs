@@ -1,1 +1,385 @@
-fn main() {}
+//! Connection-layer benchmark, all in one run so ratios are against a baseline measured on the
+//! same machine at the same time:
+//!
+//! 1. one-hop latency, module to module through a DNM, against raw iceoryx2 publish-subscribe
+//!    between two processes with the same payload, service settings and event wake-up;
+//! 2. a task switch of 10 links against really destroying and creating 10 iceoryx2 subscribers;
+//! 3. resident memory of a DNM hosting 15 modules and of its module processes.
+//!
+//! Run: `cargo bench -p dnm --bench connection` (results go to stdout as a Markdown table).
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
+
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use dnm::admin::{Request, request};
+use dnm_module::event_service;
+use dnm_module::msg::Tick;
+use dnm_module::port_service;
+use dnm_module::protocol::{
+    PortHeader, dnm_config, dnm_prefix, monotonic_ns, output_event, output_service,
+};
+use dnm_netlist::Payload;
+use iceoryx2::prelude::*;
+
+const SIZES: [usize; 3] = [64, 4096, 1 << 20];
+const SAMPLES: usize = 2000;
+const RATE_HZ: f64 = 500.0;
+
+fn main() {
+    set_log_level(LogLevel::Error);
+    let args: Vec<String> = std::env::args().collect();
+    match args.get(1).map(String::as_str) {
+        Some("raw-pub") => return raw_pub(&args[2], args[3].parse().unwrap()),
+        Some("raw-sub") => return raw_sub(&args[2], args[3].parse().unwrap()),
+        _ => {}
+    }
+    println!("# connection-layer benchmark ({SAMPLES} samples per size at {RATE_HZ} Hz)\n");
+    println!(
+        "| payload | raw iceoryx2 p50 / p99 (µs) | through DNM p50 / p99 (µs) | ratio p50 | ratio p99 |"
+    );
+    println!("|---|---|---|---|---|");
+    for size in SIZES {
+        let raw = raw_latency(size);
+        let dnm = dnm_latency(size);
+        println!(
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.2} | {:.2} |",
+            human(size),
+            raw.0,
+            raw.1,
+            dnm.0,
+            dnm.1,
+            dnm.0 / raw.0,
+            dnm.1 / raw.1
+        );
+    }
+    println!();
+    switch_and_memory();
+}
+
+fn human(size: usize) -> String {
+    match size {
+        s if s >= 1 << 20 => format!("{} MiB", s >> 20),
+        s if s >= 1024 => format!("{} KiB", s >> 10),
+        s => format!("{s} B"),
+    }
+}
+
+fn percentiles(mut v: Vec<u64>) -> (f64, f64) {
+    v.sort_unstable();
+    let p = |q: f64| v[((v.len() - 1) as f64 * q) as usize] as f64 / 1000.0;
+    (p(0.5), p(0.99))
+}
+
+fn unique(tag: &str) -> String {
+    format!("b{}{tag}", std::process::id())
+}
+
+// ------------------------------------------------------------------------------------------
+// Raw iceoryx2: a publisher process and a subscriber process, no DNM.
+
+fn raw_node(prefix: &str) -> Node<ipc::Service> {
+    let config = dnm_config(prefix).unwrap();
+    NodeBuilder::new()
+        .config(&config)
+        .create::<ipc::Service>()
+        .unwrap()
+}
+
+fn raw_pub(prefix: &str, size: usize) {
+    let node = raw_node(prefix);
+    let payload = Payload::Bytes { max_bytes: 1 << 20 };
+    let publisher = port_service(&node, "raw/out", &payload)
+        .unwrap()
+        .publisher_builder()
+        .initial_max_slice_len(1 << 20)
+        .allocation_strategy(AllocationStrategy::PowerOfTwo)
+        .create()
+        .unwrap();
+    let notifier = event_service(&node, "raw/out/ev")
+        .unwrap()
+        .notifier_builder()
+        .create()
+        .unwrap();
+    let period = Duration::from_secs_f64(1.0 / RATE_HZ);
+    // Same work per sample as a module: loan, write the 16-byte tag, header, send, notify.
+    for seq in 0..(SAMPLES as u64 + 200) {
+        let s = publisher.loan_slice_uninit(size).unwrap();
+        let mut s = s.write_from_fn(|_| 0u8);
+        s.payload_mut()[8..16].copy_from_slice(&seq.to_le_bytes());
+        *s.user_header_mut() = PortHeader {
+            stamp_ns: monotonic_ns(),
+            seq,
+            task_word: 0,
+        };
+        s.send().unwrap();
+        notifier.notify().unwrap();
+        std::thread::sleep(period);
+    }
+}
+
+fn raw_sub(prefix: &str, size: usize) {
+    let node = raw_node(prefix);
+    let payload = Payload::Bytes { max_bytes: 1 << 20 };
+    let _ = size;
+    let sub = port_service(&node, "raw/out", &payload)
+        .unwrap()
+        .subscriber_builder()
+        .create()
+        .unwrap();
+    let listener = event_service(&node, "raw/out/ev")
+        .unwrap()
+        .listener_builder()
+        .create()
+        .unwrap();
+    let waitset = WaitSetBuilder::new().create::<ipc::Service>().unwrap();
+    let _g = waitset.attach_notification(&listener).unwrap();
+    let mut lat = Vec::with_capacity(SAMPLES);
+    println!("ready");
+    while lat.len() < SAMPLES {
+        waitset
+            .wait_and_process_once(|_| CallbackProgression::Continue)
+            .unwrap();
+        listener.try_wait(|_| ()).unwrap();
+        while let Some(s) = sub.receive().unwrap() {
+            lat.push(monotonic_ns().saturating_sub(s.user_header().stamp_ns));
+        }
+    }
+    println!("{}", serde_json::to_string(&lat).unwrap());
+}
+
+fn raw_latency(size: usize) -> (f64, f64) {
+    let prefix = format!("{}_", unique(&format!("raw{size}")));
+    let exe = std::env::current_exe().unwrap();
+    let sub = Command::new(&exe)
+        .args(["raw-sub", &prefix, &size.to_string()])
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    let mut publ = Command::new(&exe)
+        .args(["raw-pub", &prefix, &size.to_string()])
+        .spawn()
+        .unwrap();
+    let out = sub.wait_with_output().unwrap();
+    let _ = publ.kill();
+    let _ = publ.wait();
+    let text = String::from_utf8(out.stdout).unwrap();
+    let lat: Vec<u64> = serde_json::from_str(text.lines().last().unwrap()).unwrap();
+    percentiles(lat)
+}
+
+// ------------------------------------------------------------------------------------------
+// Through a DNM: blob_source module -> latency module, hosted by `dnm up`.
+
+struct Up {
+    child: Child,
+    dir: std::path::PathBuf,
+}
+
+impl Drop for Up {
+    fn drop(&mut self) {
+        // SAFETY: kill(2) on our own child.
+        unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) };
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+fn up(system: &str, netlist: &str) -> Up {
+    let dir = std::env::temp_dir().join(format!("dnm-bench-{system}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("netlist.toml");
+    std::fs::write(&path, netlist).unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
+        .arg("up")
+        .arg(&path)
+        .env("DNM_MODULE_HOST", env!("CARGO_BIN_EXE_dnm-module-host"))
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        if let Ok(r) = request(system, &Request::Status)
+            && r.dnms.iter().all(|d| {
+                d.modules
+                    .iter()
+                    .all(|m| m.state == dnm::ModuleRunState::Running)
+            })
+        {
+            break;
+        }
+        assert!(Instant::now() < deadline, "system {system} did not come up");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    Up { child, dir }
+}
+
+fn dnm_latency(size: usize) -> (f64, f64) {
+    let system = unique(&format!("lat{size}"));
+    let netlist = format!(
+        r#"[system]
+name = "{system}"
+[[module]]
+name = "src"
+kind = "blob_source"
+rate_hz = {RATE_HZ}
+params = {{ bytes = {size} }}
+[[module]]
+name = "lat"
+kind = "latency"
+[task.run]
+links = ["src.out -> lat.in"]
+"#
+    );
+    let _up = up(&system, &netlist);
+    let node = raw_node(&dnm_prefix(&system, "local"));
+    let payload = Payload::Fixed {
+        size_bytes: size_of::<Tick>(),
+    };
+    let sub = port_service(&node, &output_service("lat", "latency_ns"), &payload)
+        .unwrap()
+        .subscriber_builder()
+        .create()
+        .unwrap();
+    let listener = event_service(&node, &output_event("lat", "latency_ns"))
+        .unwrap()
+        .listener_builder()
+        .create()
+        .unwrap();
+    let waitset = WaitSetBuilder::new().create::<ipc::Service>().unwrap();
+    let _g = waitset.attach_notification(&listener).unwrap();
+    let mut lat = Vec::with_capacity(SAMPLES);
+    let mut skipped = 0;
+    while lat.len() < SAMPLES {
+        waitset
+            .wait_and_process_once(|_| CallbackProgression::Continue)
+            .unwrap();
+        listener.try_wait(|_| ()).unwrap();
+        while let Some(s) = sub.receive().unwrap() {
+            let t: Tick = bytemuck::pod_read_unaligned(s.payload());
+            // The first samples include start-up; the raw run starts after its subscriber too.
+            if skipped < 50 {
+                skipped += 1;
+                continue;
+            }
+            lat.push(t.seq);
+        }
+    }
+    percentiles(lat)
+}
+
+// ------------------------------------------------------------------------------------------
+// Task switch vs real rewiring, and memory.
+
+fn switch_and_memory() {
+    let system = unique("sw");
+    let mut netlist = format!(
+        "[system]\nname = \"{system}\"\ndefault_task = \"a\"\n\
+         [[module]]\nname = \"src_a\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 1 }}\n\
+         [[module]]\nname = \"src_b\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 2 }}\n"
+    );
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for i in 0..5 {
+        netlist += &format!("[[module]]\nname = \"p{i}\"\nkind = \"pair\"\n");
+        a.push(format!("\"src_a.out -> p{i}.a\", \"src_b.out -> p{i}.b\""));
+        b.push(format!("\"src_b.out -> p{i}.a\", \"src_a.out -> p{i}.b\""));
+    }
+    for i in 0..8 {
+        netlist += &format!("[[module]]\nname = \"idle{i}\"\nkind = \"ticker\"\nrate_hz = 10\n");
+    }
+    netlist += &format!(
+        "[task.a]\nlinks = [{}]\n[task.b]\nlinks = [{}]\n",
+        a.join(", "),
+        b.join(", ")
+    );
+    let _up = up(&system, &netlist);
+
+    let mut virt = Vec::new();
+    for i in 0..400 {
+        let task = if i % 2 == 0 { "b" } else { "a" };
+        let r = request(&system, &Request::Switch { task: task.into() }).unwrap();
+        assert!(r.ok, "{r:?}");
+        virt.push(r.switches[0].duration_ns);
+    }
+    // Let the rate and CPU meters settle before reading memory.
+    std::thread::sleep(Duration::from_millis(1500));
+    let status = request(&system, &Request::Status).unwrap().dnms.remove(0);
+
+    // Real rewiring: 10 subscribers destroyed and created again on live services.
+    let node = raw_node(&format!("{}_", unique("rw")));
+    let payload = Payload::Fixed {
+        size_bytes: size_of::<Tick>(),
+    };
+    let services: Vec<_> = (0..10)
+        .map(|i| port_service(&node, &format!("s{i}/out"), &payload).unwrap())
+        .collect();
+    let _pubs: Vec<_> = services
+        .iter()
+        .map(|s| s.publisher_builder().create().unwrap())
+        .collect();
+    let mut subs: Vec<_> = services
+        .iter()
+        .map(|s| s.subscriber_builder().create().unwrap())
+        .collect();
+    let mut real = Vec::new();
+    for _ in 0..50 {
+        let t = Instant::now();
+        subs.clear();
+        for i in 0..10 {
+            let s = port_service(&node, &format!("s{i}/out"), &payload).unwrap();
+            subs.push(s.subscriber_builder().create().unwrap());
+        }
+        real.push(t.elapsed().as_nanos() as u64);
+    }
+    let (v50, v99) = percentiles(virt);
+    let (r50, r99) = percentiles(real);
+    println!("| task switch, 10 links | p50 (µs) | p99 (µs) |");
+    println!("|---|---|---|");
+    println!("| virtual (one store of the task word, inside the DNM) | {v50:.3} | {v99:.3} |");
+    println!("| real rewiring (destroy + create 10 iceoryx2 subscribers) | {r50:.1} | {r99:.1} |");
+    println!(
+        "| ratio real / virtual | {:.0}x | {:.0}x |\n",
+        r50 / v50,
+        r99 / v99
+    );
+
+    let mem = status.memory.unwrap_or_default();
+    println!("| resident memory (KiB), 15 modules | private (anon + file) | shared memory |");
+    println!("|---|---|---|");
+    println!(
+        "| DNM process | {} | {} |",
+        mem.private_kib(),
+        mem.shmem_kib
+    );
+    let mut private: Vec<u64> = status
+        .modules
+        .iter()
+        .filter_map(|m| m.memory.map(|m| m.private_kib()))
+        .collect();
+    private.sort_unstable();
+    let shm_max = status
+        .modules
+        .iter()
+        .filter_map(|m| m.memory.map(|m| m.shmem_kib))
+        .max()
+        .unwrap_or(0);
+    println!(
+        "| module process (min / median / max) | {} / {} / {} | up to {shm_max} |",
+        private[0],
+        private[private.len() / 2],
+        private[private.len() - 1]
+    );
+    println!(
+        "\nDNM CPU {:.1}% of one core with 15 modules; module CPU: {}",
+        status.cpu_percent,
+        status
+            .modules
+            .iter()
+            .map(|m| format!("{} {:.1}%", m.name, m.cpu_percent))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+}

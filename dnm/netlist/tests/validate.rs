@@ -1,6 +1,8 @@
 //! Validation of netlist text: good files load into the model, every class of bad input gets
 //! an error naming the line and field.
 
+#![allow(clippy::unwrap_used)] // test helpers: failing loudly is right
+
 use std::path::Path;
 
 use dnm_netlist::*;
@@ -127,10 +129,7 @@ fn good_with(from: &str, to: &str) -> String {
 }
 
 fn line_of(text: &str, needle: &str) -> usize {
-    text.lines()
-        .position(|l| l.contains(needle))
-        .expect("needle")
-        + 1
+    text.lines().position(|l| l.contains(needle)).unwrap() + 1
 }
 
 #[test]

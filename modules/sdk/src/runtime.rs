@@ -373,14 +373,13 @@ impl Io<'_> {
 
     /// Sends `value` on `output`.
     pub fn write<M: Message>(&mut self, output: &Output<M>, value: &M) -> Result<(), ModuleError> {
-        let header = self.header_for(output.index);
-        let out = &self.outputs[output.index];
-        let mut sample = out
+        let sample = self.outputs[output.index]
             .publisher
             .loan_slice_uninit(size_of::<M>())
             .map_err(ipc("loan"))?;
-        *sample.user_header_mut() = header;
-        let sample = sample.write_from_slice(bytemuck::bytes_of(value));
+        let mut sample = sample.write_from_slice(bytemuck::bytes_of(value));
+        // Stamped last, so latency measures delivery, not how long the producer took to fill.
+        *sample.user_header_mut() = self.header_for(output.index);
         sample.send().map_err(ipc("send"))?;
         self.finish(output.index)
     }
@@ -392,14 +391,15 @@ impl Io<'_> {
         len: usize,
         fill: impl FnOnce(&mut [u8]),
     ) -> Result<(), ModuleError> {
-        let header = self.header_for(output.index);
-        let out = &self.outputs[output.index];
-        let mut sample = out.publisher.loan_slice_uninit(len).map_err(ipc("loan"))?;
-        *sample.user_header_mut() = header;
+        let sample = self.outputs[output.index]
+            .publisher
+            .loan_slice_uninit(len)
+            .map_err(ipc("loan"))?;
         // Zero the uninitialised bytes only through the safe API: `write_from_fn` initialises
         // each byte once, then `fill` overwrites what it needs.
         let mut sample = sample.write_from_fn(|_| 0u8);
         fill(sample.payload_mut());
+        *sample.user_header_mut() = self.header_for(output.index);
         sample.send().map_err(ipc("send"))?;
         self.finish(output.index)
     }
