@@ -79,6 +79,20 @@ pub fn describe_exec(path: &Path) -> Result<KindSpec, String> {
     serde_json::from_slice(&out.stdout).map_err(|e| format!("`describe` printed no kind: {e}"))
 }
 
+/// Links whose output and input run on different DNMs, with (from DNM, to DNM). DNMs are not
+/// linked to each other yet, so these inputs stay silent.
+pub fn crossing_links(netlist: &Netlist) -> Vec<(dnm_netlist::Link, String, String)> {
+    let dnm_of = |m: &str| netlist.module(m).map(|m| m.dnm.clone()).unwrap_or_default();
+    netlist
+        .all_links()
+        .into_iter()
+        .filter_map(|l| {
+            let (a, b) = (dnm_of(&l.from.module), dnm_of(&l.to.module));
+            (a != b).then(|| (l.clone(), a, b))
+        })
+        .collect()
+}
+
 /// Loads and validates a netlist against the standard kinds and the executables it declares.
 pub fn load_netlist(path: &Path) -> Result<Netlist, NetlistError> {
     Netlist::load(path, &dnm_modules::catalog(), &mut describe_exec)

@@ -140,6 +140,11 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 }
                 dnms
             };
+            for (l, a, b) in dnm::crossing_links(&n) {
+                tracing::warn!(
+                    "`{l}` crosses DNMs {a} -> {b}; DNMs are not linked yet, so that input stays silent"
+                );
+            }
             let options = DnmOptions::standard().context("locating the module host")?;
             println!(
                 "system `{}`: DNMs {} up, task {}; Ctrl-C to stop",
@@ -238,6 +243,11 @@ fn check(path: &Path, json: bool) -> anyhow::Result<ExitCode> {
                             .map(|p| format!(" (under {p})"))
                             .unwrap_or_default(),
                         mods.join(", ")
+                    );
+                }
+                for (l, a, b) in dnm::crossing_links(&n) {
+                    println!(
+                        "  note: `{l}` crosses DNMs {a} -> {b}; DNMs are not linked yet, so that input stays silent"
                     );
                 }
                 for t in n.tasks.values() {
