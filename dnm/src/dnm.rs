@@ -2,7 +2,7 @@
 //! defined task needs when a netlist is applied, and switches tasks with one store into the
 //! shared task word.
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::process::Child;
 use std::sync::mpsc::{Receiver, SyncSender};
@@ -849,9 +849,4 @@ pub(crate) fn terminate(child: &mut Child, grace: Duration) {
     }
     let _ = child.kill();
     let _ = child.wait();
-}
-
-/// Names of modules hosted by `dnm` in a netlist.
-pub fn hosted_modules(netlist: &Netlist, dnm: &str) -> BTreeSet<String> {
-    netlist.modules_on(dnm).map(|m| m.name.clone()).collect()
 }

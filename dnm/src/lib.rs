@@ -25,7 +25,6 @@ pub mod procfs;
 
 pub use dnm::{
     Command, Dnm, DnmError, DnmOptions, DnmReport, ModuleReport, ModuleRunState, SwitchRecord,
-    hosted_modules,
 };
 
 use std::path::{Path, PathBuf};

@@ -480,7 +480,7 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
         .create()
         .map_err(ipc("blackboard reader"))?;
     let word_entry = reader.entry::<u64>(&0).map_err(ipc("blackboard entry"))?;
-    let plan_sub = plan_service(&node, &launch.module)?
+    let plan_sub = plan_service_factory(&node, &launch.module)?
         .subscriber_builder()
         .create()
         .map_err(ipc("plan subscriber"))?;
@@ -692,7 +692,8 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
     }
 }
 
-fn plan_service(
+/// The plan service of a module (the DNM publishes, the module subscribes).
+pub fn plan_service_factory(
     node: &Node<Svc>,
     module: &str,
 ) -> Result<
@@ -711,17 +712,6 @@ fn plan_service(
         .max_subscribers(2)
         .open_or_create()
         .map_err(ipc("plan service"))
-}
-
-/// The plan service as the DNM creates it.
-pub fn plan_service_factory(
-    node: &Node<Svc>,
-    module: &str,
-) -> Result<
-    iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, [u8], ()>,
-    ModuleError,
-> {
-    plan_service(node, module)
 }
 
 /// The status service of a module.
