@@ -51,7 +51,7 @@ pub struct Response {
 }
 
 impl Response {
-    fn error(msg: impl Into<String>) -> Self {
+    pub fn error(msg: impl Into<String>) -> Self {
         Self {
             ok: false,
             error: Some(msg.into()),
@@ -90,14 +90,74 @@ pub fn run_dir() -> PathBuf {
         .unwrap_or_else(|| std::env::temp_dir().join("dnm-run"))
 }
 
-pub fn socket_path(system: &str) -> PathBuf {
-    run_dir().join(format!("{system}.sock"))
+/// Admin socket of the process hosting `dnms` of `system`: one per process, so several
+/// processes of one system can run on a machine.
+pub fn socket_path(system: &str, dnms: &[String]) -> PathBuf {
+    run_dir()
+        .join(system)
+        .join(format!("{}.sock", dnms.join("+")))
 }
 
-/// Sends one request to the system's host on this machine and waits for the answer.
+/// Sends one request to every process of the system on this machine and merges the answers.
 pub fn request(system: &str, req: &Request) -> Result<Response, AdminError> {
-    let path = socket_path(system);
-    let mut stream = UnixStream::connect(&path).map_err(|reason| AdminError::NotRunning {
+    let dir = run_dir().join(system);
+    let not_running = |reason| AdminError::NotRunning {
+        system: system.into(),
+        path: dir.display().to_string(),
+        reason,
+    };
+    let mut sockets: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .map_err(not_running)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "sock"))
+        .collect();
+    sockets.sort();
+    let mut answers = Vec::new();
+    let mut last_refusal = None;
+    for path in &sockets {
+        match request_one(system, path, req) {
+            Ok(r) => answers.push(r),
+            // A socket left behind by a process that was killed.
+            Err(AdminError::NotRunning { reason, .. }) => last_refusal = Some(reason),
+            Err(e) => return Err(e),
+        }
+    }
+    if answers.is_empty() {
+        return Err(not_running(last_refusal.unwrap_or_else(|| {
+            std::io::Error::new(std::io::ErrorKind::NotFound, "no admin socket")
+        })));
+    }
+    Ok(merge(answers))
+}
+
+/// One answer from several processes: all must agree to be ok.
+pub fn merge(answers: Vec<Response>) -> Response {
+    let mut out = Response {
+        ok: true,
+        ..Response::default()
+    };
+    let mut errors = Vec::new();
+    for r in answers {
+        if !r.ok {
+            out.ok = false;
+            errors.extend(r.error);
+        }
+        out.revision = out.revision.max(r.revision);
+        out.switches.extend(r.switches);
+        out.dnms.extend(r.dnms);
+        if out.netlist.is_none() {
+            out.netlist = r.netlist;
+        }
+    }
+    if !errors.is_empty() {
+        out.error = Some(errors.join("\n"));
+    }
+    out.dnms.sort_by(|a, b| a.dnm.cmp(&b.dnm));
+    out
+}
+
+fn request_one(system: &str, path: &Path, req: &Request) -> Result<Response, AdminError> {
+    let mut stream = UnixStream::connect(path).map_err(|reason| AdminError::NotRunning {
         system: system.into(),
         path: path.display().to_string(),
         reason,
@@ -129,8 +189,28 @@ struct DnmHandle {
 /// Runs the given DNMs of a netlist in this process, one thread each, each in its own
 /// shared-memory namespace, with the system's admin socket. Returns when all DNMs stopped
 /// (SIGINT/SIGTERM).
-pub fn run_host(netlist: Netlist, dnms: &[String], options: DnmOptions) -> anyhow::Result<()> {
+pub fn run_host(
+    netlist: Netlist,
+    dnms: &[String],
+    options: DnmOptions,
+    zenoh: zenoh::Config,
+) -> anyhow::Result<()> {
     use anyhow::Context;
+    use zenoh::Wait;
+    let session = zenoh::open(zenoh)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))?;
+    tracing::info!(zid = %session.zid(), "on Zenoh");
+    // Joining a running system: continue from the netlist, revision and task in force there.
+    let mut netlist = netlist;
+    let mut joined = None;
+    if let Some(state) = crate::net::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT) {
+        if let Some((newer, revision, task)) = adopt(&state, dnms) {
+            tracing::info!(revision, task = ?task, "joining the running system");
+            netlist = newer;
+            joined = Some((revision, task));
+        }
+    }
     let mut handles = Vec::new();
     for name in dnms {
         let (tx, rx) = mpsc::sync_channel::<Command>(16);
@@ -138,9 +218,16 @@ pub fn run_host(netlist: Netlist, dnms: &[String], options: DnmOptions) -> anyho
         let netlist = netlist.clone();
         let options = options.clone();
         let dnm_name = name.clone();
+        let session = session.clone();
+        let joined = joined.clone();
         let thread = std::thread::Builder::new()
             .name(format!("dnm-{name}"))
-            .spawn(move || run_dnm(&netlist, &dnm_name, options, &rx, &ready_tx))
+            .spawn(move || {
+                let joined = joined.as_ref().map(|(r, t)| (*r, t.as_deref()));
+                run_dnm(
+                    &netlist, &dnm_name, options, session, joined, &rx, &ready_tx,
+                )
+            })
             .context("spawning DNM thread")?;
         match ready_rx.recv() {
             Ok(Ok(())) => {}
@@ -163,11 +250,14 @@ pub fn run_host(netlist: Netlist, dnms: &[String], options: DnmOptions) -> anyho
         });
     }
 
-    let path = socket_path(&netlist.system);
-    std::fs::create_dir_all(run_dir()).context("creating the admin socket folder")?;
+    let path = socket_path(&netlist.system, dnms);
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).context("creating the admin socket folder")?;
+    }
     if UnixStream::connect(&path).is_ok() {
         anyhow::bail!(
-            "system `{}` is already running on this machine ({})",
+            "DNMs {} of system `{}` are already running on this machine ({})",
+            dnms.join(", "),
             netlist.system,
             path.display()
         );
@@ -199,13 +289,23 @@ fn run_dnm(
     netlist: &Netlist,
     name: &str,
     options: DnmOptions,
+    session: zenoh::Session,
+    joined: Option<(u64, Option<&str>)>,
     commands: &Receiver<Command>,
     ready: &SyncSender<Result<(), String>>,
 ) {
     let started = (|| {
         let mut dnm = Dnm::new(&netlist.system, name, options)?;
         let events = dnm.status_listener()?;
+        // A DNM joining a running system continues from the netlist and task in force there.
+        dnm.attach_zenoh(session)?;
+        if let Some((revision, _)) = joined {
+            dnm.continue_from(revision.saturating_sub(1));
+        }
         dnm.apply(netlist, &events)?;
+        if let Some((_, Some(task))) = joined {
+            dnm.switch(task)?;
+        }
         Ok::<_, crate::DnmError>((dnm, events))
     })();
     let (mut dnm, events) = match started {
@@ -220,6 +320,29 @@ fn run_dnm(
         tracing::error!(dnm = name, "DNM loop failed: {e}");
     }
     dnm.shutdown();
+}
+
+/// How long a starting DNM asks the running ones for the netlist in force.
+const JOIN_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// The netlist, revision and task joining DNMs take over, if the running system's netlist is
+/// valid here and still has all of them.
+fn adopt(
+    state: &crate::net::NetlistState,
+    dnms: &[String],
+) -> Option<(Netlist, u64, Option<String>)> {
+    let text = state.text.as_ref()?;
+    let file = state.file.clone().unwrap_or_else(|| "netlist.toml".into());
+    match crate::parse_netlist(Path::new(&file), text) {
+        Ok(n) if dnms.iter().all(|d| n.dnm(d).is_some()) => {
+            Some((n, state.revision, state.active_task.clone()))
+        }
+        Ok(_) => None,
+        Err(e) => {
+            tracing::warn!("the running system's netlist does not validate here: {e}");
+            None
+        }
+    }
 }
 
 /// Wakes the loop of each DNM after a command is queued.

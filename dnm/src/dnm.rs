@@ -24,6 +24,7 @@ use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFac
 use iceoryx2::waitset::WaitSetRunResult;
 use serde::{Deserialize, Serialize};
 
+use crate::net::{Inbound, Net, NetReport, PeerReport, Target, ZenohCommand};
 use crate::plan::{module_plan, task_slots};
 use crate::procfs::{self, CpuMeter, Memory};
 
@@ -54,6 +55,8 @@ pub enum DnmError {
         timeout_ms: u128,
         modules: String,
     },
+    #[error("zenoh: {0}")]
+    Zenoh(String),
     #[error("cannot start module `{module}` ({exec}): {why}")]
     Spawn {
         module: String,
@@ -139,6 +142,12 @@ pub struct DnmReport {
     pub switches: Vec<SwitchRecord>,
     /// Shared-memory leftovers of dead processes removed so far.
     pub cleaned_dead_nodes: u64,
+    /// The other DNMs of the system, as seen over Zenoh (empty without Zenoh).
+    #[serde(default)]
+    pub peers: Vec<PeerReport>,
+    /// Traffic of the routes to and from other DNMs.
+    #[serde(default)]
+    pub routes: NetReport,
 }
 
 /// Commands a DNM's loop takes from other threads.
@@ -199,6 +208,9 @@ pub struct Dnm {
     switches: Vec<SwitchRecord>,
     cpu: CpuMeter,
     cleaned: u64,
+    net: Option<Net>,
+    /// Answers to the last Zenoh commands, by id, so a retried command is applied once.
+    answered: std::collections::VecDeque<(String, crate::admin::Response)>,
 }
 
 impl std::fmt::Debug for Dnm {
@@ -274,7 +286,24 @@ impl Dnm {
             switches: Vec::new(),
             cpu: CpuMeter::default(),
             cleaned,
+            net: None,
+            answered: std::collections::VecDeque::new(),
         })
+    }
+
+    /// Puts this DNM on Zenoh: it answers queries, announces itself and its modules, and
+    /// routes the links that cross to other DNMs. Call before the first [`Dnm::apply`].
+    pub fn attach_zenoh(&mut self, session: zenoh::Session) -> Result<(), DnmError> {
+        self.net = Some(
+            Net::new(session, &self.system, &self.name, &self.prefix).map_err(DnmError::Zenoh)?,
+        );
+        Ok(())
+    }
+
+    /// Sets the revision counter so the next apply yields `revision + 1` (a DNM rejoining a
+    /// running system continues its numbering).
+    pub fn continue_from(&mut self, revision: u64) {
+        self.revision = self.revision.max(revision);
     }
 
     pub fn name(&self) -> &str {
@@ -340,6 +369,10 @@ impl Dnm {
                 self.ensure_port(name, &port.name, &port.message.payload)?;
             }
         }
+        // Remote outputs any task links here are mirrored into this namespace.
+        if let Some(net) = self.net.as_mut() {
+            net.prepare_ingress(netlist).map_err(DnmError::Zenoh)?;
+        }
         // 2. New modules: control services, then the process.
         let mut started = Vec::new();
         for name in &added {
@@ -385,6 +418,9 @@ impl Dnm {
         self.tasks = tasks;
         self.active = task;
         self.netlist = Some(netlist.clone());
+        if let Some(net) = self.net.as_mut() {
+            net.commit(netlist, &self.node);
+        }
         // 5. Removals and replacements.
         for name in removed {
             self.stop_module(&name);
@@ -730,6 +766,12 @@ impl Dnm {
                 .collect(),
             switches: self.switches.clone(),
             cleaned_dead_nodes: self.cleaned,
+            peers: self
+                .net
+                .as_ref()
+                .map(|n| n.peer_reports(self.netlist.as_ref()))
+                .unwrap_or_default(),
+            routes: self.net.as_ref().map(Net::report).unwrap_or_default(),
         }
     }
 
@@ -772,9 +814,223 @@ impl Dnm {
             }
             self.read_statuses();
             self.supervise();
+            self.serve_net(events);
             self.meter();
         }
         Ok(())
+    }
+
+    /// Answers what arrived over Zenoh and keeps module liveliness tokens in step.
+    fn serve_net(&mut self, events: &Listener<Svc>) {
+        let Some(net) = self.net.as_mut() else {
+            return;
+        };
+        for inbound in net.take_inbound() {
+            match inbound {
+                Inbound::Peer { dnm, alive } => {
+                    if let Some(net) = self.net.as_mut() {
+                        net.set_peer(dnm, alive);
+                    }
+                }
+                Inbound::Query(target, query) => self.answer(target, &query, events),
+            }
+        }
+        let running: Vec<String> = self
+            .modules
+            .iter()
+            .filter(|(_, s)| s.state == ModuleRunState::Running)
+            .map(|(n, _)| n.clone())
+            .collect();
+        if let Some(net) = self.net.as_mut() {
+            net.sync_module_tokens(running.iter().map(String::as_str));
+        }
+    }
+
+    fn answer(&mut self, target: Target, query: &zenoh::query::Query, events: &Listener<Svc>) {
+        use zenoh::Wait;
+        use zenoh::bytes::Encoding;
+        let reply_json = |key: String, body: &serde_json::Value| {
+            let bytes = serde_json::to_vec(body).unwrap_or_default();
+            if let Err(e) = query
+                .reply(key, bytes)
+                .encoding(Encoding::APPLICATION_JSON)
+                .wait()
+            {
+                tracing::debug!("zenoh reply: {e}");
+            }
+        };
+        match target {
+            Target::Dnm => reply_json(
+                crate::keys::dnm(&self.system, &self.name),
+                &to_json(&self.report()),
+            ),
+            Target::Netlist => reply_json(
+                crate::keys::netlist(&self.system, &self.name),
+                &to_json(&self.netlist_state()),
+            ),
+            Target::Module => {
+                let names: Vec<String> = self.modules.keys().cloned().collect();
+                for name in names {
+                    let key = crate::keys::module(&self.system, &self.name, &name);
+                    let matches = zenoh::key_expr::KeyExpr::try_from(key.as_str())
+                        .is_ok_and(|k| k.intersects(query.key_expr()));
+                    if matches {
+                        let state = self.module_state(&name);
+                        reply_json(key, &state);
+                    }
+                }
+            }
+            Target::Port => {
+                let Some(net) = self.net.as_mut() else {
+                    return;
+                };
+                for (key, message, last) in net.last_values(query.key_expr()) {
+                    let Some((header, bytes)) = last else {
+                        continue;
+                    };
+                    if let Err(e) = query
+                        .reply(key, bytes.clone())
+                        .encoding(crate::keys::encoding(message))
+                        .attachment(crate::keys::encode_header(header).to_vec())
+                        .wait()
+                    {
+                        tracing::debug!("zenoh reply: {e}");
+                    }
+                }
+            }
+            Target::Cmd => {
+                let response = self.command(query.payload().map(|p| p.to_bytes()), events);
+                let key = crate::keys::cmd(&self.system, &self.name);
+                let bytes = serde_json::to_vec(&response).unwrap_or_default();
+                let sent = if response.ok {
+                    query
+                        .reply(key, bytes)
+                        .encoding(Encoding::APPLICATION_JSON)
+                        .wait()
+                } else {
+                    query
+                        .reply_err(bytes)
+                        .encoding(Encoding::APPLICATION_JSON)
+                        .wait()
+                };
+                if let Err(e) = sent {
+                    tracing::debug!("zenoh reply: {e}");
+                }
+            }
+        }
+    }
+
+    /// The applied netlist, for peers and tools.
+    pub fn netlist_state(&self) -> crate::net::NetlistState {
+        crate::net::NetlistState {
+            system: self.system.clone(),
+            dnm: self.name.clone(),
+            revision: self.revision,
+            digest: self
+                .netlist
+                .as_ref()
+                .map(|n| format!("{:016x}", n.digest()))
+                .unwrap_or_default(),
+            file: self.netlist.as_ref().map(|n| n.file.display().to_string()),
+            active_task: self.active.clone(),
+            text: self.netlist.as_ref().map(|n| n.text.clone()),
+        }
+    }
+
+    /// One module's report plus the last value of each of its outputs.
+    fn module_state(&mut self, name: &str) -> serde_json::Value {
+        let report = self.report().modules.into_iter().find(|m| m.name == name);
+        let ports: Vec<String> = self
+            .modules
+            .get(name)
+            .map(|s| s.spec.outputs.iter().map(|p| p.name.clone()).collect())
+            .unwrap_or_default();
+        let mut outputs = serde_json::Map::new();
+        if let Some(net) = self.net.as_mut() {
+            for p in ports {
+                let v = net.last_value_json(name, &p);
+                outputs.insert(p, v);
+            }
+        }
+        let mut v = serde_json::to_value(report).unwrap_or_default();
+        if let Some(o) = v.as_object_mut() {
+            o.insert("dnm".into(), self.name.clone().into());
+            o.insert("outputs".into(), serde_json::Value::Object(outputs));
+        }
+        v
+    }
+
+    /// Runs a command that came over Zenoh; a retried id gets the first answer again.
+    fn command(
+        &mut self,
+        payload: Option<std::borrow::Cow<'_, [u8]>>,
+        events: &Listener<Svc>,
+    ) -> crate::admin::Response {
+        use crate::admin::{Request, Response};
+        let cmd: ZenohCommand = match payload.as_deref().map(serde_json::from_slice) {
+            Some(Ok(c)) => c,
+            Some(Err(e)) => {
+                return Response::error(format!(
+                    "bad command: {e}; send JSON such as {{\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}}"
+                ));
+            }
+            None => {
+                return Response::error(
+                    "empty command; send JSON such as {\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}",
+                );
+            }
+        };
+        if let Some(id) = &cmd.id {
+            if let Some((_, r)) = self.answered.iter().find(|(i, _)| i == id) {
+                return r.clone();
+            }
+        }
+        let response = match cmd.request {
+            Request::Status => Response {
+                ok: true,
+                dnms: vec![self.report()],
+                ..Response::default()
+            },
+            Request::Netlist => Response {
+                ok: true,
+                revision: Some(self.revision),
+                netlist: self.netlist.as_ref().map(|n| n.text.clone()),
+                ..Response::default()
+            },
+            Request::Switch { task } => match self.switch(&task) {
+                Ok(s) => Response {
+                    ok: true,
+                    revision: Some(s.revision),
+                    switches: vec![s],
+                    ..Response::default()
+                },
+                Err(e) => Response::error(format!("DNM `{}`: {e}", self.name)),
+            },
+            Request::Apply { file, text } => {
+                match crate::parse_netlist(std::path::Path::new(&file), &text) {
+                    Err(e) => Response::error(format!("netlist refused, nothing changed:\n{e}")),
+                    Ok(n) if n.system != self.system => Response::error(format!(
+                        "netlist is for system `{}`, this is `{}`; nothing changed",
+                        n.system, self.system
+                    )),
+                    Ok(n) => match self.apply(&n, events) {
+                        Ok(revision) => Response {
+                            ok: true,
+                            revision: Some(revision),
+                            ..Response::default()
+                        },
+                        Err(e) => Response::error(format!("DNM `{}`: {e}", self.name)),
+                    },
+                }
+            }
+        };
+        if let Some(id) = cmd.id {
+            self.answered.push_back((id, response.clone()));
+            if self.answered.len() > 256 {
+                self.answered.pop_front();
+            }
+        }
+        response
     }
 
     fn handle(&mut self, cmd: Command, events: &Listener<Svc>) {
@@ -813,6 +1069,10 @@ impl Drop for Dnm {
             self.shutdown();
         }
     }
+}
+
+fn to_json<T: Serialize>(v: &T) -> serde_json::Value {
+    serde_json::to_value(v).unwrap_or_default()
 }
 
 fn post_plan(slot: &ModuleSlot, plan: &Plan) -> Result<(), DnmError> {

@@ -2,6 +2,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
@@ -15,8 +16,68 @@ use dnm::{DnmOptions, DnmReport};
     about = "Database node modules: host modules in shared memory, switch tasks by references"
 )]
 struct Cli {
+    #[command(flatten)]
+    zenoh: ZenohArgs,
     #[command(subcommand)]
     command: Cmd,
+}
+
+/// How to reach Zenoh. `up` always joins Zenoh (peer mode by default); the operating commands
+/// (`status`, `switch`, `apply`, `module`) go over Zenoh when `--connect` or `--zenoh-config` is
+/// given, else to the system's processes on this machine.
+#[derive(clap::Args, Debug)]
+struct ZenohArgs {
+    /// Zenoh JSON5 configuration file (see configs/zenoh/).
+    #[arg(long, global = true)]
+    zenoh_config: Option<PathBuf>,
+    /// Zenoh mode: peer, client or router.
+    #[arg(long, global = true)]
+    zenoh_mode: Option<String>,
+    /// Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable).
+    #[arg(long, global = true)]
+    listen: Vec<String>,
+    /// Zenoh endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable).
+    #[arg(long, global = true)]
+    connect: Vec<String>,
+    /// No multicast scouting: use only the endpoints given.
+    #[arg(long, global = true)]
+    no_multicast: bool,
+}
+
+impl ZenohArgs {
+    fn options(&self) -> dnm::ZenohOptions {
+        dnm::ZenohOptions {
+            config: self.zenoh_config.clone(),
+            mode: self.zenoh_mode.clone(),
+            listen: self.listen.clone(),
+            connect: self.connect.clone(),
+            no_multicast: self.no_multicast,
+        }
+    }
+
+    fn remote(&self) -> bool {
+        self.zenoh_config.is_some() || !self.connect.is_empty()
+    }
+}
+
+/// Sends a request to the running system: over Zenoh if asked to, else on this machine.
+fn send(z: &ZenohArgs, system: &str, req: &Request) -> anyhow::Result<Response> {
+    if !z.remote() {
+        return Ok(request(system, req)?);
+    }
+    use zenoh::Wait;
+    let mut options = z.options();
+    if options.mode.is_none() && options.config.is_none() {
+        options.mode = Some("client".into());
+    }
+    let config = options.config().map_err(anyhow::Error::msg)?;
+    let session = zenoh::open(config)
+        .wait()
+        .map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))?;
+    let r = dnm::remote::request(&session, system, req, Duration::from_secs(5))
+        .map_err(anyhow::Error::msg)?;
+    let _ = session.close().wait();
+    Ok(r)
 }
 
 #[derive(Subcommand, Debug)]
@@ -126,6 +187,7 @@ fn main() -> ExitCode {
 }
 
 fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    let z = &cli.zenoh;
     match cli.command {
         Cmd::Check { netlist, json } => check(&netlist, json),
         Cmd::Up { netlist, dnms } => {
@@ -140,11 +202,6 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 }
                 dnms
             };
-            for (l, a, b) in dnm::crossing_links(&n) {
-                tracing::warn!(
-                    "`{l}` crosses DNMs {a} -> {b}; DNMs are not linked yet, so that input stays silent"
-                );
-            }
             let options = DnmOptions::standard().context("locating the module host")?;
             println!(
                 "system `{}`: DNMs {} up, task {}; Ctrl-C to stop",
@@ -152,15 +209,16 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 dnms.join(", "),
                 n.initial_task().unwrap_or("(none)")
             );
-            dnm::admin::run_host(n, &dnms, options)?;
+            let zenoh = z.options().config().map_err(anyhow::Error::msg)?;
+            dnm::admin::run_host(n, &dnms, options, zenoh)?;
             Ok(ExitCode::SUCCESS)
         }
         Cmd::Status { system, json } => {
-            let r = request(&system, &Request::Status)?;
+            let r = send(z, &system, &Request::Status)?;
             answer(&r, json, print_status)
         }
         Cmd::Switch { system, task, json } => {
-            let r = request(&system, &Request::Switch { task })?;
+            let r = send(z, &system, &Request::Switch { task })?;
             answer(&r, json, |r| {
                 for s in &r.switches {
                     println!(
@@ -180,7 +238,8 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         } => {
             let text = std::fs::read_to_string(&netlist)
                 .with_context(|| format!("reading {}", netlist.display()))?;
-            let r = request(
+            let r = send(
+                z,
                 &system,
                 &Request::Apply {
                     file: netlist.display().to_string(),
@@ -191,7 +250,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 println!("applied: revision {}", r.revision.unwrap_or(0))
             })
         }
-        Cmd::Module { op } => module_op(op),
+        Cmd::Module { op } => module_op(z, op),
         Cmd::Kinds { json } => {
             let specs = dnm_modules::registry().specs();
             if json {
@@ -247,7 +306,8 @@ fn check(path: &Path, json: bool) -> anyhow::Result<ExitCode> {
                 }
                 for (l, a, b) in dnm::crossing_links(&n) {
                     println!(
-                        "  note: `{l}` crosses DNMs {a} -> {b}; DNMs are not linked yet, so that input stays silent"
+                        "  route: `{l}` crosses DNMs {a} -> {b} over Zenoh key {}",
+                        dnm::keys::port(&n.system, &a, &l.from.module, &l.from.port)
                     );
                 }
                 for t in n.tasks.values() {
@@ -361,13 +421,13 @@ fn param_value(kv: &str) -> anyhow::Result<(String, toml::Value)> {
 
 /// Module operations are edits of the running netlist, applied like any netlist: validated
 /// first, refused with the errors if invalid, nothing running lost.
-fn module_op(op: ModuleOp) -> anyhow::Result<ExitCode> {
+fn module_op(z: &ZenohArgs, op: ModuleOp) -> anyhow::Result<ExitCode> {
     let (system, json) = match &op {
         ModuleOp::Add { system, json, .. }
         | ModuleOp::Remove { system, json, .. }
         | ModuleOp::Replace { system, json, .. } => (system.clone(), *json),
     };
-    let current = request(&system, &Request::Netlist)?;
+    let current = send(z, &system, &Request::Netlist)?;
     let text = current.netlist.context("the system sent no netlist")?;
     let mut doc: toml::Table = text.parse().context("parsing the running netlist")?;
     let modules = doc
@@ -476,7 +536,8 @@ fn module_op(op: ModuleOp) -> anyhow::Result<ExitCode> {
         }
     };
     let text = toml::to_string(&doc).context("writing the edited netlist")?;
-    let r = request(
+    let r = send(
+        z,
         &system,
         &Request::Apply {
             file: format!("<{system} running netlist, edited>"),

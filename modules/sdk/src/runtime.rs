@@ -406,12 +406,12 @@ impl Io<'_> {
 }
 
 /// Opens (or creates, with the DNM's exact settings) an output port's pub/sub service.
-pub fn port_service(
-    node: &Node<Svc>,
+pub fn port_service<S: iceoryx2::service::Service>(
+    node: &Node<S>,
     name: &str,
     payload: &Payload,
 ) -> Result<
-    iceoryx2::service::port_factory::publish_subscribe::PortFactory<Svc, [u8], PortHeader>,
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<S, [u8], PortHeader>,
     ModuleError,
 > {
     let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
@@ -432,10 +432,10 @@ pub fn port_service(
 }
 
 /// Opens (or creates) an event service with the settings every DNM uses.
-pub fn event_service(
-    node: &Node<Svc>,
+pub fn event_service<S: iceoryx2::service::Service>(
+    node: &Node<S>,
     name: &str,
-) -> Result<iceoryx2::service::port_factory::event::PortFactory<Svc>, ModuleError> {
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<S>, ModuleError> {
     let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
     node.service_builder(&service_name)
         .event()

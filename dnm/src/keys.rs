@@ -1,0 +1,121 @@
+//! The Zenoh key-expression scheme of a system. Everything a DNM says on Zenoh lives under
+//! `<system>/`:
+//!
+//! | key                                   | Zenoh primitive      | what                                                     |
+//! |---------------------------------------|----------------------|----------------------------------------------------------|
+//! | `<system>/dnm/<dnm>`                  | queryable, liveliness | the DNM's report (JSON): revision, task, CPU, modules, peers |
+//! | `<system>/dnm/<dnm>/netlist`          | queryable            | the applied netlist (JSON: revision, digest, file, text) |
+//! | `<system>/dnm/<dnm>/cmd`              | queryable            | commands (JSON request in the query payload; JSON reply) |
+//! | `<system>/module/<dnm>/<module>`      | queryable, liveliness | one module's state and the last value of each output (JSON) |
+//! | `<system>/port/<dnm>/<module>/<port>` | pub/sub, queryable   | samples of outputs that cross DNMs; last value of any output |
+//!
+//! Port samples carry the message bytes as the module wrote them (the encoding names the schema,
+//! e.g. `dnm-pod;dnm_msgs/Tick`) and a 24-byte attachment: send time (CLOCK_MONOTONIC ns of the
+//! producing machine), sequence number and task word, little-endian `u64`s.
+//!
+//! Names of systems, DNMs, modules and ports are validated by the netlist to contain no `/`,
+//! `*`, `$`, `?` or `#`, so they are single key chunks.
+
+/// `<system>/dnm/<dnm>`.
+pub fn dnm(system: &str, dnm: &str) -> String {
+    format!("{system}/dnm/{dnm}")
+}
+
+/// Every DNM of a system: `<system>/dnm/*`.
+pub fn all_dnms(system: &str) -> String {
+    format!("{system}/dnm/*")
+}
+
+/// `<system>/dnm/<dnm>/netlist`.
+pub fn netlist(system: &str, dnm: &str) -> String {
+    format!("{system}/dnm/{dnm}/netlist")
+}
+
+/// `<system>/dnm/<dnm>/cmd`; `dnm` may be `*` to address every DNM.
+pub fn cmd(system: &str, dnm: &str) -> String {
+    format!("{system}/dnm/{dnm}/cmd")
+}
+
+/// `<system>/module/<dnm>/<module>`.
+pub fn module(system: &str, dnm: &str, module: &str) -> String {
+    format!("{system}/module/{dnm}/{module}")
+}
+
+/// `<system>/port/<dnm>/<module>/<port>`.
+pub fn port(system: &str, dnm: &str, module: &str, port: &str) -> String {
+    format!("{system}/port/{dnm}/{module}/{port}")
+}
+
+/// The DNM name in a key under `<system>/dnm/`.
+pub fn dnm_of(system: &str, key: &str) -> Option<String> {
+    let rest = key.strip_prefix(system)?.strip_prefix("/dnm/")?;
+    let name = rest.split('/').next()?;
+    (!name.is_empty()).then(|| name.to_string())
+}
+
+/// Bytes of a port sample's attachment.
+pub const ATTACHMENT_BYTES: usize = 24;
+
+/// The attachment of a port sample: send time, sequence number, task word.
+pub fn encode_header(h: &dnm_module::protocol::PortHeader) -> [u8; ATTACHMENT_BYTES] {
+    let mut out = [0u8; ATTACHMENT_BYTES];
+    out[0..8].copy_from_slice(&h.stamp_ns.to_le_bytes());
+    out[8..16].copy_from_slice(&h.seq.to_le_bytes());
+    out[16..24].copy_from_slice(&h.task_word.to_le_bytes());
+    out
+}
+
+/// Reads a port sample's attachment; `None` if it is not one.
+pub fn decode_header(bytes: &[u8]) -> Option<dnm_module::protocol::PortHeader> {
+    if bytes.len() != ATTACHMENT_BYTES {
+        return None;
+    }
+    let word = |i: usize| {
+        let mut b = [0u8; 8];
+        b.copy_from_slice(&bytes[i * 8..i * 8 + 8]);
+        u64::from_le_bytes(b)
+    };
+    Some(dnm_module::protocol::PortHeader {
+        stamp_ns: word(0),
+        seq: word(1),
+        task_word: word(2),
+    })
+}
+
+/// Zenoh encoding of a port: the message encoding with the schema name as its schema.
+pub fn encoding(message: &dnm_netlist::MessageType) -> String {
+    format!("{};{}", message.encoding, message.schema_name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dnm_module::protocol::PortHeader;
+
+    #[test]
+    fn keys_nest_under_the_system() {
+        assert_eq!(dnm("rover", "drive"), "rover/dnm/drive");
+        assert_eq!(cmd("rover", "*"), "rover/dnm/*/cmd");
+        assert_eq!(port("rover", "drive", "m", "out"), "rover/port/drive/m/out");
+        assert_eq!(
+            dnm_of("rover", "rover/dnm/drive/netlist").as_deref(),
+            Some("drive")
+        );
+        assert_eq!(dnm_of("rover", "other/dnm/drive"), None);
+    }
+
+    #[test]
+    fn header_round_trips() {
+        let h = PortHeader {
+            stamp_ns: 1,
+            seq: u64::MAX,
+            task_word: 7 << 16,
+        };
+        let back = decode_header(&encode_header(&h)).unwrap();
+        assert_eq!(
+            (back.stamp_ns, back.seq, back.task_word),
+            (1, u64::MAX, 7 << 16)
+        );
+        assert!(decode_header(&[0; 3]).is_none());
+    }
+}
