@@ -299,13 +299,10 @@ fn run_dnm(
         let events = dnm.status_listener()?;
         // A DNM joining a running system continues from the netlist and task in force there.
         dnm.attach_zenoh(session)?;
-        if let Some((revision, _)) = joined {
-            dnm.continue_from(revision.saturating_sub(1));
+        if let Some((revision, task)) = joined {
+            dnm.continue_from(revision.saturating_sub(1), task);
         }
         dnm.apply(netlist, &events)?;
-        if let Some((_, Some(task))) = joined {
-            dnm.switch(task)?;
-        }
         Ok::<_, crate::DnmError>((dnm, events))
     })();
     let (mut dnm, events) = match started {

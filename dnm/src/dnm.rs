@@ -69,6 +69,9 @@ fn ipc<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> DnmError {
     move |e| DnmError::Ipc(format!("{what}: {e:?}"))
 }
 
+/// Set when this process was asked to terminate; every DNM loop of the process stops.
+static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
 /// How a DNM runs its modules.
 #[derive(Debug, Clone)]
 pub struct DnmOptions {
@@ -300,10 +303,13 @@ impl Dnm {
         Ok(())
     }
 
-    /// Sets the revision counter so the next apply yields `revision + 1` (a DNM rejoining a
-    /// running system continues its numbering).
-    pub fn continue_from(&mut self, revision: u64) {
+    /// Continues a running system: the next apply yields `revision + 1` and starts in `task`
+    /// (if its netlist defines it) instead of the netlist's initial task.
+    pub fn continue_from(&mut self, revision: u64, task: Option<&str>) {
         self.revision = self.revision.max(revision);
+        if self.netlist.is_none() {
+            self.active = task.map(str::to_string);
+        }
     }
 
     pub fn name(&self) -> &str {
@@ -562,15 +568,24 @@ impl Dnm {
             KindSource::Exec { path } => PathBuf::from(path),
         };
         let json = serde_json::to_string(&launch).map_err(|e| DnmError::Ipc(e.to_string()))?;
-        let child = std::process::Command::new(&exec)
-            .arg("run")
-            .arg(json)
-            .spawn()
-            .map_err(|e| DnmError::Spawn {
-                module: slot.decl.name.clone(),
-                exec: exec.display().to_string(),
-                why: e.to_string(),
-            })?;
+        let mut command = std::process::Command::new(&exec);
+        command.arg("run").arg(json);
+        // A module must not outlive its DNM: if the DNM's thread dies (even by SIGKILL of the
+        // whole process), the kernel sends the module SIGTERM.
+        // SAFETY: prctl is async-signal-safe and touches only the child's own state.
+        unsafe {
+            std::os::unix::process::CommandExt::pre_exec(&mut command, || {
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let child = command.spawn().map_err(|e| DnmError::Spawn {
+            module: slot.decl.name.clone(),
+            exec: exec.display().to_string(),
+            why: e.to_string(),
+        })?;
         tracing::info!(dnm = %self.name, module = %slot.decl.name, pid = child.id(), "module started");
         slot.child = Some(child);
         slot.state = ModuleRunState::Starting;
@@ -802,6 +817,11 @@ impl Dnm {
                 result,
                 WaitSetRunResult::Interrupt | WaitSetRunResult::TerminationRequest
             ) {
+                // iceoryx2 hands a signal to one waiter: tell the other DNMs of this process.
+                STOP.store(true, std::sync::atomic::Ordering::Relaxed);
+                break;
+            }
+            if STOP.load(std::sync::atomic::Ordering::Relaxed) {
                 break;
             }
             events.try_wait(|_| ()).map_err(ipc("events"))?;

@@ -18,6 +18,8 @@
 //! # Ok(()) }
 //! ```
 
+pub use dnm_router::ZenohOptions;
+
 pub mod admin;
 mod dnm;
 pub mod keys;
@@ -104,60 +106,4 @@ pub fn load_netlist(path: &Path) -> Result<Netlist, NetlistError> {
 /// Validates netlist text (e.g. sent by an operator) the same way.
 pub fn parse_netlist(path: &Path, text: &str) -> Result<Netlist, NetlistError> {
     Netlist::parse(path, text, &dnm_modules::catalog(), &mut describe_exec)
-}
-
-/// How a process joins Zenoh: a Zenoh configuration file, or peer mode with the standard
-/// settings, plus endpoints to listen on and connect to.
-#[derive(Debug, Clone, Default)]
-pub struct ZenohOptions {
-    /// A Zenoh JSON5 configuration file (see `configs/zenoh/`).
-    pub config: Option<PathBuf>,
-    /// `peer`, `client` or `router`; overrides the file.
-    pub mode: Option<String>,
-    /// Endpoints to listen on, e.g. `tcp/127.0.0.1:7447`; override the file.
-    pub listen: Vec<String>,
-    /// Endpoints to connect to; override the file.
-    pub connect: Vec<String>,
-    /// Turn multicast scouting off (only the endpoints given are used).
-    pub no_multicast: bool,
-}
-
-impl ZenohOptions {
-    /// The Zenoh configuration these options describe.
-    pub fn config(&self) -> Result<zenoh::Config, String> {
-        let mut config = match &self.config {
-            Some(path) => zenoh::Config::from_file(path)
-                .map_err(|e| format!("Zenoh configuration {}: {e}", path.display()))?,
-            None => zenoh::Config::default(),
-        };
-        let set = |c: &mut zenoh::Config, key: &str, value: String| {
-            c.insert_json5(key, &value)
-                .map_err(|e| format!("Zenoh setting `{key}` = {value}: {e}"))
-        };
-        if let Some(mode) = &self.mode {
-            set(
-                &mut config,
-                "mode",
-                serde_json::to_string(mode).unwrap_or_default(),
-            )?;
-        }
-        if !self.listen.is_empty() {
-            set(
-                &mut config,
-                "listen/endpoints",
-                serde_json::to_string(&self.listen).unwrap_or_default(),
-            )?;
-        }
-        if !self.connect.is_empty() {
-            set(
-                &mut config,
-                "connect/endpoints",
-                serde_json::to_string(&self.connect).unwrap_or_default(),
-            )?;
-        }
-        if self.no_multicast {
-            set(&mut config, "scouting/multicast/enabled", "false".into())?;
-        }
-        Ok(config)
-    }
 }

@@ -70,10 +70,7 @@ fn send(z: &ZenohArgs, system: &str, req: &Request) -> anyhow::Result<Response> 
     if options.mode.is_none() && options.config.is_none() {
         options.mode = Some("client".into());
     }
-    let config = options.config().map_err(anyhow::Error::msg)?;
-    let session = zenoh::open(config)
-        .wait()
-        .map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))?;
+    let session = options.open()?;
     let r = dnm::remote::request(&session, system, req, Duration::from_secs(5))
         .map_err(anyhow::Error::msg)?;
     let _ = session.close().wait();
@@ -123,6 +120,8 @@ enum Cmd {
         #[command(subcommand)]
         op: ModuleOp,
     },
+    /// Run a Zenoh router (joins the rover's and the ground's networks), until Ctrl-C.
+    Router,
     /// List the standard module kinds.
     Kinds {
         #[arg(long)]
@@ -209,7 +208,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 dnms.join(", "),
                 n.initial_task().unwrap_or("(none)")
             );
-            let zenoh = z.options().config().map_err(anyhow::Error::msg)?;
+            let zenoh = z.options().config()?;
             dnm::admin::run_host(n, &dnms, options, zenoh)?;
             Ok(ExitCode::SUCCESS)
         }
@@ -251,6 +250,10 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             })
         }
         Cmd::Module { op } => module_op(z, op),
+        Cmd::Router => {
+            dnm_router::run_router(&z.options())?;
+            Ok(ExitCode::SUCCESS)
+        }
         Cmd::Kinds { json } => {
             let specs = dnm_modules::registry().specs();
             if json {

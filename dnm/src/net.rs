@@ -30,7 +30,6 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
-use iceoryx2::waitset::WaitSetRunResult;
 use serde::{Deserialize, Serialize};
 use zenoh::Wait;
 use zenoh::liveliness::LivelinessToken;
@@ -722,7 +721,9 @@ fn egress_loop(
                 }
             })
             .collect();
+        // Termination signals are the DNM thread's to take (iceoryx2 hands each to one waiter).
         let waitset = WaitSetBuilder::new()
+            .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Svc>()
             .map_err(dbg("egress waitset"))?;
         let _control_guard = waitset
@@ -737,15 +738,9 @@ fn egress_loop(
             );
         }
         loop {
-            let result = waitset
+            waitset
                 .wait_and_process_once(|_| CallbackProgression::Continue)
                 .map_err(dbg("egress wait"))?;
-            if matches!(
-                result,
-                WaitSetRunResult::Interrupt | WaitSetRunResult::TerminationRequest
-            ) {
-                return Ok(());
-            }
             for o in &open {
                 o.forward();
             }

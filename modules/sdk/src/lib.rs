@@ -46,7 +46,9 @@ pub use runtime::{
 /// log goes through the same subscriber at warning level.
 pub fn init_logging() {
     use tracing_subscriber::EnvFilter;
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(
+            "info,zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn,zenoh_link_udp=warn,zenoh_config=warn",
+        ));
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)

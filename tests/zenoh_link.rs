@@ -1,0 +1,536 @@
+//! DNMs linked over Zenoh, as separate processes: two DNMs peered on one network, a third
+//! behind a Zenoh router, and a test client that reaches the system through that router.
+//!
+//! The client uses only the `zenoh` crate, raw keys and JSON (none of our crates): what it does,
+//! an operator can do with the standard Zenoh tools.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests: failing loudly is right
+
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value;
+use zenoh::Wait;
+use zenoh::query::{ConsolidationMode, QueryTarget};
+
+const DNM: &str = env!("CARGO_BIN_EXE_dnm");
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn endpoint(port: u16) -> String {
+    format!("tcp/127.0.0.1:{port}")
+}
+
+/// A child process killed when the test ends, however it ends.
+struct Proc(Option<Child>);
+
+impl Proc {
+    fn spawn(run_dir: &Path, args: &[String]) -> Self {
+        let child = Command::new(DNM)
+            .args(args)
+            .env("DNM_RUN_DIR", run_dir)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .spawn()
+            .unwrap();
+        Proc(Some(child))
+    }
+
+    fn kill9(&mut self) {
+        if let Some(mut c) = self.0.take() {
+            c.kill().unwrap();
+            c.wait().unwrap();
+        }
+    }
+
+    fn stop(&mut self) {
+        if let Some(mut c) = self.0.take() {
+            // SAFETY: kill(2) on our own child's pid.
+            unsafe { libc::kill(c.id() as i32, libc::SIGTERM) };
+            c.wait().unwrap();
+        }
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.kill9();
+    }
+}
+
+fn pid_alive(pid: u64) -> bool {
+    // /proc/<pid>/stat exists and the process is not a zombie.
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .map(|s| !s.contains(") Z "))
+        .unwrap_or(false)
+}
+
+/// Polls `f` until it returns `Some`, failing with `what` if that takes unreasonably long.
+fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(Instant::now() < deadline, "gave up waiting: {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// The system under test: processes plus a Zenoh client behind the router.
+struct System {
+    name: String,
+    netlist: PathBuf,
+    run_dir: PathBuf,
+    ports: [u16; 3],
+    router: Proc,
+    dnms: Vec<(String, Proc)>,
+    client: zenoh::Session,
+}
+
+const NETLIST: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "remote"
+
+[[dnm]]
+name = "a"
+
+[[dnm]]
+name = "b"
+parent = "a"
+
+[[dnm]]
+name = "c"
+parent = "a"
+
+[[module]]
+name = "src_a"
+kind = "ticker"
+dnm = "a"
+rate_hz = 50.0
+params = { origin = 1 }
+
+[[module]]
+name = "relay_b"
+kind = "relay"
+dnm = "b"
+
+[[module]]
+name = "src_c"
+kind = "ticker"
+dnm = "c"
+rate_hz = 50.0
+params = { origin = 3 }
+
+[[module]]
+name = "relay_c"
+kind = "relay"
+dnm = "c"
+
+# The chain a -> b -> c.
+[task.remote]
+links = ["src_a.out -> relay_b.in", "relay_b.out -> relay_c.in"]
+
+# relay_c reads its own DNM's ticker instead.
+[task.local]
+links = ["src_a.out -> relay_b.in", "src_c.out -> relay_c.in"]
+"#;
+
+impl System {
+    fn start(tag: &str) -> Self {
+        let name = format!("zl{}{tag}", std::process::id());
+        let run_dir = std::env::temp_dir().join(format!("dnm-test-{name}"));
+        std::fs::create_dir_all(&run_dir).unwrap();
+        let netlist = run_dir.join("three.toml");
+        std::fs::write(&netlist, NETLIST.replace("SYSTEM", &name)).unwrap();
+        // a and b peer with each other; the router joins them to c, which sees only the router.
+        let ports = [free_port(), free_port(), free_port()];
+        let [pa, pb, pr] = ports;
+        let router = Proc::spawn(
+            &run_dir,
+            &[
+                "--no-multicast".into(),
+                "--listen".into(),
+                endpoint(pr),
+                "router".into(),
+            ],
+        );
+        let mut sys = System {
+            client: client(pr),
+            name,
+            netlist,
+            run_dir,
+            ports,
+            router,
+            dnms: Vec::new(),
+        };
+        for d in ["a", "b", "c"] {
+            sys.start_dnm(d);
+            // Each waits for the previous one, so startup order is deterministic.
+            sys.eventually_alive(d);
+        }
+        let _ = (pa, pb);
+        sys
+    }
+
+    fn dnm_args(&self, dnm: &str) -> Vec<String> {
+        let [pa, pb, pr] = self.ports;
+        let mut args: Vec<String> = vec!["--no-multicast".into()];
+        let mut zenoh = |k: &str, v: String| {
+            args.push(k.into());
+            args.push(v);
+        };
+        match dnm {
+            "a" => {
+                zenoh("--listen", endpoint(pa));
+                zenoh("--connect", endpoint(pr));
+            }
+            "b" => {
+                zenoh("--listen", endpoint(pb));
+                zenoh("--connect", endpoint(pa));
+                zenoh("--connect", endpoint(pr));
+            }
+            _ => {
+                zenoh("--zenoh-mode", "client".into());
+                zenoh("--connect", endpoint(pr));
+            }
+        }
+        args.extend([
+            "up".into(),
+            self.netlist.display().to_string(),
+            "--dnm".into(),
+            dnm.into(),
+        ]);
+        args
+    }
+
+    fn start_dnm(&mut self, dnm: &str) {
+        let p = Proc::spawn(&self.run_dir, &self.dnm_args(dnm));
+        self.dnms.retain(|(d, _)| d != dnm);
+        self.dnms.push((dnm.into(), p));
+    }
+
+    fn proc(&mut self, dnm: &str) -> &mut Proc {
+        &mut self.dnms.iter_mut().find(|(d, _)| d == dnm).unwrap().1
+    }
+
+    fn key(&self, rest: &str) -> String {
+        format!("{}/{rest}", self.name)
+    }
+
+    /// JSON replies to a query, by key.
+    fn get(&self, selector: &str, payload: Option<&Value>) -> Vec<(String, Result<Value, Value>)> {
+        let mut q = self
+            .client
+            .get(selector)
+            .target(QueryTarget::All)
+            .consolidation(ConsolidationMode::None)
+            .timeout(Duration::from_secs(5));
+        if let Some(p) = payload {
+            q = q.payload(serde_json::to_vec(p).unwrap());
+        }
+        let replies = q.wait().unwrap();
+        let mut out = Vec::new();
+        while let Ok(r) = replies.recv() {
+            match r.result() {
+                Ok(s) => {
+                    let v = serde_json::from_slice(&s.payload().to_bytes()).unwrap_or(Value::Null);
+                    out.push((s.key_expr().to_string(), Ok(v)));
+                }
+                Err(e) => {
+                    let v = serde_json::from_slice(&e.payload().to_bytes()).unwrap_or(Value::Null);
+                    out.push((String::new(), Err(v)));
+                }
+            }
+        }
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        out
+    }
+
+    fn report(&self, dnm: &str) -> Option<Value> {
+        self.get(&self.key(&format!("dnm/{dnm}")), None)
+            .into_iter()
+            .find_map(|(_, r)| r.ok())
+    }
+
+    fn eventually_alive(&self, dnm: &str) {
+        eventually(
+            &format!("DNM {dnm} answers with its modules running"),
+            || {
+                let r = self.report(dnm)?;
+                let modules = r["modules"].as_array()?;
+                modules
+                    .iter()
+                    .all(|m| m["state"] == "running")
+                    .then_some(())
+            },
+        );
+    }
+
+    fn peer_state(&self, of: &str, peer: &str) -> Option<String> {
+        let r = self.report(of)?;
+        r["peers"]
+            .as_array()?
+            .iter()
+            .find(|p| p["dnm"] == peer)
+            .and_then(|p| p["state"].as_str().map(str::to_string))
+    }
+
+    /// The last `Tick` relay_c sent, read raw from its port key: (origin, seq).
+    fn relay_c_last(&self) -> Option<(u64, u64)> {
+        let replies = self
+            .client
+            .get(self.key("port/c/relay_c/out"))
+            .timeout(Duration::from_secs(5))
+            .wait()
+            .unwrap();
+        let reply = replies.recv().ok()?;
+        let s = reply.result().ok()?;
+        let b = s.payload().to_bytes();
+        assert_eq!(b.len(), 16, "a Tick is two little-endian u64");
+        let origin = u64::from_le_bytes(b[0..8].try_into().unwrap());
+        let seq = u64::from_le_bytes(b[8..16].try_into().unwrap());
+        Some((origin, seq))
+    }
+
+    /// Waits until relay_c's output comes from `origin` and keeps advancing.
+    fn relay_c_fed_by(&self, origin: u64) {
+        let first = eventually(&format!("relay_c forwards origin {origin}"), || {
+            self.relay_c_last().filter(|(o, _)| *o == origin)
+        });
+        eventually(
+            &format!("origin {origin} keeps flowing into relay_c"),
+            || {
+                self.relay_c_last()
+                    .filter(|(o, s)| *o == origin && *s > first.1)
+            },
+        );
+    }
+
+    /// Sends a command to every DNM; returns (dnm key, ok?, reply JSON) sorted.
+    fn command(&self, cmd: Value) -> Vec<(String, Result<Value, Value>)> {
+        self.get(&self.key("dnm/*/cmd"), Some(&cmd))
+    }
+}
+
+impl Drop for System {
+    fn drop(&mut self) {
+        for (_, p) in &mut self.dnms {
+            p.stop();
+        }
+        self.router.stop();
+        let _ = std::fs::remove_dir_all(&self.run_dir);
+    }
+}
+
+fn client(router_port: u16) -> zenoh::Session {
+    let mut c = zenoh::Config::default();
+    c.insert_json5("mode", "\"client\"").unwrap();
+    c.insert_json5(
+        "connect/endpoints",
+        &format!("[\"{}\"]", endpoint(router_port)),
+    )
+    .unwrap();
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    eventually("the test client reaches the router", || {
+        zenoh::open(c.clone()).wait().ok()
+    })
+}
+
+#[test]
+fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
+    let mut sys = System::start("main");
+
+    // 1. A chain spanning three DNMs (a -> b over the peer link, b -> c through the router).
+    sys.relay_c_fed_by(1);
+
+    // 2. A raw Zenoh subscriber sees samples of a crossing port, with the documented
+    //    attachment (send time, sequence, task word).
+    let (tx, rx) = std::sync::mpsc::channel();
+    let _sub = sys
+        .client
+        .declare_subscriber(sys.key("port/b/relay_b/out"))
+        .callback(move |s| {
+            let att = s.attachment().map(|a| a.to_bytes().len());
+            let _ = tx.send((
+                s.payload().to_bytes().into_owned(),
+                att,
+                s.encoding().to_string(),
+            ));
+        })
+        .wait()
+        .unwrap();
+    let (payload, attachment, encoding) = rx.recv_timeout(Duration::from_secs(30)).unwrap();
+    assert_eq!(u64::from_le_bytes(payload[0..8].try_into().unwrap()), 1);
+    assert_eq!(attachment, Some(24));
+    assert!(encoding.contains("dnm_msgs/Tick"), "encoding {encoding}");
+
+    // 3. Module state for tools: every module, its state and the decoded last value.
+    let modules = sys.get(&sys.key("module/**"), None);
+    let names: Vec<&str> = modules
+        .iter()
+        .filter_map(|(_, r)| r.as_ref().ok()?["name"].as_str())
+        .collect();
+    assert_eq!(names, ["src_a", "relay_b", "relay_c", "src_c"]);
+    let relay_c = modules
+        .iter()
+        .find_map(|(k, r)| k.ends_with("/relay_c").then(|| r.clone().unwrap()))
+        .unwrap();
+    assert_eq!(relay_c["state"], "running");
+    assert_eq!(relay_c["dnm"], "c");
+    assert_eq!(relay_c["outputs"]["out"]["value"]["origin"], 1);
+    // Liveliness tokens list DNMs and modules.
+    let tokens: Vec<String> = {
+        let replies = sys
+            .client
+            .liveliness()
+            .get(sys.key("**"))
+            .timeout(Duration::from_secs(5))
+            .wait()
+            .unwrap();
+        let mut t = Vec::new();
+        while let Ok(r) = replies.recv() {
+            if let Ok(s) = r.result() {
+                t.push(s.key_expr().to_string());
+            }
+        }
+        t.sort();
+        t
+    };
+    for expected in [
+        "dnm/a",
+        "dnm/b",
+        "dnm/c",
+        "module/b/relay_b",
+        "module/c/src_c",
+    ] {
+        assert!(
+            tokens.contains(&sys.key(expected)),
+            "liveliness tokens {tokens:?} lack {expected}"
+        );
+    }
+    // Only what a remote input needs crosses the network: c publishes nothing, a and b only
+    // the outputs linked to another DNM.
+    let published = |dnm: &str| -> Vec<String> {
+        sys.report(dnm).unwrap()["routes"]["published"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["key"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert_eq!(published("a"), [sys.key("port/a/src_a/out")]);
+    assert_eq!(published("b"), [sys.key("port/b/relay_b/out")]);
+    assert!(published("c").is_empty());
+
+    // 4. Switch over Zenoh: relay_c's input moves from the remote chain to the local ticker.
+    let switch_local = serde_json::json!({"id": "switch-1", "cmd": "switch", "task": "local"});
+    let replies = sys.command(switch_local.clone());
+    assert_eq!(replies.len(), 3, "{replies:?}");
+    let revision = replies[0].1.as_ref().unwrap()["revision"].clone();
+    for (_, r) in &replies {
+        let r = r.as_ref().unwrap();
+        assert_eq!(r["ok"], true);
+        assert_eq!(r["switches"][0]["to"], "local");
+        assert_eq!(r["revision"], revision);
+    }
+    sys.relay_c_fed_by(3);
+    // A retry of the same command is answered, not applied again.
+    let again = sys.command(switch_local);
+    assert_eq!(again, replies);
+    let switches = sys.report("c").unwrap()["switches"]
+        .as_array()
+        .unwrap()
+        .len();
+    assert_eq!(switches, 1);
+
+    // Bad input gets an error reply from every DNM, not silence, and changes nothing.
+    let bad = sys.command(serde_json::json!({"id": "bad-1", "cmd": "switch", "task": "nope"}));
+    assert_eq!(bad.len(), 3);
+    for (_, r) in &bad {
+        let e = r.as_ref().unwrap_err();
+        assert!(
+            e["error"].as_str().unwrap().contains("unknown task `nope`"),
+            "{e}"
+        );
+    }
+    let garbage = sys.get(
+        &sys.key("dnm/a/cmd"),
+        Some(&serde_json::json!({"cmd": "fly"})),
+    );
+    assert!(
+        garbage[0].1.as_ref().unwrap_err()["error"]
+            .as_str()
+            .unwrap()
+            .contains("bad command")
+    );
+    sys.relay_c_fed_by(3);
+
+    // And back to the remote source.
+    let back =
+        sys.command(serde_json::json!({"id": "switch-2", "cmd": "switch", "task": "remote"}));
+    assert!(back.iter().all(|(_, r)| r.is_ok()), "{back:?}");
+    sys.relay_c_fed_by(1);
+
+    // 5. An apply over Zenoh, sent twice with one id, yields one new revision everywhere.
+    let text = std::fs::read_to_string(&sys.netlist).unwrap();
+    let apply =
+        serde_json::json!({"id": "apply-1", "cmd": "apply", "file": "three.toml", "text": text});
+    let first = sys.command(apply.clone());
+    let second = sys.command(apply);
+    assert_eq!(first, second);
+    let rev = |r: &Result<Value, Value>| r.as_ref().unwrap()["revision"].as_u64().unwrap();
+    let new_revision = rev(&first[0].1);
+    assert!(first.iter().all(|(_, r)| rev(r) == new_revision));
+    assert_eq!(sys.report("a").unwrap()["revision"], new_revision);
+    sys.relay_c_fed_by(1);
+
+    // 6. Kill b outright: a and c keep running and report it lost; b's modules go with it.
+    let b_pids: Vec<u64> = sys.report("b").unwrap()["modules"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["pid"].as_u64().unwrap())
+        .collect();
+    sys.proc("b").kill9();
+    for observer in ["a", "c"] {
+        eventually(&format!("{observer} reports b lost"), || {
+            (sys.peer_state(observer, "b")? == "lost").then_some(())
+        });
+    }
+    eventually("b's module processes exit with it", || {
+        b_pids.iter().all(|p| !pid_alive(*p)).then_some(())
+    });
+    let switched =
+        sys.command(serde_json::json!({"id": "switch-3", "cmd": "switch", "task": "local"}));
+    assert_eq!(switched.len(), 2, "only a and c answer: {switched:?}");
+    sys.relay_c_fed_by(3);
+    assert_eq!(sys.report("a").unwrap()["modules"][0]["state"], "running");
+
+    // 7. b restarts from the same file and rejoins: it takes over the netlist revision and the
+    //    task in force, the others see it alive, and the remote chain works again.
+    sys.start_dnm("b");
+    sys.eventually_alive("b");
+    let b = sys.report("b").unwrap();
+    assert_eq!(b["revision"], new_revision);
+    assert_eq!(b["active_task"], "local");
+    for observer in ["a", "c"] {
+        eventually(&format!("{observer} sees b alive again"), || {
+            (sys.peer_state(observer, "b")? == "alive").then_some(())
+        });
+    }
+    let back =
+        sys.command(serde_json::json!({"id": "switch-4", "cmd": "switch", "task": "remote"}));
+    assert_eq!(back.len(), 3);
+    sys.relay_c_fed_by(1);
+}
