@@ -495,6 +495,37 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
     assert_eq!(sys.report("a").unwrap()["revision"], new_revision);
     sys.relay_c_fed_by(1);
 
+    // Re-applying adds and drops Zenoh declarations to match: without task `remote`, nothing
+    // of b's is needed elsewhere and c mirrors nothing; the original brings them back.
+    let local_only = text
+        .replace("default_task = \"remote\"", "default_task = \"local\"")
+        .replace(
+            "[task.remote]\nlinks = [\"src_a.out -> relay_b.in\", \"relay_b.out -> relay_c.in\"]",
+            "",
+        );
+    assert_ne!(local_only, text);
+    let r = sys.command(serde_json::json!({"id": "apply-2", "cmd": "apply", "file": "local.toml", "text": local_only}));
+    assert!(r.iter().all(|(_, r)| r.is_ok()), "{r:?}");
+    assert!(published("b").is_empty());
+    assert_eq!(published("a"), [sys.key("port/a/src_a/out")]);
+    assert!(
+        sys.report("c").unwrap()["routes"]["mirrored"]
+            .as_array()
+            .unwrap()
+            .is_empty()
+    );
+    sys.relay_c_fed_by(3);
+    let r = sys.command(
+        serde_json::json!({"id": "apply-3", "cmd": "apply", "file": "three.toml", "text": text}),
+    );
+    assert!(r.iter().all(|(_, r)| r.is_ok()), "{r:?}");
+    let new_revision = rev(&r[0].1);
+    assert_eq!(published("b"), [sys.key("port/b/relay_b/out")]);
+    let back =
+        sys.command(serde_json::json!({"id": "switch-2b", "cmd": "switch", "task": "remote"}));
+    assert!(back.iter().all(|(_, r)| r.is_ok()), "{back:?}");
+    sys.relay_c_fed_by(1);
+
     // 6. Kill b outright: a and c keep running and report it lost; b's modules go with it.
     let b_pids: Vec<u64> = sys.report("b").unwrap()["modules"]
         .as_array()
@@ -533,4 +564,58 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
         sys.command(serde_json::json!({"id": "switch-4", "cmd": "switch", "task": "remote"}));
     assert_eq!(back.len(), 3);
     sys.relay_c_fed_by(1);
+}
+
+#[test]
+fn embedded_default_routes_between_dnms_of_one_process() {
+    // All three DNMs in one `dnm up`, as the README's main command runs them: crossing links
+    // go through the process's one Zenoh session, and one SIGTERM stops every DNM.
+    let name = format!("zl{}one", std::process::id());
+    let run_dir = std::env::temp_dir().join(format!("dnm-test-{name}"));
+    std::fs::create_dir_all(&run_dir).unwrap();
+    let netlist = run_dir.join("three.toml");
+    std::fs::write(&netlist, NETLIST.replace("SYSTEM", &name)).unwrap();
+    let port = free_port();
+    let mut up = Proc::spawn(
+        &run_dir,
+        &[
+            "--no-multicast".into(),
+            "--listen".into(),
+            endpoint(port),
+            "up".into(),
+            netlist.display().to_string(),
+        ],
+    );
+    let sys = System {
+        client: client(port),
+        name,
+        netlist,
+        run_dir: run_dir.clone(),
+        ports: [port; 3],
+        router: Proc(None),
+        dnms: Vec::new(),
+    };
+    for d in ["a", "b", "c"] {
+        sys.eventually_alive(d);
+    }
+    sys.relay_c_fed_by(1);
+    let switched = sys.command(serde_json::json!({"id": "s1", "cmd": "switch", "task": "local"}));
+    assert_eq!(switched.len(), 3);
+    sys.relay_c_fed_by(3);
+    let pids: Vec<u64> = ["a", "b", "c"]
+        .iter()
+        .flat_map(|d| {
+            sys.report(d).unwrap()["modules"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|m| m["pid"].as_u64().unwrap())
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    up.stop();
+    assert!(
+        pids.iter().all(|p| !pid_alive(*p)),
+        "modules outlived their DNMs"
+    );
 }

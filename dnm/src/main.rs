@@ -403,6 +403,28 @@ fn print_dnm(d: &DnmReport) {
             m.memory.map_or(0, |m| m.private_kib())
         );
     }
+    if !d.peers.is_empty() {
+        let peers: Vec<String> = d
+            .peers
+            .iter()
+            .map(|p| match p.for_ms {
+                Some(ms) => format!("{} {} for {:.1} s", p.dnm, p.state, ms as f64 / 1000.0),
+                None => format!("{} {}", p.dnm, p.state),
+            })
+            .collect();
+        println!("  peers: {}", peers.join(", "));
+    }
+    for (dir, routes) in [
+        ("publishes", &d.routes.published),
+        ("mirrors", &d.routes.mirrored),
+    ] {
+        for r in routes {
+            println!(
+                "  {dir} {}: {} messages, {} bytes, {} dropped",
+                r.key, r.messages, r.bytes, r.dropped
+            );
+        }
+    }
 }
 
 /// Parses `key=value` into a TOML value (number, boolean, else string).

@@ -172,11 +172,14 @@ impl Mirror {
     }
 }
 
+/// A sample's header and a copy of its bytes.
+pub(crate) type LastSample = (PortHeader, Vec<u8>);
+
 /// The last sample of an output, kept for queries.
 struct Monitor {
     subscriber: Subscriber<Svc, [u8], PortHeader>,
     message: MessageType,
-    last: Option<(PortHeader, Vec<u8>)>,
+    last: Option<LastSample>,
 }
 
 impl Monitor {
@@ -592,7 +595,7 @@ impl Net {
     pub(crate) fn last_values(
         &mut self,
         query: &zenoh::key_expr::KeyExpr<'_>,
-    ) -> Vec<(String, &MessageType, Option<&(PortHeader, Vec<u8>)>)> {
+    ) -> Vec<(String, &MessageType, Option<&LastSample>)> {
         let (system, dnm) = (&self.system, &self.dnm);
         self.monitors
             .iter_mut()

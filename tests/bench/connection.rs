@@ -10,16 +10,18 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
 
-use std::process::{Child, Command, Stdio};
+mod common;
+
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
+
+use common::{human, latencies, percentiles, raw_node, unique, up};
 
 use dnm::admin::{Request, request};
 use dnm_module::event_service;
 use dnm_module::msg::Tick;
 use dnm_module::port_service;
-use dnm_module::protocol::{
-    PortHeader, dnm_config, dnm_prefix, monotonic_ns, output_event, output_service,
-};
+use dnm_module::protocol::{PortHeader, monotonic_ns};
 use dnm_netlist::Payload;
 use iceoryx2::prelude::*;
 
@@ -58,34 +60,8 @@ fn main() {
     switch_and_memory();
 }
 
-fn human(size: usize) -> String {
-    match size {
-        s if s >= 1 << 20 => format!("{} MiB", s >> 20),
-        s if s >= 1024 => format!("{} KiB", s >> 10),
-        s => format!("{s} B"),
-    }
-}
-
-fn percentiles(mut v: Vec<u64>) -> (f64, f64) {
-    v.sort_unstable();
-    let p = |q: f64| v[((v.len() - 1) as f64 * q) as usize] as f64 / 1000.0;
-    (p(0.5), p(0.99))
-}
-
-fn unique(tag: &str) -> String {
-    format!("b{}{tag}", std::process::id())
-}
-
 // ------------------------------------------------------------------------------------------
 // Raw iceoryx2: a publisher process and a subscriber process, no DNM.
-
-fn raw_node(prefix: &str) -> Node<ipc::Service> {
-    let config = dnm_config(prefix).unwrap();
-    NodeBuilder::new()
-        .config(&config)
-        .create::<ipc::Service>()
-        .unwrap()
-}
 
 fn raw_pub(prefix: &str, size: usize) {
     let node = raw_node(prefix);
@@ -173,50 +149,6 @@ fn raw_latency(size: usize) -> (f64, f64) {
 // ------------------------------------------------------------------------------------------
 // Through a DNM: blob_source module -> latency module, hosted by `dnm up`.
 
-struct Up {
-    child: Child,
-    dir: std::path::PathBuf,
-}
-
-impl Drop for Up {
-    fn drop(&mut self) {
-        // SAFETY: kill(2) on our own child.
-        unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) };
-        let _ = self.child.wait();
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
-}
-
-fn up(system: &str, netlist: &str) -> Up {
-    let dir = std::env::temp_dir().join(format!("dnm-bench-{system}"));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join("netlist.toml");
-    std::fs::write(&path, netlist).unwrap();
-    let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
-        .arg("up")
-        .arg(&path)
-        .env("DNM_MODULE_HOST", env!("CARGO_BIN_EXE_dnm-module-host"))
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(30);
-    loop {
-        if let Ok(r) = request(system, &Request::Status)
-            && r.dnms.iter().all(|d| {
-                d.modules
-                    .iter()
-                    .all(|m| m.state == dnm::ModuleRunState::Running)
-            })
-        {
-            break;
-        }
-        assert!(Instant::now() < deadline, "system {system} did not come up");
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    Up { child, dir }
-}
-
 fn dnm_latency(size: usize) -> (f64, f64) {
     let system = unique(&format!("lat{size}"));
     let netlist = format!(
@@ -234,40 +166,8 @@ kind = "latency"
 links = ["src.out -> lat.in"]
 "#
     );
-    let _up = up(&system, &netlist);
-    let node = raw_node(&dnm_prefix(&system, "local"));
-    let payload = Payload::Fixed {
-        size_bytes: size_of::<Tick>(),
-    };
-    let sub = port_service(&node, &output_service("lat", "latency_ns"), &payload)
-        .unwrap()
-        .subscriber_builder()
-        .create()
-        .unwrap();
-    let listener = event_service(&node, &output_event("lat", "latency_ns"))
-        .unwrap()
-        .listener_builder()
-        .create()
-        .unwrap();
-    let waitset = WaitSetBuilder::new().create::<ipc::Service>().unwrap();
-    let _g = waitset.attach_notification(&listener).unwrap();
-    let mut lat = Vec::with_capacity(SAMPLES);
-    let mut skipped = 0;
-    while lat.len() < SAMPLES {
-        waitset
-            .wait_and_process_once(|_| CallbackProgression::Continue)
-            .unwrap();
-        listener.try_wait(|_| ()).unwrap();
-        while let Some(s) = sub.receive().unwrap() {
-            let t: Tick = bytemuck::pod_read_unaligned(s.payload());
-            // The first samples include start-up; the raw run starts after its subscriber too.
-            if skipped < 50 {
-                skipped += 1;
-                continue;
-            }
-            lat.push(t.seq);
-        }
-    }
+    let _up = up(&system, &netlist, &[], None, 1);
+    let lat = latencies(&system, "local", "lat", SAMPLES, 50);
     percentiles(lat)
 }
 
@@ -295,7 +195,7 @@ fn switch_and_memory() {
         a.join(", "),
         b.join(", ")
     );
-    let _up = up(&system, &netlist);
+    let _up = up(&system, &netlist, &[], None, 1);
 
     let mut virt = Vec::new();
     for i in 0..400 {

@@ -1,0 +1,137 @@
+//! What the benchmarks share: bringing systems up with `dnm up`, reading the `latency` module's
+//! measurements from a DNM's shared memory, and percentiles.
+
+#![allow(dead_code)] // each benchmark uses its own subset
+
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use dnm::admin::{Request, request};
+use dnm_module::msg::Tick;
+use dnm_module::protocol::{dnm_config, dnm_prefix, output_event, output_service};
+use dnm_module::{event_service, port_service};
+use dnm_netlist::Payload;
+use iceoryx2::prelude::*;
+
+pub fn human(size: usize) -> String {
+    match size {
+        s if s >= 1 << 20 => format!("{} MiB", s >> 20),
+        s if s >= 1024 => format!("{} KiB", s >> 10),
+        s => format!("{s} B"),
+    }
+}
+
+/// (p50, p99) in µs of nanosecond samples.
+pub fn percentiles(mut v: Vec<u64>) -> (f64, f64) {
+    v.sort_unstable();
+    let p = |q: f64| v[((v.len() - 1) as f64 * q) as usize] as f64 / 1000.0;
+    (p(0.5), p(0.99))
+}
+
+/// A name unique to this run.
+pub fn unique(tag: &str) -> String {
+    format!("b{}{tag}", std::process::id())
+}
+
+pub fn raw_node(prefix: &str) -> Node<ipc::Service> {
+    let config = dnm_config(prefix).unwrap();
+    NodeBuilder::new()
+        .config(&config)
+        .create::<ipc::Service>()
+        .unwrap()
+}
+
+/// A `dnm up` process, stopped with SIGTERM when dropped.
+pub struct Up {
+    child: Child,
+    dir: std::path::PathBuf,
+}
+
+impl Drop for Up {
+    fn drop(&mut self) {
+        // SAFETY: kill(2) on our own child.
+        unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) };
+        let _ = self.child.wait();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+impl Up {
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+}
+
+/// Runs `dnm [zenoh args] up NETLIST [--dnm D]` and waits until `dnms` DNMs of the system on
+/// this machine report every module running.
+pub fn up(system: &str, netlist: &str, args: &[String], dnm: Option<&str>, dnms: usize) -> Up {
+    let dir = std::env::temp_dir().join(format!("dnm-bench-{system}-{}", dnm.unwrap_or("all")));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("netlist.toml");
+    std::fs::write(&path, netlist).unwrap();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_dnm"));
+    cmd.args(args).arg("up").arg(&path);
+    if let Some(d) = dnm {
+        cmd.args(["--dnm", d]);
+    }
+    let child = cmd
+        .env("DNM_MODULE_HOST", env!("CARGO_BIN_EXE_dnm-module-host"))
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        if let Ok(r) = request(system, &Request::Status)
+            && r.dnms.len() >= dnms
+            && r.dnms.iter().all(|d| {
+                d.modules
+                    .iter()
+                    .all(|m| m.state == dnm::ModuleRunState::Running)
+            })
+        {
+            break;
+        }
+        assert!(Instant::now() < deadline, "system {system} did not come up");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    Up { child, dir }
+}
+
+/// `samples` latencies (ns) measured by the `latency` module `module` on DNM `dnm`, read from
+/// that DNM's shared memory; the first `skip` are dropped (start-up).
+pub fn latencies(system: &str, dnm: &str, module: &str, samples: usize, skip: usize) -> Vec<u64> {
+    let node = raw_node(&dnm_prefix(system, dnm));
+    let payload = Payload::Fixed {
+        size_bytes: size_of::<Tick>(),
+    };
+    let sub = port_service(&node, &output_service(module, "latency_ns"), &payload)
+        .unwrap()
+        .subscriber_builder()
+        .create()
+        .unwrap();
+    let listener = event_service(&node, &output_event(module, "latency_ns"))
+        .unwrap()
+        .listener_builder()
+        .create()
+        .unwrap();
+    let waitset = WaitSetBuilder::new().create::<ipc::Service>().unwrap();
+    let _g = waitset.attach_notification(&listener).unwrap();
+    let mut lat = Vec::with_capacity(samples);
+    let mut skipped = 0;
+    while lat.len() < samples {
+        waitset
+            .wait_and_process_once(|_| CallbackProgression::Continue)
+            .unwrap();
+        listener.try_wait(|_| ()).unwrap();
+        while let Some(s) = sub.receive().unwrap() {
+            let t: Tick = bytemuck::pod_read_unaligned(s.payload());
+            if skipped < skip {
+                skipped += 1;
+                continue;
+            }
+            lat.push(t.seq);
+        }
+    }
+    lat
+}
