@@ -564,6 +564,43 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
         sys.command(serde_json::json!({"id": "switch-4", "cmd": "switch", "task": "remote"}));
     assert_eq!(back.len(), 3);
     sys.relay_c_fed_by(1);
+
+    // 8. The `dnm` command from "another machine": over Zenoh through the router.
+    let cli = |args: &[&str]| -> Value {
+        let [_, _, pr] = sys.ports;
+        let out = Command::new(DNM)
+            .args(["--no-multicast", "--connect", &endpoint(pr)])
+            .args(args)
+            .args(["--system", &sys.name, "--json"])
+            .env("DNM_RUN_DIR", sys.run_dir.join("elsewhere"))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "dnm {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let status = cli(&["status"]);
+    assert_eq!(status["dnms"].as_array().unwrap().len(), 3);
+    let added = cli(&[
+        "module", "add", "--name", "src_x", "--kind", "ticker", "--dnm", "c",
+    ]);
+    let added_revision = added["revision"].as_u64().unwrap();
+    assert_eq!(added_revision, new_revision + 1);
+    eventually("src_x runs on c", || {
+        let r = sys.report("c")?;
+        r["modules"]
+            .as_array()?
+            .iter()
+            .any(|m| m["name"] == "src_x" && m["state"] == "running")
+            .then_some(())
+    });
+    let removed = cli(&["module", "remove", "--name", "src_x"]);
+    assert_eq!(removed["revision"].as_u64().unwrap(), added_revision + 1);
+    assert_eq!(sys.report("b").unwrap()["revision"], added_revision + 1);
+    sys.relay_c_fed_by(1);
 }
 
 #[test]
