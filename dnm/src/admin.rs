@@ -205,7 +205,7 @@ pub fn run_host(
     let mut netlist = netlist;
     let mut joined = None;
     if let Some(state) = crate::net::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT) {
-        if let Some((newer, revision, task)) = adopt(&state, dnms) {
+        if let Some((newer, revision, task)) = adopt(&state, &netlist.file, dnms) {
             tracing::info!(revision, task = ?task, "joining the running system");
             netlist = newer;
             joined = Some((revision, task));
@@ -275,7 +275,7 @@ pub fn run_host(
     let hosted: Vec<String> = dnms.to_vec();
     std::thread::Builder::new()
         .name("dnm-admin".into())
-        .spawn(move || serve(&listener, &system, &hosted, &senders, netlist))
+        .spawn(move || serve(&listener, &system, &hosted, &senders))
         .context("spawning admin thread")?;
 
     for h in handles {
@@ -326,11 +326,12 @@ const JOIN_TIMEOUT: Duration = Duration::from_secs(1);
 /// valid here and still has all of them.
 fn adopt(
     state: &crate::net::NetlistState,
+    local_file: &Path,
     dnms: &[String],
 ) -> Option<(Netlist, u64, Option<String>)> {
     let text = state.text.as_ref()?;
-    let file = state.file.clone().unwrap_or_else(|| "netlist.toml".into());
-    match crate::parse_netlist(Path::new(&file), text) {
+    // Relative `exec` paths resolve against this machine's netlist file, not the sender's.
+    match crate::parse_netlist(local_file, text) {
         Ok(n) if dnms.iter().all(|d| n.dnm(d).is_some()) => {
             Some((n, state.revision, state.active_task.clone()))
         }
@@ -377,7 +378,6 @@ fn serve(
     system: &str,
     hosted: &[String],
     dnms: &[(String, SyncSender<Command>)],
-    mut netlist: Netlist,
 ) {
     let wakers = match Wakers::new(system, hosted) {
         Ok(w) => w,
@@ -395,7 +395,7 @@ fn serve(
             continue;
         }
         let response = match serde_json::from_str::<Request>(&line) {
-            Ok(req) => dispatch(req, dnms, &wakers, &mut netlist),
+            Ok(req) => dispatch(req, system, dnms, &wakers),
             Err(e) => Response::error(format!(
                 "bad request `{}`: {e}; send e.g. {{\"cmd\":\"status\"}}",
                 line.trim()
@@ -435,9 +435,9 @@ fn fan_out<T>(
 
 fn dispatch(
     req: Request,
+    system: &str,
     dnms: &[(String, SyncSender<Command>)],
     wakers: &Wakers,
-    netlist: &mut Netlist,
 ) -> Response {
     match req {
         Request::Status => match fan_out(dnms, wakers, Command::Status) {
@@ -448,18 +448,23 @@ fn dispatch(
             },
             Err(e) => Response::error(e),
         },
-        Request::Netlist => Response {
-            ok: true,
-            netlist: Some(netlist.text.clone()),
-            ..Response::default()
+        // The DNMs hold the netlist in force (it may have been applied over Zenoh).
+        Request::Netlist => match fan_out(dnms, wakers, Command::Netlist) {
+            Ok(states) => {
+                let newest = states
+                    .into_iter()
+                    .map(|(_, s)| s)
+                    .max_by_key(|s| s.revision);
+                Response {
+                    ok: true,
+                    revision: newest.as_ref().map(|s| s.revision),
+                    netlist: newest.and_then(|s| s.text),
+                    ..Response::default()
+                }
+            }
+            Err(e) => Response::error(e),
         },
         Request::Switch { task } => {
-            if !netlist.tasks.contains_key(&task) {
-                return Response::error(format!(
-                    "unknown task `{task}`; defined tasks: {}",
-                    netlist.tasks.keys().cloned().collect::<Vec<_>>().join(", ")
-                ));
-            }
             match fan_out(dnms, wakers, |r| Command::Switch(task.clone(), r)) {
                 Ok(results) => {
                     let mut switches = Vec::new();
@@ -486,10 +491,10 @@ fn dispatch(
                     return Response::error(format!("netlist refused, nothing changed:\n{e}"));
                 }
             };
-            if new.system != netlist.system {
+            if new.system != system {
                 return Response::error(format!(
                     "netlist is for system `{}`, this is `{}`; nothing changed",
-                    new.system, netlist.system
+                    new.system, system
                 ));
             }
             if let Some((missing, _)) = dnms.iter().find(|(d, _)| new.dnm(d).is_none()) {
@@ -507,7 +512,6 @@ fn dispatch(
                             Err(e) => return Response::error(format!("DNM `{name}`: {e}")),
                         }
                     }
-                    *netlist = new;
                     Response {
                         ok: true,
                         revision,

@@ -159,6 +159,7 @@ pub enum Command {
     Status(SyncSender<DnmReport>),
     Switch(String, SyncSender<Result<SwitchRecord, String>>),
     Apply(Box<Netlist>, SyncSender<Result<u64, String>>),
+    Netlist(SyncSender<crate::net::NetlistState>),
 }
 
 struct ModuleSlot {
@@ -376,9 +377,42 @@ impl Dnm {
             }
         }
         // Remote outputs any task links here are mirrored into this namespace.
-        if let Some(net) = self.net.as_mut() {
-            net.prepare_ingress(netlist).map_err(DnmError::Zenoh)?;
+        let local_outputs: std::collections::BTreeSet<String> = self
+            .modules
+            .values()
+            .flat_map(|m| {
+                m.spec
+                    .outputs
+                    .iter()
+                    .map(|p| output_service(&m.decl.name, &p.name))
+            })
+            .collect();
+        let prepared = match self.net.as_mut() {
+            Some(net) => net
+                .prepare_ingress(netlist, &local_outputs)
+                .map_err(DnmError::Zenoh)?,
+            None => Vec::new(),
+        };
+        let result = self.apply_prepared(netlist, revision, removed, replaced, added, events);
+        // Mirrors are dropped only if the revision was not committed (a replacement failing
+        // after the commit leaves the new revision, and its routes, in force).
+        if result.is_err() && self.revision != revision {
+            if let Some(net) = self.net.as_mut() {
+                net.abort(&prepared);
+            }
         }
+        result
+    }
+
+    fn apply_prepared(
+        &mut self,
+        netlist: &Netlist,
+        revision: u64,
+        removed: Vec<String>,
+        replaced: Vec<String>,
+        added: Vec<&str>,
+        events: &Listener<Svc>,
+    ) -> Result<u64, DnmError> {
         // 2. New modules: control services, then the process.
         let mut started = Vec::new();
         for name in &added {
@@ -424,9 +458,6 @@ impl Dnm {
         self.tasks = tasks;
         self.active = task;
         self.netlist = Some(netlist.clone());
-        if let Some(net) = self.net.as_mut() {
-            net.commit(netlist, &self.node);
-        }
         // 5. Removals and replacements.
         for name in removed {
             self.stop_module(&name);
@@ -439,6 +470,10 @@ impl Dnm {
             if let Some(slot) = self.modules.get(&name) {
                 post_plan(slot, &module_plan(netlist, &name, revision))?;
             }
+        }
+        // 6. Routes to and from other DNMs follow the committed revision.
+        if let Some(net) = self.net.as_mut() {
+            net.commit(netlist, &self.node);
         }
         tracing::info!(dnm = %self.name, revision, task = ?self.active, "netlist applied");
         Ok(revision)
@@ -1063,6 +1098,9 @@ impl Dnm {
             }
             Command::Apply(netlist, reply) => {
                 let _ = reply.send(self.apply(&netlist, events).map_err(|e| e.to_string()));
+            }
+            Command::Netlist(reply) => {
+                let _ = reply.send(self.netlist_state());
             }
         }
     }

@@ -127,6 +127,7 @@ struct EgressRoute {
 /// A remote output mirrored into local shared memory.
 struct Ingress {
     key: String,
+    message: MessageType,
     counters: Arc<Counters>,
     _subscriber: ZSubscriber<()>,
 }
@@ -310,18 +311,26 @@ impl Net {
             .create()
             .map_err(dbg("egress notifier"))?;
         let (egress_tx, egress_rx) = mpsc::channel();
+        let (ready_tx, ready_rx) = mpsc::sync_channel(1);
         let egress_thread = {
             let session = session.clone();
             let prefix = prefix.to_string();
             std::thread::Builder::new()
                 .name(format!("egress-{dnm}"))
                 .spawn(move || {
-                    if let Err(e) = egress_loop(&session, &prefix, &egress_rx) {
+                    if let Err(e) = egress_loop(&session, &prefix, &egress_rx, &ready_tx) {
                         tracing::error!("egress stopped: {e}");
+                        let _ = ready_tx.try_send(Err(e));
                     }
                 })
                 .map_err(err("spawning egress thread"))?
         };
+        // The thread's control listener must exist before anyone notifies it.
+        match ready_rx.recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(e),
+            Err(_) => return Err("egress thread stopped while starting".into()),
+        }
         drop(tx);
         Ok(Self {
             session,
@@ -408,16 +417,39 @@ impl Net {
     }
 
     /// Before a revision is committed: every remote output any task links to a local module is
-    /// mirrored into local shared memory, so plans can reference it.
-    pub(crate) fn prepare_ingress(&mut self, netlist: &Netlist) -> Result<(), String> {
+    /// mirrored into local shared memory, so plans can reference it. Only new mirrors are made
+    /// here (returned, so a failed apply can drop them with [`Net::abort`]); a mirror whose
+    /// key or type changed, or one replacing an output of a module still running here, is
+    /// made at [`Net::commit`], when the old revision is gone.
+    pub(crate) fn prepare_ingress(
+        &mut self,
+        netlist: &Netlist,
+        local_outputs: &BTreeSet<String>,
+    ) -> Result<Vec<String>, String> {
+        let mut added = Vec::new();
         for (service, key, message) in self.wanted_ingress(netlist) {
-            if self.ingress.get(&service).is_some_and(|i| i.key == key) {
+            if self.ingress.contains_key(&service) || local_outputs.contains(&service) {
                 continue;
             }
-            let ingress = self.mirror(&service, &key, &message)?;
-            self.ingress.insert(service, ingress);
+            match self.mirror(&service, &key, &message) {
+                Ok(ingress) => {
+                    self.ingress.insert(service.clone(), ingress);
+                    added.push(service);
+                }
+                Err(e) => {
+                    self.abort(&added);
+                    return Err(e);
+                }
+            }
         }
-        Ok(())
+        Ok(added)
+    }
+
+    /// Drops mirrors a failed apply prepared.
+    pub(crate) fn abort(&mut self, prepared: &[String]) {
+        for s in prepared {
+            self.ingress.remove(s);
+        }
     }
 
     fn mirror(&self, service: &str, key: &str, message: &MessageType) -> Result<Ingress, String> {
@@ -455,6 +487,7 @@ impl Net {
         tracing::info!(dnm = %self.dnm, key, "mirroring remote output");
         Ok(Ingress {
             key: key.to_string(),
+            message: message.clone(),
             counters,
             _subscriber: subscriber,
         })
@@ -463,16 +496,33 @@ impl Net {
     /// After a revision is committed: publish exactly the outputs remote inputs need, drop
     /// mirrors no task uses any more, and keep a last-value monitor on every local output.
     pub(crate) fn commit(&mut self, netlist: &Netlist, node: &Node<Svc>) {
-        let wanted: BTreeSet<String> = self
-            .wanted_ingress(netlist)
-            .into_iter()
-            .map(|(s, _, _)| s)
-            .collect();
-        self.ingress.retain(|s, _| wanted.contains(s));
+        let wanted = self.wanted_ingress(netlist);
+        let names: BTreeSet<&String> = wanted.iter().map(|(s, _, _)| s).collect();
+        self.ingress.retain(|s, _| names.contains(s));
+        for (service, key, message) in &wanted {
+            let current = self
+                .ingress
+                .get(service)
+                .is_some_and(|i| i.key == *key && i.message == *message);
+            if current {
+                continue;
+            }
+            // Drop the old mirror first: one publisher per mirror port at a time.
+            self.ingress.remove(service);
+            match self.mirror(service, key, message) {
+                Ok(i) => {
+                    self.ingress.insert(service.clone(), i);
+                }
+                Err(e) => tracing::error!(key = %key, "cannot mirror: {e}"),
+            }
+        }
 
         let egress = self.wanted_egress(netlist);
         let same = egress.len() == self.egress.len()
-            && egress.iter().zip(&self.egress).all(|(a, b)| a.key == b.key);
+            && egress
+                .iter()
+                .zip(&self.egress)
+                .all(|(a, b)| a.key == b.key && a.message == b.message);
         if !same {
             // Keep the counters of routes that stay.
             let egress: Vec<EgressRoute> = egress
@@ -666,6 +716,8 @@ impl OpenRoute {
             .express(true)
             .wait()
             .map_err(err("declaring publisher"))?;
+        // What is already there was published before (or predates the route): skip it.
+        while let Ok(Some(_)) = subscriber.receive() {}
         Ok(Self {
             subscriber,
             listener,
@@ -701,6 +753,7 @@ fn egress_loop(
     session: &zenoh::Session,
     prefix: &str,
     routes: &Receiver<Vec<EgressRoute>>,
+    ready: &mpsc::SyncSender<Result<(), String>>,
 ) -> Result<(), String> {
     let config = dnm_config(prefix)?;
     let node = NodeBuilder::new()
@@ -712,7 +765,19 @@ fn egress_loop(
         .listener_builder()
         .create()
         .map_err(dbg("egress listener"))?;
+    let _ = ready.send(Ok(()));
     let mut wanted: Vec<EgressRoute> = Vec::new();
+    // The newest route set queued, or `None` when the DNM dropped its sender.
+    let newest = |current: Option<Vec<EgressRoute>>| -> Option<Option<Vec<EgressRoute>>> {
+        let mut latest = current;
+        loop {
+            match routes.try_recv() {
+                Ok(set) => latest = Some(set),
+                Err(mpsc::TryRecvError::Empty) => return Some(latest),
+                Err(mpsc::TryRecvError::Disconnected) => return None,
+            }
+        }
+    };
     loop {
         let open: Vec<OpenRoute> = wanted
             .iter()
@@ -740,6 +805,15 @@ fn egress_loop(
                     .map_err(dbg("attach"))?,
             );
         }
+        // Sets queued before the control listener was attached count too.
+        match newest(None) {
+            None => return Ok(()),
+            Some(Some(set)) => {
+                wanted = set;
+                continue;
+            }
+            Some(None) => {}
+        }
         loop {
             waitset
                 .wait_and_process_once(|_| CallbackProgression::Continue)
@@ -748,13 +822,13 @@ fn egress_loop(
                 o.forward();
             }
             let _ = control.try_wait(|_| ());
-            match routes.try_recv() {
-                Ok(new) => {
-                    wanted = new;
+            match newest(None) {
+                None => return Ok(()),
+                Some(Some(set)) => {
+                    wanted = set;
                     break;
                 }
-                Err(mpsc::TryRecvError::Empty) => {}
-                Err(mpsc::TryRecvError::Disconnected) => return Ok(()),
+                Some(None) => {}
             }
         }
     }

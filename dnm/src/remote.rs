@@ -136,12 +136,19 @@ fn command(
             while let Ok(r) = replies.recv() {
                 let bytes = match r.result() {
                     Ok(s) => s.payload().to_bytes().into_owned(),
-                    Err(e) => e.payload().to_bytes().into_owned(),
+                    // A DNM's error replies are JSON; others (Zenoh's own timeout) mean no
+                    // answer yet, so the command is sent again.
+                    Err(e) if e.encoding() == &zenoh::bytes::Encoding::APPLICATION_JSON => {
+                        e.payload().to_bytes().into_owned()
+                    }
+                    Err(_) => continue,
                 };
                 let answer = serde_json::from_slice::<Response>(&bytes).unwrap_or_else(|e| {
                     Response::error(format!("DNM `{dnm}` answered something unreadable: {e}"))
                 });
-                answers.insert(dnm.clone(), answer);
+                if !answers.get(dnm).is_some_and(|a| a.ok) {
+                    answers.insert(dnm.clone(), answer);
+                }
             }
         }
     }
