@@ -195,6 +195,70 @@ pub fn run_host(
     options: DnmOptions,
     zenoh: zenoh::Config,
 ) -> anyhow::Result<()> {
+    Host::start(netlist, dnms, options, zenoh)?.wait();
+    Ok(())
+}
+
+/// A machine's DNMs running in this process (see [`run_host`]), for programs that drive them
+/// from the same process, such as `dnm demo`.
+pub struct Host {
+    session: zenoh::Session,
+    system: String,
+    handles: Vec<DnmHandle>,
+    socket: PathBuf,
+}
+
+impl std::fmt::Debug for Host {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Host")
+            .field("system", &self.system)
+            .field("socket", &self.socket)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Host {
+    /// The process's Zenoh session (the DNMs' own): queries and commands sent on it reach the
+    /// hosted DNMs and every other DNM of the system.
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+
+    pub fn system(&self) -> &str {
+        &self.system
+    }
+
+    /// Waits until the DNMs stop (SIGINT/SIGTERM or [`Host::stop`]).
+    pub fn wait(self) {
+        for h in self.handles {
+            let _ = h.thread.join();
+        }
+        let _ = std::fs::remove_file(&self.socket);
+    }
+
+    /// Stops every DNM of the process (their modules first) and waits for them.
+    pub fn stop(self) {
+        crate::dnm::request_stop();
+        self.wait();
+    }
+
+    /// Starts DNMs `dnms` of `netlist` in this process, one thread each, with the admin socket.
+    pub fn start(
+        netlist: Netlist,
+        dnms: &[String],
+        options: DnmOptions,
+        zenoh: zenoh::Config,
+    ) -> anyhow::Result<Host> {
+        start(netlist, dnms, options, zenoh)
+    }
+}
+
+fn start(
+    netlist: Netlist,
+    dnms: &[String],
+    options: DnmOptions,
+    zenoh: zenoh::Config,
+) -> anyhow::Result<Host> {
     use anyhow::Context;
     use zenoh::Wait;
     let session = zenoh::open(zenoh)
@@ -277,12 +341,12 @@ pub fn run_host(
         .name("dnm-admin".into())
         .spawn(move || serve(&listener, &system, &hosted, &senders))
         .context("spawning admin thread")?;
-
-    for h in handles {
-        let _ = h.thread.join();
-    }
-    let _ = std::fs::remove_file(&path);
-    Ok(())
+    Ok(Host {
+        session,
+        system: netlist.system.clone(),
+        handles,
+        socket: path,
+    })
 }
 
 fn run_dnm(

@@ -72,6 +72,11 @@ fn ipc<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> DnmError {
 /// Set when this process was asked to terminate; every DNM loop of the process stops.
 static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
+/// Asks every DNM loop of this process to stop (as SIGTERM does).
+pub(crate) fn request_stop() {
+    STOP.store(true, std::sync::atomic::Ordering::Relaxed);
+}
+
 /// How a DNM runs its modules.
 #[derive(Debug, Clone)]
 pub struct DnmOptions {
@@ -119,6 +124,9 @@ pub struct ModuleReport {
 /// A task switch, as performed.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SwitchRecord {
+    /// The DNM that switched.
+    #[serde(default)]
+    pub dnm: String,
     pub revision: u64,
     pub from: Option<String>,
     pub to: String,
@@ -495,6 +503,7 @@ impl Dnm {
             .update_with_copy(task_word(self.revision, slot as u16));
         let duration_ns = start.elapsed().as_nanos() as u64;
         let record = SwitchRecord {
+            dnm: self.name.clone(),
             revision: self.revision,
             from: self.active.replace(task.to_string()),
             to: task.to_string(),

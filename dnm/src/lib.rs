@@ -98,12 +98,26 @@ pub fn crossing_links(netlist: &Netlist) -> Vec<(dnm_netlist::Link, String, Stri
         .collect()
 }
 
-/// Loads and validates a netlist against the standard kinds and the executables it declares.
+/// Every built-in kind: the standard ones and Beetle-One's. `dnm-module-host` runs them.
+pub fn registry() -> dnm_module::Registry {
+    dnm_rover::register(dnm_modules::registry())
+}
+
+/// The built-in kinds as a netlist catalog.
+pub fn catalog() -> dnm_netlist::Catalog {
+    let mut c = dnm_netlist::Catalog::new();
+    for spec in registry().specs() {
+        c.insert(spec, dnm_netlist::KindSource::BuiltIn);
+    }
+    c
+}
+
+/// Loads and validates a netlist against the built-in kinds and the executables it declares.
 pub fn load_netlist(path: &Path) -> Result<Netlist, NetlistError> {
-    Netlist::load(path, &dnm_modules::catalog(), &mut describe_exec)
+    Netlist::load(path, &catalog(), &mut describe_exec)
 }
 
 /// Validates netlist text (e.g. sent by an operator) the same way.
 pub fn parse_netlist(path: &Path, text: &str) -> Result<Netlist, NetlistError> {
-    Netlist::parse(path, text, &dnm_modules::catalog(), &mut describe_exec)
+    Netlist::parse(path, text, &catalog(), &mut describe_exec)
 }

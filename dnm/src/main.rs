@@ -6,6 +6,8 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
+
+mod demo;
 use dnm::admin::{Request, Response, request};
 use dnm::{DnmOptions, DnmReport};
 
@@ -119,6 +121,22 @@ enum Cmd {
     Module {
         #[command(subcommand)]
         op: ModuleOp,
+    },
+    /// Run the simulated Beetle-One rover on this machine and drive a scripted mission:
+    /// joystick, autopilot to waypoints, a module replaced live, joystick again; then a summary.
+    Demo {
+        /// Netlist to run (default: configs/beetle.toml, or the built-in copy).
+        #[arg(long)]
+        netlist: Option<PathBuf>,
+        /// Keep the system running after the mission, until Ctrl-C.
+        #[arg(long)]
+        keep_running: bool,
+        /// Seconds of joystick driving before and after the autopilot.
+        #[arg(long, default_value_t = 8.0)]
+        teleop_seconds: f64,
+        /// Print only the summary, as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Run a Zenoh router (joins the rover's and the ground's networks), until Ctrl-C.
     Router,
@@ -250,12 +268,26 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             })
         }
         Cmd::Module { op } => module_op(z, op),
+        Cmd::Demo {
+            netlist,
+            keep_running,
+            teleop_seconds,
+            json,
+        } => demo::run(
+            &z.options(),
+            &demo::DemoArgs {
+                netlist,
+                keep_running,
+                json,
+                teleop_s: teleop_seconds,
+            },
+        ),
         Cmd::Router => {
             dnm_router::run_router(&z.options())?;
             Ok(ExitCode::SUCCESS)
         }
         Cmd::Kinds { json } => {
-            let specs = dnm_modules::registry().specs();
+            let specs = dnm::registry().specs();
             if json {
                 println!("{}", serde_json::to_string_pretty(&specs)?);
             } else {

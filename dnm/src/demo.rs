@@ -1,0 +1,520 @@
+//! `dnm demo`: the whole simulated Beetle-One on this machine, and a scripted mission driven
+//! the way an operator would drive it, over Zenoh: joystick driving, a switch to the autopilot
+//! to reach the waypoints, a module replaced while the rover runs, a switch back, then a
+//! summary.
+
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use bytemuck::Pod;
+use dnm::admin::{Host, Request, Response};
+use dnm::{DnmOptions, SwitchRecord};
+use dnm_netlist::Netlist;
+use dnm_rover::msgs::{BatteryState, Odometry, Progress, Range, WatchdogState, WorldState};
+use serde::Serialize;
+use zenoh::Wait;
+
+/// The Beetle-One netlist, built in so the demo runs from any folder.
+const BEETLE: &str = include_str!("../../configs/beetle.toml");
+
+/// How far odometry may be from the simulator's ground truth at the end: 0.1 m plus 1 % of
+/// the distance driven (encoder quantisation, sampling, and the lag between the two readings).
+fn tolerance(distance: f64) -> f64 {
+    0.1 + 0.01 * distance
+}
+
+#[derive(Debug, Clone)]
+pub struct DemoArgs {
+    pub netlist: Option<PathBuf>,
+    pub keep_running: bool,
+    pub json: bool,
+    /// Seconds of joystick driving before and after the autopilot.
+    pub teleop_s: f64,
+}
+
+/// Reads last values of ports over Zenoh, as any operator tool would.
+struct Probe<'a> {
+    session: &'a zenoh::Session,
+    netlist: &'a Netlist,
+}
+
+impl Probe<'_> {
+    fn get<T: Pod>(&self, module: &str, port: &str) -> Option<T> {
+        let dnm = &self.netlist.module(module)?.dnm;
+        let key = dnm::keys::port(&self.netlist.system, dnm, module, port);
+        let replies = self
+            .session
+            .get(key)
+            .timeout(Duration::from_secs(2))
+            .wait()
+            .ok()?;
+        let reply = replies.recv().ok()?;
+        let sample = reply.result().ok()?;
+        let bytes = sample.payload().to_bytes();
+        (bytes.len() == size_of::<T>()).then(|| bytemuck::pod_read_unaligned(&bytes))
+    }
+
+    fn request(&self, req: &Request) -> anyhow::Result<Response> {
+        let r = dnm::remote::request(
+            self.session,
+            &self.netlist.system,
+            req,
+            Duration::from_secs(10),
+        )
+        .map_err(anyhow::Error::msg)?;
+        if !r.ok {
+            bail!("{}", r.error.unwrap_or_default());
+        }
+        Ok(r)
+    }
+}
+
+/// What the status line shows.
+#[derive(Debug, Default, Clone, Copy)]
+struct Snapshot {
+    truth: WorldState,
+    odom: Odometry,
+    battery: BatteryState,
+    progress: Progress,
+    range: Range,
+    watchdog: WatchdogState,
+}
+
+impl Snapshot {
+    fn read(p: &Probe<'_>) -> Option<Snapshot> {
+        Some(Snapshot {
+            truth: p.get("world", "state")?,
+            odom: p.get("odometry", "odom")?,
+            battery: p.get("battery", "state").unwrap_or_default(),
+            progress: p.get("autopilot", "progress").unwrap_or_default(),
+            range: p.get("range", "range").unwrap_or_default(),
+            watchdog: p.get("watchdog", "state").unwrap_or_default(),
+        })
+    }
+
+    fn pose_error(&self) -> (f64, f64) {
+        let d = (self.truth.x - self.odom.x).hypot(self.truth.y - self.odom.y);
+        let yaw = dnm_rover::kinematics::wrap(self.truth.yaw - self.odom.yaw);
+        (d, yaw.to_degrees().abs())
+    }
+}
+
+/// A switch as the mission saw it: the slowest DNM's switch time and every DNM's.
+#[derive(Debug, Serialize)]
+struct SwitchSummary {
+    from: Option<String>,
+    to: String,
+    at_s: f64,
+    revision: u64,
+    slowest_ns: u64,
+    per_dnm_ns: Vec<(String, u64)>,
+}
+
+#[derive(Debug, Serialize)]
+struct Summary {
+    ok: bool,
+    duration_s: f64,
+    distance_m: f64,
+    odometry_distance_m: f64,
+    waypoints_reached: u64,
+    waypoints_total: u64,
+    final_pose_truth: [f64; 3],
+    final_pose_odometry: [f64; 3],
+    final_position_error_m: f64,
+    final_heading_error_deg: f64,
+    position_tolerance_m: f64,
+    at_rest_position_error_m: f64,
+    switches: Vec<SwitchSummary>,
+    replaced: String,
+    revision: u64,
+    module_messages: u64,
+    zenoh_messages: u64,
+    zenoh_bytes: u64,
+    watchdog_trips: u64,
+    battery_charge: f64,
+    problems: Vec<String>,
+}
+
+struct Mission<'a> {
+    probe: Probe<'a>,
+    start: Instant,
+    json: bool,
+    tty: bool,
+    task: String,
+    last_line: Instant,
+    switches: Vec<SwitchSummary>,
+}
+
+impl Mission<'_> {
+    fn t(&self) -> f64 {
+        self.start.elapsed().as_secs_f64()
+    }
+
+    fn say(&mut self, msg: &str) {
+        if !self.json {
+            if self.tty {
+                print!("\r\x1b[2K");
+            }
+            println!("[{:6.1} s] {msg}", self.t());
+        }
+    }
+
+    /// The live one-line status.
+    fn status(&mut self, s: &Snapshot) {
+        if self.json {
+            return;
+        }
+        let every = if self.tty {
+            Duration::from_millis(250)
+        } else {
+            Duration::from_secs(2)
+        };
+        if self.last_line.elapsed() < every {
+            return;
+        }
+        self.last_line = Instant::now();
+        let (err, _) = s.pose_error();
+        let line = format!(
+            "[{:6.1} s] {:<6} x {:6.2} y {:6.2} yaw {:5.0}° v {:4.2} m/s | odometry error {:4.2} m | battery {:4.1} V {:3.0}% | waypoints {}/{} | range {:3.1} m{}",
+            self.t(),
+            self.task,
+            s.truth.x,
+            s.truth.y,
+            s.truth.yaw.to_degrees(),
+            s.truth.linear,
+            err,
+            s.battery.voltage,
+            s.battery.charge * 100.0,
+            s.progress.reached,
+            s.progress.total,
+            s.range.range,
+            if s.watchdog.tripped == 1 {
+                " | WATCHDOG STOP"
+            } else {
+                ""
+            }
+        );
+        if self.tty {
+            print!("\r\x1b[2K{line}");
+            let _ = std::io::stdout().flush();
+        } else {
+            println!("{line}");
+        }
+    }
+
+    /// Watches the rover for `seconds`, or until `done` says so; returns the last snapshot.
+    fn watch(&mut self, seconds: f64, mut done: impl FnMut(&Snapshot) -> bool) -> Option<Snapshot> {
+        let until = Instant::now() + Duration::from_secs_f64(seconds);
+        let mut last = None;
+        while Instant::now() < until {
+            if let Some(s) = Snapshot::read(&self.probe) {
+                self.status(&s);
+                last = Some(s);
+                if done(&s) {
+                    break;
+                }
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        last
+    }
+
+    fn switch(&mut self, task: &str) -> anyhow::Result<()> {
+        let r = self.probe.request(&Request::Switch { task: task.into() })?;
+        let records: &[SwitchRecord] = &r.switches;
+        let slowest = records.iter().map(|s| s.duration_ns).max().unwrap_or(0);
+        let summary = SwitchSummary {
+            from: records.first().and_then(|s| s.from.clone()),
+            to: task.to_string(),
+            at_s: self.t(),
+            revision: r.revision.unwrap_or(0),
+            slowest_ns: slowest,
+            per_dnm_ns: records
+                .iter()
+                .map(|s| (s.dnm.clone(), s.duration_ns))
+                .collect(),
+        };
+        self.say(&format!(
+            "switched {} -> {task} on {} DNMs (revision {}); slowest switch inside a DNM {:.2} µs",
+            summary.from.as_deref().unwrap_or("?"),
+            records.len(),
+            summary.revision,
+            slowest as f64 / 1000.0
+        ));
+        self.switches.push(summary);
+        self.task = task.to_string();
+        Ok(())
+    }
+}
+
+fn load(args: &DemoArgs) -> anyhow::Result<Netlist> {
+    let loaded = match &args.netlist {
+        Some(p) => dnm::load_netlist(p),
+        None if Path::new("configs/beetle.toml").exists() => {
+            dnm::load_netlist(Path::new("configs/beetle.toml"))
+        }
+        None => dnm::parse_netlist(Path::new("configs/beetle.toml"), BEETLE),
+    };
+    let netlist = loaded.map_err(|e| anyhow::anyhow!("{e}"))?;
+    for needed in ["world", "odometry", "autopilot", "camera", "joystick"] {
+        if netlist.module(needed).is_none() {
+            bail!(
+                "{}: the demo drives Beetle-One and needs a module `{needed}`; start from configs/beetle.toml",
+                netlist.file.display()
+            );
+        }
+    }
+    for task in ["teleop", "auto"] {
+        if !netlist.tasks.contains_key(task) {
+            bail!("{}: the demo needs task `{task}`", netlist.file.display());
+        }
+    }
+    Ok(netlist)
+}
+
+/// The running netlist with `camera`'s field of view changed: a module replaced live.
+fn with_camera_fov(text: &str, fov_deg: f64) -> anyhow::Result<String> {
+    let mut doc: toml::Table = text.parse().context("parsing the running netlist")?;
+    let modules = doc
+        .get_mut("module")
+        .and_then(|m| m.as_array_mut())
+        .context("netlist has no modules")?;
+    let camera = modules
+        .iter_mut()
+        .filter_map(|m| m.as_table_mut())
+        .find(|m| m.get("name").and_then(|n| n.as_str()) == Some("camera"))
+        .context("netlist has no module `camera`")?;
+    let params = camera
+        .entry("params")
+        .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+        .as_table_mut()
+        .context("camera params are not a table")?;
+    params.insert("fov_deg".into(), toml::Value::Float(fov_deg));
+    Ok(toml::to_string(&doc)?)
+}
+
+pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCode> {
+    let netlist = load(args)?;
+    let dnms: Vec<String> = netlist.dnms.iter().map(|d| d.name.clone()).collect();
+    let options = DnmOptions::standard().context("locating the module host")?;
+    let tty = std::io::stdout().is_terminal() && !args.json;
+    if !args.json {
+        println!(
+            "Beetle-One (system `{}`): DNMs {} on this machine, {} modules; Zenoh peer embedded",
+            netlist.system,
+            dnms.join(", "),
+            netlist.modules.len()
+        );
+    }
+    let host = Host::start(netlist.clone(), &dnms, options, zenoh.config()?)?;
+    let result = mission(&host, &netlist, args, tty);
+    let summary = match result {
+        Ok(s) => s,
+        Err(e) => {
+            host.stop();
+            return Err(e);
+        }
+    };
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        print_summary(&summary);
+    }
+    if args.keep_running {
+        if !args.json {
+            println!(
+                "still running (task `teleop`); try `dnm status --system {}` or the Zenoh keys in README.md; Ctrl-C to stop",
+                netlist.system
+            );
+        }
+        host.wait();
+    } else {
+        host.stop();
+    }
+    Ok(if summary.ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
+fn mission(host: &Host, netlist: &Netlist, args: &DemoArgs, tty: bool) -> anyhow::Result<Summary> {
+    let mut m = Mission {
+        probe: Probe {
+            session: host.session(),
+            netlist,
+        },
+        start: Instant::now(),
+        json: args.json,
+        tty,
+        task: netlist.initial_task().unwrap_or("teleop").to_string(),
+        last_line: Instant::now() - Duration::from_secs(10),
+        switches: Vec::new(),
+    };
+    let mut problems = Vec::new();
+
+    // Everything runs and the simulator answers.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while Snapshot::read(&m.probe).is_none() {
+        if Instant::now() > deadline {
+            bail!("the rover's modules did not come up within 30 s; see `RUST_LOG=info`");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    if m.task != "teleop" {
+        m.switch("teleop")?;
+    }
+    m.say("driving by joystick (task `teleop`)");
+    m.watch(args.teleop_s, |_| false);
+
+    m.switch("auto")?;
+    m.say("autopilot driving to its waypoints (task `auto`)");
+    // A module is replaced while the rover drives: the camera gets a narrower lens.
+    let mut replaced = String::new();
+    let mut revision = 0;
+    let reached_all = |s: &Snapshot| s.progress.total > 0 && s.progress.reached == s.progress.total;
+    let first = m.watch(60.0, |s| s.progress.reached >= 1 || reached_all(s));
+    if first.is_some() {
+        let current = m.probe.request(&Request::Netlist)?;
+        let text = with_camera_fov(current.netlist.as_deref().unwrap_or_default(), 60.0)?;
+        let r = m.probe.request(&Request::Apply {
+            file: netlist.file.display().to_string(),
+            text,
+        })?;
+        revision = r.revision.unwrap_or(0);
+        replaced = format!("camera: field of view 70° -> 60° (revision {revision})");
+        m.say(&format!("replaced module {replaced} while driving"));
+    }
+    let at_rest = m.watch(120.0, reached_all);
+    let at_rest = at_rest.filter(reached_all);
+    match &at_rest {
+        Some(_) => m.say("all waypoints reached"),
+        None => problems.push("the autopilot did not reach all its waypoints within 120 s".into()),
+    }
+    // Let the rover come to rest on the last waypoint, then compare the pose estimates.
+    let rest = m.watch(3.0, |s| {
+        s.truth.linear.abs() < 1e-3 && s.odom.linear.abs() < 1e-3
+    });
+    let at_rest_error = rest.map(|s| s.pose_error().0).unwrap_or(f64::NAN);
+
+    m.switch("teleop")?;
+    m.say("back to the joystick (task `teleop`)");
+    let last = m
+        .watch(args.teleop_s, |_| false)
+        .context("lost the rover's state")?;
+    if tty {
+        println!();
+    }
+
+    let status = m.probe.request(&Request::Status)?;
+    let module_messages = status
+        .dnms
+        .iter()
+        .flat_map(|d| d.modules.iter().map(|m| m.sent))
+        .sum();
+    let zenoh_messages = status
+        .dnms
+        .iter()
+        .flat_map(|d| d.routes.published.iter().map(|r| r.messages))
+        .sum();
+    let zenoh_bytes = status
+        .dnms
+        .iter()
+        .flat_map(|d| d.routes.published.iter().map(|r| r.bytes))
+        .sum();
+    let (err, yaw_err) = last.pose_error();
+    let distance = last.truth.distance;
+    let tol = tolerance(distance);
+    if err > tol {
+        problems.push(format!(
+            "odometry is {err:.2} m from the ground truth, more than the {tol:.2} m allowed"
+        ));
+    }
+    if !(at_rest_error <= tolerance(distance)) {
+        problems.push(format!(
+            "at rest on the last waypoint odometry was {at_rest_error:.2} m from the ground truth"
+        ));
+    }
+    Ok(Summary {
+        ok: problems.is_empty(),
+        duration_s: m.t(),
+        distance_m: distance,
+        odometry_distance_m: last.odom.distance,
+        waypoints_reached: last.progress.reached,
+        waypoints_total: last.progress.total,
+        final_pose_truth: [last.truth.x, last.truth.y, last.truth.yaw.to_degrees()],
+        final_pose_odometry: [last.odom.x, last.odom.y, last.odom.yaw.to_degrees()],
+        final_position_error_m: err,
+        final_heading_error_deg: yaw_err,
+        position_tolerance_m: tol,
+        at_rest_position_error_m: at_rest_error,
+        switches: m.switches,
+        replaced,
+        revision: status.revision.unwrap_or(revision),
+        module_messages,
+        zenoh_messages,
+        zenoh_bytes,
+        watchdog_trips: last.watchdog.trips,
+        battery_charge: last.battery.charge,
+        problems,
+    })
+}
+
+fn print_summary(s: &Summary) {
+    println!(
+        "\nBeetle-One mission {} in {:.1} s",
+        if s.ok { "completed" } else { "FAILED" },
+        s.duration_s
+    );
+    println!(
+        "  distance driven   {:.2} m (ground truth); odometry says {:.2} m",
+        s.distance_m, s.odometry_distance_m
+    );
+    println!(
+        "  waypoints         {} of {} reached in `auto`",
+        s.waypoints_reached, s.waypoints_total
+    );
+    println!(
+        "  final pose        truth ({:.2}, {:.2}, {:.0}°), odometry ({:.2}, {:.2}, {:.0}°): {:.3} m, {:.1}° apart (allowed {:.2} m); at rest on the last waypoint {:.3} m",
+        s.final_pose_truth[0],
+        s.final_pose_truth[1],
+        s.final_pose_truth[2],
+        s.final_pose_odometry[0],
+        s.final_pose_odometry[1],
+        s.final_pose_odometry[2],
+        s.final_position_error_m,
+        s.final_heading_error_deg,
+        s.position_tolerance_m,
+        s.at_rest_position_error_m,
+    );
+    for sw in &s.switches {
+        println!(
+            "  switch            {} -> {} at {:.1} s on {} DNMs, slowest {:.2} µs inside a DNM",
+            sw.from.as_deref().unwrap_or("?"),
+            sw.to,
+            sw.at_s,
+            sw.per_dnm_ns.len(),
+            sw.slowest_ns as f64 / 1000.0
+        );
+    }
+    if !s.replaced.is_empty() {
+        println!("  replaced live     {}", s.replaced);
+    }
+    println!(
+        "  messages          {} sent by modules; {} ({:.1} MB) crossed DNMs over Zenoh",
+        s.module_messages,
+        s.zenoh_messages,
+        s.zenoh_bytes as f64 / 1e6
+    );
+    println!(
+        "  battery           {:.1} % left; watchdog stops: {}",
+        s.battery_charge * 100.0,
+        s.watchdog_trips
+    );
+    for p in &s.problems {
+        println!("  problem: {p}");
+    }
+}
