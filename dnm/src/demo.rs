@@ -433,7 +433,7 @@ fn mission(host: &Host, netlist: &Netlist, args: &DemoArgs, tty: bool) -> anyhow
             "odometry is {err:.2} m from the ground truth, more than the {tol:.2} m allowed"
         ));
     }
-    if !(at_rest_error <= tolerance(distance)) {
+    if at_rest_error.is_nan() || at_rest_error > tolerance(distance) {
         problems.push(format!(
             "at rest on the last waypoint odometry was {at_rest_error:.2} m from the ground truth"
         ));

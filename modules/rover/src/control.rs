@@ -296,7 +296,7 @@ pub fn steer(odom: &Odometry, target: (f64, f64), max_speed: f64, max_turn: f64)
     let error = wrap(dy.atan2(dx) - odom.yaw);
     let angular = (2.0 * error).clamp(-max_turn, max_turn);
     // Turn on the spot when facing away; slow down on the last metre.
-    let linear = max_speed * error.cos().max(0.0).powi(2) * distance.min(1.0).max(0.3);
+    let linear = max_speed * error.cos().max(0.0).powi(2) * distance.clamp(0.3, 1.0);
     Twist { linear, angular }
 }
 
@@ -456,7 +456,7 @@ impl Module for Watchdog {
 
     fn new(setup: &mut Setup<'_>) -> Result<Self, ModuleError> {
         let timeout = setup.param_f64("timeout")?;
-        if !(timeout > 0.0) {
+        if timeout.is_nan() || timeout <= 0.0 {
             return Err(bad("timeout", "must be more than 0 s"));
         }
         Ok(Self {

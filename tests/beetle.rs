@@ -1,0 +1,226 @@
+//! Beetle-One end to end: the demo mission headless, and the safety watchdog when the
+//! operator's joystick process dies. Every process is real; the rover's state is read over
+//! Zenoh from the port keys, as an operator's tool would.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests: failing loudly is right
+
+use std::net::TcpListener;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use dnm_rover::msgs::{MotorState, WatchdogState};
+use serde_json::Value;
+use zenoh::Wait;
+
+const DNM: &str = env!("CARGO_BIN_EXE_dnm");
+const BEETLE: &str = include_str!("../configs/beetle.toml");
+
+/// configs/beetle.toml under a system name of its own, in a folder of its own.
+fn netlist(tag: &str) -> (String, PathBuf) {
+    let system = format!("beetle{}{tag}", std::process::id());
+    let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("beetle.toml");
+    std::fs::write(
+        &path,
+        BEETLE.replace("name = \"beetle\"", &format!("name = \"{system}\"")),
+    )
+    .unwrap();
+    (system, path)
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(Instant::now() < deadline, "gave up waiting: {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
+    let (system, path) = netlist("demo");
+    let out = Command::new(DNM)
+        .args([
+            "--no-multicast",
+            "demo",
+            "--json",
+            "--teleop-seconds",
+            "4",
+            "--netlist",
+        ])
+        .arg(&path)
+        .env("DNM_RUN_DIR", path.parent().unwrap())
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "demo failed: {stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let s: Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(s["ok"], true, "{s:#}");
+    // Waypoints reached under the autopilot.
+    assert_eq!(s["waypoints_total"], 3);
+    assert_eq!(s["waypoints_reached"], 3);
+    // Final odometry agrees with the simulator's ground truth within the stated tolerance
+    // (0.1 m + 1 % of the distance driven), moving and at rest.
+    let distance = s["distance_m"].as_f64().unwrap();
+    assert!(distance > 8.0, "the rover hardly moved: {distance} m");
+    let tolerance = 0.1 + 0.01 * distance;
+    assert!(
+        s["final_position_error_m"].as_f64().unwrap() <= tolerance,
+        "{s:#}"
+    );
+    assert!(
+        s["at_rest_position_error_m"].as_f64().unwrap() <= tolerance,
+        "{s:#}"
+    );
+    assert!(
+        s["final_heading_error_deg"].as_f64().unwrap() < 5.0,
+        "{s:#}"
+    );
+    // teleop -> auto -> teleop on all four DNMs; a module replaced in between.
+    let switches = s["switches"].as_array().unwrap();
+    let tos: Vec<&str> = switches.iter().map(|w| w["to"].as_str().unwrap()).collect();
+    assert_eq!(tos, ["auto", "teleop"]);
+    for w in switches {
+        assert_eq!(w["per_dnm_ns"].as_array().unwrap().len(), 4, "{w}");
+    }
+    assert!(s["replaced"].as_str().unwrap().starts_with("camera"));
+    assert!(s["zenoh_messages"].as_u64().unwrap() > 1000);
+    assert_eq!(s["watchdog_trips"], 0);
+    let _ = std::fs::remove_dir_all(path.parent().unwrap());
+    let _ = system;
+}
+
+struct Up(Child);
+
+impl Drop for Up {
+    fn drop(&mut self) {
+        // SAFETY: kill(2) on our own child.
+        unsafe { libc::kill(self.0.id() as i32, libc::SIGTERM) };
+        let _ = self.0.wait();
+    }
+}
+
+fn last<T: bytemuck::Pod>(
+    session: &zenoh::Session,
+    key: &str,
+) -> Option<(T, dnm_module::protocol::PortHeader)> {
+    let replies = session
+        .get(key)
+        .timeout(Duration::from_secs(5))
+        .wait()
+        .unwrap();
+    let reply = replies.recv().ok()?;
+    let s = reply.result().ok()?;
+    let bytes = s.payload().to_bytes();
+    let header = dnm::keys::decode_header(&s.attachment()?.to_bytes())?;
+    (bytes.len() == size_of::<T>()).then(|| (bytemuck::pod_read_unaligned(&bytes), header))
+}
+
+#[test]
+fn watchdog_stops_the_motors_when_the_joystick_dies() {
+    let (system, path) = netlist("wd");
+    let port = free_port();
+    let _up = Up(Command::new(DNM)
+        .args([
+            "--no-multicast",
+            "--listen",
+            &format!("tcp/127.0.0.1:{port}"),
+            "up",
+        ])
+        .arg(&path)
+        .env("DNM_RUN_DIR", path.parent().unwrap())
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap());
+    let mut c = zenoh::Config::default();
+    c.insert_json5("mode", "\"client\"").unwrap();
+    c.insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]"))
+        .unwrap();
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    let session = eventually("reach the rover", || zenoh::open(c.clone()).wait().ok());
+    let key = |dnm: &str, module: &str, port: &str| format!("{system}/port/{dnm}/{module}/{port}");
+
+    // The joystick drives: the wheels turn.
+    eventually("the joystick drives the wheels", || {
+        let (m, _) = last::<MotorState>(&session, &key("drive", "motor_left", "state"))?;
+        (m.omega > 1.0).then_some(())
+    });
+    let report = |dnm: &str| -> Value {
+        let replies = session
+            .get(format!("{system}/dnm/{dnm}"))
+            .timeout(Duration::from_secs(5))
+            .wait()
+            .unwrap();
+        let r = replies.recv().unwrap();
+        serde_json::from_slice(&r.result().unwrap().payload().to_bytes()).unwrap()
+    };
+    let ground = report("ground");
+    let joystick = ground["modules"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == "joystick")
+        .unwrap()
+        .clone();
+    let pid = joystick["pid"].as_u64().unwrap() as i32;
+
+    // The operator's joystick process dies.
+    // SAFETY: kill(2) with the pid the DNM reported for its module process.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGKILL) }, 0);
+
+    // The watchdog trips: it commands a stop within its timeout of the last command
+    // (measured by the watchdog's own clock, not by this test's).
+    let (wd, _) = eventually("the watchdog trips", || {
+        last::<WatchdogState>(&session, &key("drive", "watchdog", "state"))
+            .filter(|(w, _)| w.tripped == 1)
+    });
+    assert_eq!(wd.trips, 1);
+    let period_ns = 1_000_000_000 / 50; // the watchdog steps at 50 Hz
+    let reaction = wd.tripped_at_ns - wd.last_command_ns;
+    assert!(
+        reaction >= wd.timeout_ns && reaction <= wd.timeout_ns + 2 * period_ns,
+        "tripped {reaction} ns after the last command; timeout {} ns",
+        wd.timeout_ns
+    );
+    // Both motors are commanded to stop and do.
+    for motor in ["motor_left", "motor_right"] {
+        let (m, h) = eventually(&format!("{motor} stops"), || {
+            last::<MotorState>(&session, &key("drive", motor, "state"))
+                .filter(|(m, _)| m.command == 0.0 && m.omega.abs() < 0.01)
+        });
+        assert!(h.stamp_ns > wd.tripped_at_ns, "{m:?}");
+    }
+    // The joystick stays down (`restart = "never"`), and the watchdog keeps the stop.
+    let ground = report("ground");
+    let joystick = ground["modules"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == "joystick")
+        .unwrap()
+        .clone();
+    assert_eq!(joystick["state"], "stopped", "{joystick}");
+    let (wd, _) = last::<WatchdogState>(&session, &key("drive", "watchdog", "state")).unwrap();
+    assert_eq!((wd.tripped, wd.trips), (1, 1));
+    let _ = std::fs::remove_dir_all(path.parent().unwrap());
+}
