@@ -4,14 +4,18 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests: failing loudly is right
 
-use std::net::TcpListener;
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use dnm_rover::msgs::{MotorState, WatchdogState};
 use serde_json::Value;
 use zenoh::Wait;
+
+#[path = "support/mod.rs"]
+mod support;
+
+use support::{eventually, free_port, zenoh_client};
 
 const DNM: &str = env!("CARGO_BIN_EXE_dnm");
 const BEETLE: &str = include_str!("../configs/beetle.toml");
@@ -28,25 +32,6 @@ fn netlist(tag: &str) -> (String, PathBuf) {
     )
     .unwrap();
     (system, path)
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        if let Some(v) = f() {
-            return v;
-        }
-        assert!(Instant::now() < deadline, "gave up waiting: {what}");
-        std::thread::sleep(Duration::from_millis(50));
-    }
 }
 
 #[test]
@@ -108,6 +93,17 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
     let _ = system;
 }
 
+/// A module's entry in a DNM report.
+fn module(report: &Value, name: &str) -> Value {
+    report["modules"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == name)
+        .unwrap()
+        .clone()
+}
+
 struct Up(Child);
 
 impl Drop for Up {
@@ -151,13 +147,7 @@ fn watchdog_stops_the_motors_when_the_joystick_dies() {
         .stdout(Stdio::null())
         .spawn()
         .unwrap());
-    let mut c = zenoh::Config::default();
-    c.insert_json5("mode", "\"client\"").unwrap();
-    c.insert_json5("connect/endpoints", &format!("[\"tcp/127.0.0.1:{port}\"]"))
-        .unwrap();
-    c.insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    let session = eventually("reach the rover", || zenoh::open(c.clone()).wait().ok());
+    let session = zenoh_client(port);
     let key = |dnm: &str, module: &str, port: &str| format!("{system}/port/{dnm}/{module}/{port}");
 
     // The joystick drives: the wheels turn.
@@ -174,14 +164,7 @@ fn watchdog_stops_the_motors_when_the_joystick_dies() {
         let r = replies.recv().unwrap();
         serde_json::from_slice(&r.result().unwrap().payload().to_bytes()).unwrap()
     };
-    let ground = report("ground");
-    let joystick = ground["modules"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|m| m["name"] == "joystick")
-        .unwrap()
-        .clone();
+    let joystick = module(&report("ground"), "joystick");
     let pid = joystick["pid"].as_u64().unwrap() as i32;
 
     // The operator's joystick process dies.
@@ -211,14 +194,7 @@ fn watchdog_stops_the_motors_when_the_joystick_dies() {
         assert!(h.stamp_ns > wd.tripped_at_ns, "{m:?}");
     }
     // The joystick stays down (`restart = "never"`), and the watchdog keeps the stop.
-    let ground = report("ground");
-    let joystick = ground["modules"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|m| m["name"] == "joystick")
-        .unwrap()
-        .clone();
+    let joystick = module(&report("ground"), "joystick");
     assert_eq!(joystick["state"], "stopped", "{joystick}");
     let (wd, _) = last::<WatchdogState>(&session, &key("drive", "watchdog", "state")).unwrap();
     assert_eq!((wd.tripped, wd.trips), (1, 1));

@@ -6,28 +6,20 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests: failing loudly is right
 
-use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use serde_json::Value;
 use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 
+#[path = "support/mod.rs"]
+mod support;
+
+use support::{endpoint, eventually, free_port, zenoh_client};
+
 const DNM: &str = env!("CARGO_BIN_EXE_dnm");
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn endpoint(port: u16) -> String {
-    format!("tcp/127.0.0.1:{port}")
-}
 
 /// A child process killed when the test ends, however it ends.
 struct Proc(Option<Child>);
@@ -71,18 +63,6 @@ fn pid_alive(pid: u64) -> bool {
     std::fs::read_to_string(format!("/proc/{pid}/stat"))
         .map(|s| !s.contains(") Z "))
         .unwrap_or(false)
-}
-
-/// Polls `f` until it returns `Some`, failing with `what` if that takes unreasonably long.
-fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
-    let deadline = Instant::now() + Duration::from_secs(30);
-    loop {
-        if let Some(v) = f() {
-            return v;
-        }
-        assert!(Instant::now() < deadline, "gave up waiting: {what}");
-        std::thread::sleep(Duration::from_millis(50));
-    }
 }
 
 /// The system under test: processes plus a Zenoh client behind the router.
@@ -165,7 +145,7 @@ impl System {
             ],
         );
         let mut sys = System {
-            client: client(pr),
+            client: zenoh_client(pr),
             name,
             netlist,
             run_dir,
@@ -330,21 +310,6 @@ impl Drop for System {
         self.router.stop();
         let _ = std::fs::remove_dir_all(&self.run_dir);
     }
-}
-
-fn client(router_port: u16) -> zenoh::Session {
-    let mut c = zenoh::Config::default();
-    c.insert_json5("mode", "\"client\"").unwrap();
-    c.insert_json5(
-        "connect/endpoints",
-        &format!("[\"{}\"]", endpoint(router_port)),
-    )
-    .unwrap();
-    c.insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    eventually("the test client reaches the router", || {
-        zenoh::open(c.clone()).wait().ok()
-    })
 }
 
 #[test]
@@ -624,7 +589,7 @@ fn embedded_default_routes_between_dnms_of_one_process() {
         ],
     );
     let sys = System {
-        client: client(port),
+        client: zenoh_client(port),
         name,
         netlist,
         run_dir: run_dir.clone(),

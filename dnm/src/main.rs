@@ -193,8 +193,14 @@ enum ModuleOp {
 }
 
 fn main() -> ExitCode {
-    dnm_module::init_logging();
-    match run(Cli::parse()) {
+    let cli = Cli::parse();
+    // The demo talks to its user on stdout; its DNMs only speak up for warnings.
+    dnm_module::init_logging_at(if matches!(cli.command, Cmd::Demo { .. }) {
+        "warn"
+    } else {
+        "info"
+    });
+    match run(cli) {
         Ok(code) => code,
         Err(e) => {
             eprintln!("error: {e:#}");

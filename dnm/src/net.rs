@@ -579,13 +579,7 @@ impl Net {
     fn wanted_ingress(&self, netlist: &Netlist) -> Vec<(String, String, MessageType)> {
         let mut out = BTreeMap::new();
         for (link, from_dnm, to_dnm) in crate::crossing_links(netlist) {
-            if to_dnm != self.dnm {
-                continue;
-            }
-            let Some(message) = netlist
-                .kind_of(&link.from.module)
-                .and_then(|k| k.outputs.iter().find(|p| p.name == link.from.port))
-                .map(|p| p.message.clone())
+            let Some(message) = output_message(netlist, &link.from).filter(|_| to_dnm == self.dnm)
             else {
                 continue;
             };
@@ -604,13 +598,8 @@ impl Net {
     fn wanted_egress(&self, netlist: &Netlist) -> Vec<EgressRoute> {
         let mut out: BTreeMap<String, EgressRoute> = BTreeMap::new();
         for (link, from_dnm, _) in crate::crossing_links(netlist) {
-            if from_dnm != self.dnm {
-                continue;
-            }
-            let Some(message) = netlist
-                .kind_of(&link.from.module)
-                .and_then(|k| k.outputs.iter().find(|p| p.name == link.from.port))
-                .map(|p| p.message.clone())
+            let Some(message) =
+                output_message(netlist, &link.from).filter(|_| from_dnm == self.dnm)
             else {
                 continue;
             };
@@ -678,6 +667,14 @@ impl Net {
             }),
         }
     }
+}
+
+/// The message type of an output port.
+fn output_message(netlist: &Netlist, port: &dnm_netlist::PortRef) -> Option<MessageType> {
+    netlist
+        .kind_of(&port.module)
+        .and_then(|k| k.outputs.iter().find(|p| p.name == port.port))
+        .map(|p| p.message.clone())
 }
 
 impl Drop for Net {

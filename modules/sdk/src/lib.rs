@@ -45,10 +45,18 @@ pub use runtime::{
 /// Logs to stderr through `tracing`, filtered by `RUST_LOG` (default `info`); iceoryx2's own
 /// log goes through the same subscriber at warning level.
 pub fn init_logging() {
+    init_logging_at("info");
+}
+
+/// [`init_logging`] with another default level (`RUST_LOG` still wins). Zenoh's chatter is kept
+/// at warnings either way.
+pub fn init_logging_at(level: &str) {
     use tracing_subscriber::EnvFilter;
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(
-            "info,zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn,zenoh_link_udp=warn,zenoh_config=warn",
-        ));
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+        EnvFilter::new(format!(
+            "{level},zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn,zenoh_link_udp=warn,zenoh_config=warn"
+        ))
+    });
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)

@@ -1,0 +1,47 @@
+//! What the multi-process system tests share.
+
+#![allow(dead_code)] // each test file uses its own subset
+
+use std::net::TcpListener;
+use std::time::{Duration, Instant};
+
+/// A TCP port free on loopback right now.
+pub fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// `tcp/127.0.0.1:<port>`.
+pub fn endpoint(port: u16) -> String {
+    format!("tcp/127.0.0.1:{port}")
+}
+
+/// Polls `f` until it returns `Some`, failing with `what` if that takes unreasonably long (a
+/// hang guard, not a performance limit).
+pub fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Some(v) = f() {
+            return v;
+        }
+        assert!(Instant::now() < deadline, "gave up waiting: {what}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// A Zenoh client session connected to `port` on loopback, without scouting.
+pub fn zenoh_client(port: u16) -> zenoh::Session {
+    use zenoh::Wait;
+    let mut c = zenoh::Config::default();
+    c.insert_json5("mode", "\"client\"").unwrap();
+    c.insert_json5("connect/endpoints", &format!("[\"{}\"]", endpoint(port)))
+        .unwrap();
+    c.insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    eventually("a Zenoh client session", || {
+        zenoh::open(c.clone()).wait().ok()
+    })
+}
