@@ -62,6 +62,8 @@ struct RawModule {
     name: Spanned<String>,
     kind: Spanned<String>,
     dnm: Option<Spanned<String>>,
+    #[serde(default)]
+    pinned: Option<Spanned<bool>>,
     rate_hz: Option<Spanned<f64>>,
     restart: Option<Spanned<RestartMode>>,
     max_restarts: Option<u32>,
@@ -127,6 +129,10 @@ pub struct Module {
     pub pinned_dnm: Option<String>,
     /// The DNM it runs on: the pinned one, else the first declared DNM.
     pub dnm: String,
+    /// `pinned = true`: it must stay on `dnm` (it drives that computer's hardware); placement
+    /// moves only modules that are not.
+    #[serde(default)]
+    pub pinned: bool,
     /// Overrides the kind's periodic rate.
     pub rate_hz: Option<f64>,
     pub restart: RestartPolicy,
@@ -597,8 +603,18 @@ fn validate(
                 ),
             }
         }
+        let hard_pin = m.pinned.as_ref().is_some_and(|p| *p.get_ref());
+        if hard_pin && m.dnm.is_none() {
+            r.error(
+                m.pinned.as_ref().and_then(span_of),
+                format!("{field}.pinned"),
+                format!("module `{name}` is pinned but names no DNM"),
+                Some("add `dnm = \"...\"`, the computer whose hardware it drives".into()),
+            );
+        }
         let pinned = m.dnm.as_ref().map(|d| d.get_ref().clone());
         modules.push(Module {
+            pinned: hard_pin,
             dnm: pinned.clone().unwrap_or_else(|| default_dnm.clone()),
             pinned_dnm: pinned,
             name,

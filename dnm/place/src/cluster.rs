@@ -1,0 +1,511 @@
+//! Community detection on an undirected weighted graph: modularity, Newman's fast greedy
+//! agglomeration in the Clauset–Newman–Moore form, and a Louvain-style refinement that only
+//! ever raises modularity. Constraints: nodes pinned to a group (two groups never share a
+//! community), a capacity (nodes per community) and a maximum number of communities.
+
+use std::cmp::Ordering;
+use std::collections::{BinaryHeap, HashMap};
+
+/// An undirected graph with positive edge weights; parallel edges are summed.
+#[derive(Debug, Clone, Default)]
+pub struct Graph {
+    adj: Vec<HashMap<usize, f64>>,
+    /// Weighted degree of each node.
+    degree: Vec<f64>,
+    /// Total edge weight (each edge once).
+    total: f64,
+}
+
+impl Graph {
+    pub fn new(nodes: usize) -> Self {
+        Self {
+            adj: vec![HashMap::new(); nodes],
+            degree: vec![0.0; nodes],
+            total: 0.0,
+        }
+    }
+
+    /// Adds weight `w` between `a` and `b` (self-loops and non-positive weights are ignored:
+    /// a module's link to itself never crosses DNMs).
+    pub fn add_edge(&mut self, a: usize, b: usize, w: f64) {
+        if a == b || w <= 0.0 || !w.is_finite() {
+            return;
+        }
+        *self.adj[a].entry(b).or_default() += w;
+        *self.adj[b].entry(a).or_default() += w;
+        self.degree[a] += w;
+        self.degree[b] += w;
+        self.total += w;
+    }
+
+    pub fn nodes(&self) -> usize {
+        self.adj.len()
+    }
+
+    pub fn total_weight(&self) -> f64 {
+        self.total
+    }
+
+    pub fn neighbors(&self, v: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
+        self.adj[v].iter().map(|(&u, &w)| (u, w))
+    }
+
+    /// Newman's modularity of `community` (node → community id):
+    /// Q = Σ_c [ L_c / m − (D_c / 2m)² ], with L_c the weight inside c, D_c its total degree.
+    pub fn modularity(&self, community: &[usize]) -> f64 {
+        if self.total <= 0.0 {
+            return 0.0;
+        }
+        let k = community.iter().copied().max().map_or(0, |c| c + 1);
+        let (mut inside, mut degree) = (vec![0.0; k], vec![0.0; k]);
+        for (v, nbrs) in self.adj.iter().enumerate() {
+            degree[community[v]] += self.degree[v];
+            for (&u, &w) in nbrs {
+                if community[u] == community[v] {
+                    inside[community[v]] += w / 2.0;
+                }
+            }
+        }
+        let m = self.total;
+        inside
+            .iter()
+            .zip(&degree)
+            .map(|(l, d)| l / m - (d / (2.0 * m)).powi(2))
+            .sum()
+    }
+
+    /// Weight of the edges whose ends are in different communities.
+    pub fn cut(&self, community: &[usize]) -> f64 {
+        let mut cut = 0.0;
+        for (v, nbrs) in self.adj.iter().enumerate() {
+            for (&u, &w) in nbrs {
+                if u > v && community[u] != community[v] {
+                    cut += w;
+                }
+            }
+        }
+        cut
+    }
+}
+
+/// What a clustering must respect.
+#[derive(Debug, Clone, Default)]
+pub struct Constraints {
+    /// Per node: the group it is pinned to (e.g. a DNM index). Nodes of different groups never
+    /// share a community; nodes of one group always do.
+    pub pinned: Vec<Option<usize>>,
+    /// Most nodes in one community.
+    pub capacity: Option<usize>,
+    /// Most communities.
+    pub max_communities: Option<usize>,
+}
+
+/// Why no clustering fits the constraints.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ClusterError {
+    #[error(
+        "{groups} pinned groups must stay apart but at most {max} communities are allowed; raise the maximum or unpin modules"
+    )]
+    TooManyPins { groups: usize, max: usize },
+    #[error(
+        "pinned group {group} has {nodes} members, more than the capacity of {capacity}; raise the capacity or pin fewer modules there"
+    )]
+    PinnedOverCapacity {
+        group: usize,
+        nodes: usize,
+        capacity: usize,
+    },
+    #[error(
+        "{nodes} modules do not fit in {max} communities of at most {capacity}; raise the capacity or the maximum"
+    )]
+    DoesNotFit {
+        nodes: usize,
+        max: usize,
+        capacity: usize,
+    },
+}
+
+/// A clustering and how it was reached.
+#[derive(Debug, Clone)]
+pub struct Clustering {
+    /// Node → community, numbered 0.. in order of first appearance.
+    pub community: Vec<usize>,
+    pub modularity: f64,
+    /// Modularity after the initial partition and after each merge, in order.
+    pub history: Vec<f64>,
+}
+
+impl Clustering {
+    pub fn communities(&self) -> usize {
+        self.community.iter().copied().max().map_or(0, |c| c + 1)
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Candidate {
+    dq: f64,
+    a: usize,
+    b: usize,
+}
+
+impl Eq for Candidate {}
+
+impl Ord for Candidate {
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.dq
+            .total_cmp(&other.dq)
+            // Deterministic among equal gains: prefer lower ids.
+            .then_with(|| other.a.cmp(&self.a))
+            .then_with(|| other.b.cmp(&self.b))
+    }
+}
+
+impl PartialOrd for Candidate {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+/// Renumbers communities 0.. in order of first appearance.
+fn compact(community: &mut [usize]) {
+    let mut map = HashMap::new();
+    for c in community.iter_mut() {
+        let next = map.len();
+        *c = *map.entry(*c).or_insert(next);
+    }
+}
+
+fn check(g: &Graph, c: &Constraints) -> Result<(), ClusterError> {
+    let mut groups: HashMap<usize, usize> = HashMap::new();
+    for p in c.pinned.iter().take(g.nodes()).flatten() {
+        *groups.entry(*p).or_default() += 1;
+    }
+    if let Some(max) = c.max_communities
+        && groups.len() > max
+    {
+        return Err(ClusterError::TooManyPins {
+            groups: groups.len(),
+            max,
+        });
+    }
+    if let Some(cap) = c.capacity {
+        if let Some((&group, &nodes)) = groups.iter().filter(|(_, n)| **n > cap).min() {
+            return Err(ClusterError::PinnedOverCapacity {
+                group,
+                nodes,
+                capacity: cap,
+            });
+        }
+        let max = c.max_communities.unwrap_or(usize::MAX);
+        if cap.saturating_mul(max) < g.nodes() {
+            return Err(ClusterError::DoesNotFit {
+                nodes: g.nodes(),
+                max,
+                capacity: cap,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// Clauset–Newman–Moore greedy agglomeration: start from singletons (pinned nodes of one group
+/// together), repeatedly merge the two adjacent communities whose merge raises modularity most,
+/// stop when no merge raises it (or, under `max_communities`, when few enough remain).
+/// A max-heap of candidate gains with lazy invalidation and per-community gain maps give
+/// O(m d log n).
+pub fn greedy(g: &Graph, c: &Constraints) -> Result<Clustering, ClusterError> {
+    check(g, c)?;
+    let n = g.nodes();
+    let two_m = 2.0 * g.total;
+    // Initial communities: one per node, except pinned groups which start merged.
+    let mut community: Vec<usize> = (0..n).collect();
+    let mut group_first: HashMap<usize, usize> = HashMap::new();
+    for v in 0..n {
+        if let Some(p) = c.pinned.get(v).copied().flatten() {
+            community[v] = *group_first.entry(p).or_insert(v);
+        }
+    }
+    let mut pin: Vec<Option<usize>> = vec![None; n];
+    let mut size = vec![0usize; n];
+    let mut a = vec![0.0f64; n];
+    for v in 0..n {
+        size[community[v]] += 1;
+        if two_m > 0.0 {
+            a[community[v]] += g.degree[v] / two_m;
+        }
+        if let Some(p) = c.pinned.get(v).copied().flatten() {
+            pin[community[v]] = Some(p);
+        }
+    }
+    // e_ij between communities (each direction), as fractions of 2m.
+    let mut e: Vec<HashMap<usize, f64>> = vec![HashMap::new(); n];
+    for v in 0..n {
+        for (u, w) in g.neighbors(v) {
+            let (cv, cu) = (community[v], community[u]);
+            if cv != cu {
+                *e[cv].entry(cu).or_default() += w / two_m;
+            }
+        }
+    }
+    let mut alive: Vec<bool> = (0..n).map(|v| community[v] == v).collect();
+    let mut count = alive.iter().filter(|x| **x).count();
+    let mut q = g.modularity(&community);
+    let mut history = vec![q];
+
+    // dq[i][j] = 2 (e_ij − a_i a_j) for adjacent communities.
+    let mut dq: Vec<HashMap<usize, f64>> = vec![HashMap::new(); n];
+    let mut heap = BinaryHeap::new();
+    for i in 0..n {
+        for (&j, &eij) in &e[i] {
+            let d = 2.0 * (eij - a[i] * a[j]);
+            dq[i].insert(j, d);
+            if i < j {
+                heap.push(Candidate { dq: d, a: i, b: j });
+            }
+        }
+    }
+    let compatible = |pin: &[Option<usize>], size: &[usize], i: usize, j: usize| {
+        let pins_ok = match (pin[i], pin[j]) {
+            (Some(x), Some(y)) => x == y,
+            _ => true,
+        };
+        pins_ok && c.capacity.is_none_or(|cap| size[i] + size[j] <= cap)
+    };
+    let must_shrink = |count: usize| c.max_communities.is_some_and(|max| count > max);
+
+    // `members[i]`: nodes of community i, for the final labels.
+    let mut parent: Vec<usize> = community.clone();
+    while let Some(Candidate { dq: d, a: i, b: j }) = heap.pop() {
+        if !alive[i] || !alive[j] || dq[i].get(&j).is_none_or(|x| x.to_bits() != d.to_bits()) {
+            continue; // stale
+        }
+        if d <= 0.0 && !must_shrink(count) {
+            break;
+        }
+        if !compatible(&pin, &size, i, j) {
+            continue; // never becomes compatible: sizes only grow, pins only appear
+        }
+        // Merge the smaller gain map into the larger one.
+        let (keep, gone) = if dq[i].len() >= dq[j].len() {
+            (i, j)
+        } else {
+            (j, i)
+        };
+        let gone_map = std::mem::take(&mut dq[gone]);
+        let keep_map = std::mem::take(&mut dq[keep]);
+        let mut merged: HashMap<usize, f64> = HashMap::with_capacity(keep_map.len() + gone_map.len());
+        for (&k, &dk) in &keep_map {
+            if k == gone {
+                continue;
+            }
+            let v = match gone_map.get(&k) {
+                Some(&dg) => dk + dg,
+                None => dk - 2.0 * a[gone] * a[k],
+            };
+            merged.insert(k, v);
+        }
+        for (&k, &dg) in &gone_map {
+            if k == keep || keep_map.contains_key(&k) {
+                continue;
+            }
+            merged.insert(k, dg - 2.0 * a[keep] * a[k]);
+        }
+        for (&k, &v) in &merged {
+            dq[k].remove(&gone);
+            dq[k].insert(keep, v);
+            let (x, y) = if keep < k { (keep, k) } else { (k, keep) };
+            heap.push(Candidate { dq: v, a: x, b: y });
+        }
+        dq[keep] = merged;
+        a[keep] += a[gone];
+        a[gone] = 0.0;
+        size[keep] += size[gone];
+        pin[keep] = pin[keep].or(pin[gone]);
+        alive[gone] = false;
+        parent[gone] = keep;
+        count -= 1;
+        q += d;
+        history.push(q);
+    }
+
+    // Still too many (disconnected parts, or merges the constraints forbid): merge the
+    // compatible pair that costs least, adjacent or not.
+    while must_shrink(count) {
+        let live: Vec<usize> = (0..n).filter(|&i| alive[i]).collect();
+        let mut best: Option<(f64, usize, usize)> = None;
+        for (x, &i) in live.iter().enumerate() {
+            for &j in &live[x + 1..] {
+                if !compatible(&pin, &size, i, j) {
+                    continue;
+                }
+                let d = dq[i].get(&j).copied().unwrap_or(-2.0 * a[i] * a[j]);
+                if best.is_none_or(|(b, _, _)| d > b) {
+                    best = Some((d, i, j));
+                }
+            }
+        }
+        let Some((d, keep, gone)) = best else {
+            return Err(ClusterError::DoesNotFit {
+                nodes: n,
+                max: c.max_communities.unwrap_or(count),
+                capacity: c.capacity.unwrap_or(n),
+            });
+        };
+        let gone_map = std::mem::take(&mut dq[gone]);
+        for (k, dg) in gone_map {
+            if k == keep {
+                continue;
+            }
+            let v = dq[keep].get(&k).map_or(dg - 2.0 * a[keep] * a[k], |dk| dk + dg);
+            dq[keep].insert(k, v);
+            dq[k].remove(&gone);
+            dq[k].insert(keep, v);
+        }
+        dq[keep].remove(&gone);
+        a[keep] += a[gone];
+        size[keep] += size[gone];
+        pin[keep] = pin[keep].or(pin[gone]);
+        alive[gone] = false;
+        parent[gone] = keep;
+        count -= 1;
+        q += d;
+        history.push(q);
+    }
+
+    let root = |mut x: usize| {
+        while parent[x] != x {
+            x = parent[x];
+        }
+        x
+    };
+    let mut labels: Vec<usize> = (0..n).map(|v| root(community[v])).collect();
+    compact(&mut labels);
+    let modularity = g.modularity(&labels);
+    Ok(Clustering {
+        community: labels,
+        modularity,
+        history,
+    })
+}
+
+/// Louvain's local moving: each unpinned node moves to the neighbouring community that raises
+/// modularity most, while any move raises it; constraints hold throughout. Never lowers
+/// modularity. Returns the number of moves.
+pub fn refine(g: &Graph, c: &Constraints, clustering: &mut Clustering) -> usize {
+    let n = g.nodes();
+    let m = g.total;
+    if m <= 0.0 {
+        return 0;
+    }
+    let comm = &mut clustering.community;
+    let k = comm.iter().copied().max().map_or(0, |x| x + 1);
+    let mut tot = vec![0.0; k];
+    let mut size = vec![0usize; k];
+    let mut pin: Vec<Option<usize>> = vec![None; k];
+    for v in 0..n {
+        tot[comm[v]] += g.degree[v];
+        size[comm[v]] += 1;
+        if let Some(p) = c.pinned.get(v).copied().flatten() {
+            pin[comm[v]] = Some(p);
+        }
+    }
+    let mut moves = 0;
+    let mut improved = true;
+    let mut passes = 0;
+    while improved && passes < 100 {
+        improved = false;
+        passes += 1;
+        for v in 0..n {
+            if c.pinned.get(v).copied().flatten().is_some() {
+                continue;
+            }
+            let own = comm[v];
+            let kv = g.degree[v];
+            let mut links: HashMap<usize, f64> = HashMap::new();
+            for (u, w) in g.neighbors(v) {
+                *links.entry(comm[u]).or_default() += w;
+            }
+            // Gain of putting v (taken out of `own`) into community x.
+            let gain = |x: usize, tot_x: f64| links.get(&x).copied().unwrap_or(0.0) / m - tot_x * kv / (2.0 * m * m);
+            let stay = gain(own, tot[own] - kv);
+            let mut best = (stay, own);
+            for (&x, _) in links.iter() {
+                if x == own || c.capacity.is_some_and(|cap| size[x] + 1 > cap) {
+                    continue;
+                }
+                let g_x = gain(x, tot[x]);
+                if g_x > best.0 + 1e-12 {
+                    best = (g_x, x);
+                }
+            }
+            // A community must keep at least one node while it holds a pin.
+            if best.1 != own && (size[own] > 1 || pin[own].is_none()) {
+                let to = best.1;
+                tot[own] -= kv;
+                tot[to] += kv;
+                size[own] -= 1;
+                size[to] += 1;
+                comm[v] = to;
+                moves += 1;
+                improved = true;
+            }
+        }
+    }
+    compact(comm);
+    clustering.modularity = g.modularity(comm);
+    moves
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Two triangles joined by one edge.
+    fn barbell() -> Graph {
+        let mut g = Graph::new(6);
+        for (a, b) in [(0, 1), (1, 2), (0, 2), (3, 4), (4, 5), (3, 5), (2, 3)] {
+            g.add_edge(a, b, 1.0);
+        }
+        g
+    }
+
+    #[test]
+    fn modularity_by_hand() {
+        let g = barbell();
+        // m = 7; each triangle: L = 3, D = 7 → 2 · (3/7 − (7/14)²) = 6/7 − 1/2.
+        let q = g.modularity(&[0, 0, 0, 1, 1, 1]);
+        assert!((q - (6.0 / 7.0 - 0.5)).abs() < 1e-12);
+        assert!(g.modularity(&[0; 6]).abs() < 1e-12);
+        assert_eq!(g.cut(&[0, 0, 0, 1, 1, 1]), 1.0);
+        let c = greedy(&g, &Constraints::default()).unwrap();
+        assert_eq!(c.community, [0, 0, 0, 1, 1, 1]);
+        assert!((c.modularity - q).abs() < 1e-12);
+    }
+
+    #[test]
+    fn pins_and_limits_hold() {
+        let g = barbell();
+        let mut c = Constraints {
+            pinned: vec![Some(0), None, None, None, None, Some(0)],
+            ..Constraints::default()
+        };
+        let r = greedy(&g, &c).unwrap();
+        assert_eq!(r.community[0], r.community[5]);
+        c.pinned = vec![Some(0), Some(1), None, None, None, None];
+        let r = greedy(&g, &c).unwrap();
+        assert_ne!(r.community[0], r.community[1]);
+        c.max_communities = Some(1);
+        assert!(matches!(greedy(&g, &c), Err(ClusterError::TooManyPins { .. })));
+        let c = Constraints {
+            capacity: Some(2),
+            max_communities: Some(2),
+            ..Constraints::default()
+        };
+        assert!(matches!(greedy(&g, &c), Err(ClusterError::DoesNotFit { .. })));
+        let c = Constraints {
+            max_communities: Some(1),
+            ..Constraints::default()
+        };
+        assert_eq!(greedy(&g, &c).unwrap().communities(), 1);
+    }
+}
