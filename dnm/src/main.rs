@@ -8,6 +8,7 @@ use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
 
 mod demo;
+mod place_cmd;
 use dnm::admin::{Request, Response, request};
 use dnm::{DnmOptions, DnmReport};
 
@@ -138,6 +139,34 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// Place modules on DNMs by clustering the module graph (Newman's greedy modularity,
+    /// weighted by traffic), and compare the predicted traffic between DNMs.
+    Place {
+        netlist: PathBuf,
+        /// Every link weighs 1 (default: weighted by bytes × rate).
+        #[arg(long, conflicts_with = "weighted")]
+        plain: bool,
+        /// Weight links by bytes per message × messages per second (the default).
+        #[arg(long)]
+        weighted: bool,
+        /// Improve the greedy result by moving single modules (never lowers modularity).
+        #[arg(long)]
+        refine: bool,
+        /// Most modules on one DNM.
+        #[arg(long)]
+        capacity: Option<usize>,
+        /// Most DNMs to use.
+        #[arg(long)]
+        max_dnms: Option<usize>,
+        /// Move pinned modules too (what-if studies; the paper's placements had no pins).
+        #[arg(long)]
+        ignore_pins: bool,
+        /// Write the placed netlist (modules' `dnm` fields set) to this file.
+        #[arg(long)]
+        write: Option<PathBuf>,
+        #[arg(long)]
+        json: bool,
+    },
     /// Run a Zenoh router (joins the rover's and the ground's networks), until Ctrl-C.
     Router,
     /// List the standard module kinds.
@@ -193,6 +222,9 @@ enum ModuleOp {
 }
 
 fn main() -> ExitCode {
+    // Printing into a closed pipe (`dnm check x | head`) ends the program quietly.
+    // SAFETY: restoring the default disposition of SIGPIPE before any thread starts.
+    unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
     let cli = Cli::parse();
     // The demo talks to its user on stdout; its DNMs only speak up for warnings.
     dnm_module::init_logging_at(if matches!(cli.command, Cmd::Demo { .. }) {
@@ -288,6 +320,30 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 teleop_s: teleop_seconds,
             },
         ),
+        Cmd::Place {
+            netlist,
+            plain,
+            weighted: _,
+            refine,
+            capacity,
+            max_dnms,
+            ignore_pins,
+            write,
+            json,
+        } => place_cmd::run(&place_cmd::PlaceArgs {
+            netlist,
+            weighting: if plain {
+                dnm_place::Weighting::Plain
+            } else {
+                dnm_place::Weighting::Weighted
+            },
+            refine,
+            capacity,
+            max_dnms,
+            ignore_pins,
+            write,
+            json,
+        }),
         Cmd::Router => {
             dnm_router::run_router(&z.options())?;
             Ok(ExitCode::SUCCESS)

@@ -293,7 +293,8 @@ pub fn greedy(g: &Graph, c: &Constraints) -> Result<Clustering, ClusterError> {
         };
         let gone_map = std::mem::take(&mut dq[gone]);
         let keep_map = std::mem::take(&mut dq[keep]);
-        let mut merged: HashMap<usize, f64> = HashMap::with_capacity(keep_map.len() + gone_map.len());
+        let mut merged: HashMap<usize, f64> =
+            HashMap::with_capacity(keep_map.len() + gone_map.len());
         for (&k, &dk) in &keep_map {
             if k == gone {
                 continue;
@@ -356,7 +357,9 @@ pub fn greedy(g: &Graph, c: &Constraints) -> Result<Clustering, ClusterError> {
             if k == keep {
                 continue;
             }
-            let v = dq[keep].get(&k).map_or(dg - 2.0 * a[keep] * a[k], |dk| dk + dg);
+            let v = dq[keep]
+                .get(&k)
+                .map_or(dg - 2.0 * a[keep] * a[k], |dk| dk + dg);
             dq[keep].insert(k, v);
             dq[k].remove(&gone);
             dq[k].insert(keep, v);
@@ -426,7 +429,9 @@ pub fn refine(g: &Graph, c: &Constraints, clustering: &mut Clustering) -> usize 
                 *links.entry(comm[u]).or_default() += w;
             }
             // Gain of putting v (taken out of `own`) into community x.
-            let gain = |x: usize, tot_x: f64| links.get(&x).copied().unwrap_or(0.0) / m - tot_x * kv / (2.0 * m * m);
+            let gain = |x: usize, tot_x: f64| {
+                links.get(&x).copied().unwrap_or(0.0) / m - tot_x * kv / (2.0 * m * m)
+            };
             let stay = gain(own, tot[own] - kv);
             let mut best = (stay, own);
             for (&x, _) in links.iter() {
@@ -495,13 +500,19 @@ mod tests {
         let r = greedy(&g, &c).unwrap();
         assert_ne!(r.community[0], r.community[1]);
         c.max_communities = Some(1);
-        assert!(matches!(greedy(&g, &c), Err(ClusterError::TooManyPins { .. })));
+        assert!(matches!(
+            greedy(&g, &c),
+            Err(ClusterError::TooManyPins { .. })
+        ));
         let c = Constraints {
             capacity: Some(2),
             max_communities: Some(2),
             ..Constraints::default()
         };
-        assert!(matches!(greedy(&g, &c), Err(ClusterError::DoesNotFit { .. })));
+        assert!(matches!(
+            greedy(&g, &c),
+            Err(ClusterError::DoesNotFit { .. })
+        ));
         let c = Constraints {
             max_communities: Some(1),
             ..Constraints::default()

@@ -35,6 +35,8 @@ pub struct PlaceOptions {
     pub capacity: Option<usize>,
     /// Most DNMs used.
     pub max_dnms: Option<usize>,
+    /// Treat pinned modules as free (to study placements as the paper does, without pins).
+    pub ignore_pins: bool,
 }
 
 impl Default for PlaceOptions {
@@ -44,6 +46,7 @@ impl Default for PlaceOptions {
             refine: false,
             capacity: None,
             max_dnms: None,
+            ignore_pins: false,
         }
     }
 }
@@ -202,8 +205,9 @@ pub fn predict(netlist: &Netlist, assignment: &BTreeMap<String, String>) -> Pred
     }
     let dnms: BTreeSet<&String> = assignment.values().collect();
     Prediction {
-        messages_per_minute: sent.values().map(|(r, _)| r * 60.0).sum(),
-        bytes_per_second: sent.values().map(|(r, b)| r * b).sum(),
+        // `+ 0.0` turns the empty sum's -0.0 into 0.
+        messages_per_minute: sent.values().map(|(r, _)| r * 60.0).sum::<f64>() + 0.0,
+        bytes_per_second: sent.values().map(|(r, b)| r * b).sum::<f64>() + 0.0,
         dnms_used: dnms.len(),
     }
 }
@@ -238,7 +242,7 @@ pub fn place(netlist: &Netlist, options: &PlaceOptions) -> Result<Placement, Pla
             .modules
             .iter()
             .map(|m| {
-                m.pinned
+                (m.pinned && !options.ignore_pins)
                     .then(|| dnm_index.get(m.dnm.as_str()).copied())
                     .flatten()
             })
@@ -254,7 +258,7 @@ pub fn place(netlist: &Netlist, options: &PlaceOptions) -> Result<Placement, Pla
     // Cluster → DNM.
     let mut target: Vec<Option<String>> = vec![None; k];
     for (m, &c) in netlist.modules.iter().zip(&clustering.community) {
-        if m.pinned {
+        if m.pinned && !options.ignore_pins {
             target[c] = Some(m.dnm.clone());
         }
     }

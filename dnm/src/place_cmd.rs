@@ -1,0 +1,172 @@
+//! `dnm place`: cluster a netlist's modules onto DNMs and report what each placement costs.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::Context;
+use dnm_netlist::Netlist;
+use dnm_place::{PlaceOptions, Placement, Prediction, Weighting};
+use serde::Serialize;
+
+#[derive(Debug, Clone)]
+pub struct PlaceArgs {
+    pub netlist: PathBuf,
+    pub weighting: Weighting,
+    pub refine: bool,
+    pub capacity: Option<usize>,
+    pub max_dnms: Option<usize>,
+    pub ignore_pins: bool,
+    pub write: Option<PathBuf>,
+    pub json: bool,
+}
+
+/// One row of the comparison table.
+#[derive(Debug, Serialize)]
+struct Row {
+    placement: String,
+    predicted: Prediction,
+    weighted_modularity: f64,
+    plain_modularity: f64,
+}
+
+fn row(netlist: &Netlist, name: &str, assignment: &BTreeMap<String, String>) -> Row {
+    Row {
+        placement: name.into(),
+        predicted: dnm_place::predict(netlist, assignment),
+        weighted_modularity: dnm_place::modularity_of(netlist, assignment, Weighting::Weighted),
+        plain_modularity: dnm_place::modularity_of(netlist, assignment, Weighting::Plain),
+    }
+}
+
+/// The netlist text with every module on its placed DNM and the placement's new DNMs declared.
+pub fn placed_text(text: &str, placement: &Placement) -> anyhow::Result<String> {
+    let mut doc: toml::Table = text.parse().context("parsing the netlist")?;
+    if !placement.new_dnms.is_empty() {
+        let dnms = doc
+            .entry("dnm")
+            .or_insert_with(|| toml::Value::Array(Vec::new()))
+            .as_array_mut()
+            .context("`dnm` is not an array")?;
+        for (name, parent) in &placement.new_dnms {
+            let mut t = toml::Table::new();
+            t.insert("name".into(), name.clone().into());
+            if let Some(p) = parent {
+                t.insert("parent".into(), p.clone().into());
+            }
+            dnms.push(t.into());
+        }
+    }
+    let modules = doc
+        .get_mut("module")
+        .and_then(|m| m.as_array_mut())
+        .context("the netlist has no modules")?;
+    for m in modules.iter_mut().filter_map(|m| m.as_table_mut()) {
+        let name = m.get("name").and_then(|n| n.as_str()).unwrap_or_default();
+        if let Some(d) = placement.assignment.get(name) {
+            m.insert("dnm".into(), d.clone().into());
+        }
+    }
+    Ok(toml::to_string(&doc)?)
+}
+
+pub fn run(args: &PlaceArgs) -> anyhow::Result<ExitCode> {
+    let netlist = dnm::load_netlist(&args.netlist).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let options = PlaceOptions {
+        weighting: args.weighting,
+        refine: args.refine,
+        capacity: args.capacity,
+        max_dnms: args.max_dnms,
+        ignore_pins: args.ignore_pins,
+    };
+    let placement = dnm_place::place(&netlist, &options)
+        .with_context(|| format!("placing {}", args.netlist.display()))?;
+    let as_written: BTreeMap<String, String> = netlist
+        .modules
+        .iter()
+        .map(|m| (m.name.clone(), m.dnm.clone()))
+        .collect();
+    let other = |w| {
+        dnm_place::place(
+            &netlist,
+            &PlaceOptions {
+                weighting: w,
+                ..options.clone()
+            },
+        )
+    };
+    let plain = other(Weighting::Plain)?;
+    let weighted = other(Weighting::Weighted)?;
+    let rows = vec![
+        row(&netlist, "as written", &as_written),
+        row(&netlist, "single DNM", &dnm_place::single_dnm(&netlist)),
+        row(&netlist, "plain Newman", &plain.assignment),
+        row(&netlist, "weighted Newman", &weighted.assignment),
+    ];
+    if let Some(out) = &args.write {
+        let text = std::fs::read_to_string(&args.netlist)
+            .with_context(|| format!("reading {}", args.netlist.display()))?;
+        let placed = placed_text(&text, &placement)?;
+        // The result must be a valid netlist before it is written.
+        dnm::parse_netlist(out, &placed).map_err(|e| anyhow::anyhow!("placed netlist: {e}"))?;
+        std::fs::write(out, placed).with_context(|| format!("writing {}", out.display()))?;
+    }
+    if args.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "placement": placement,
+                "comparison": rows,
+                "written": args.write,
+            }))?
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    print_human(&args.netlist, &placement, &rows, args.write.as_deref());
+    Ok(ExitCode::SUCCESS)
+}
+
+fn print_human(file: &Path, p: &Placement, rows: &[Row], written: Option<&Path>) {
+    println!(
+        "{}: {} Newman{}: modularity {:.3} ({} graph), {:.3} on the plain graph",
+        file.display(),
+        match p.weighting {
+            Weighting::Plain => "plain",
+            Weighting::Weighted => "weighted",
+        },
+        if p.refined { " + refinement" } else { "" },
+        p.modularity,
+        match p.weighting {
+            Weighting::Plain => "plain",
+            Weighting::Weighted => "weighted",
+        },
+        p.plain_modularity
+    );
+    for (dnm, modules) in &p.clusters {
+        let new = if p.new_dnms.iter().any(|(n, _)| n == dnm) {
+            " (new)"
+        } else {
+            ""
+        };
+        println!("  DNM {dnm}{new}: {}", modules.join(", "));
+    }
+    println!("\n  predicted traffic between DNMs:");
+    println!(
+        "  {:<16} {:>5} {:>14} {:>12} {:>20}",
+        "placement", "DNMs", "messages/min", "bytes/s", "modularity w / plain"
+    );
+    for r in rows {
+        println!(
+            "  {:<16} {:>5} {:>14.0} {:>12.0} {:>12.3} / {:.3}",
+            r.placement,
+            r.predicted.dnms_used,
+            r.predicted.messages_per_minute,
+            r.predicted.bytes_per_second,
+            r.weighted_modularity,
+            r.plain_modularity
+        );
+    }
+    if let Some(out) = written {
+        println!("\n  placed netlist written to {}", out.display());
+    }
+}
