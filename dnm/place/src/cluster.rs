@@ -220,9 +220,9 @@ pub fn greedy(g: &Graph, c: &Constraints) -> Result<Clustering, ClusterError> {
     // Initial communities: one per node, except pinned groups which start merged.
     let mut community: Vec<usize> = (0..n).collect();
     let mut group_first: HashMap<usize, usize> = HashMap::new();
-    for v in 0..n {
+    for (v, slot) in community.iter_mut().enumerate() {
         if let Some(p) = c.pinned.get(v).copied().flatten() {
-            community[v] = *group_first.entry(p).or_insert(v);
+            *slot = *group_first.entry(p).or_insert(v);
         }
     }
     let mut pin: Vec<Option<usize>> = vec![None; n];
