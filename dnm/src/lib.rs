@@ -121,3 +121,45 @@ pub fn load_netlist(path: &Path) -> Result<Netlist, NetlistError> {
 pub fn parse_netlist(path: &Path, text: &str) -> Result<Netlist, NetlistError> {
     Netlist::parse(path, text, &catalog(), &mut describe_exec)
 }
+
+/// `text` (a netlist) with each module on the DNM `assignment` gives it and `new_dnms`
+/// declared; `unpin` also drops `pinned` flags (for placements that moved pinned modules).
+pub fn placed_text(
+    text: &str,
+    assignment: &std::collections::BTreeMap<String, String>,
+    new_dnms: &[(String, Option<String>)],
+    unpin: bool,
+) -> Result<String, String> {
+    let mut doc: toml::Table = text
+        .parse()
+        .map_err(|e| format!("parsing the netlist: {e}"))?;
+    if !new_dnms.is_empty() {
+        let dnms = doc
+            .entry("dnm")
+            .or_insert_with(|| toml::Value::Array(Vec::new()))
+            .as_array_mut()
+            .ok_or("`dnm` is not an array")?;
+        for (name, parent) in new_dnms {
+            let mut t = toml::Table::new();
+            t.insert("name".into(), name.clone().into());
+            if let Some(p) = parent {
+                t.insert("parent".into(), p.clone().into());
+            }
+            dnms.push(t.into());
+        }
+    }
+    let modules = doc
+        .get_mut("module")
+        .and_then(|m| m.as_array_mut())
+        .ok_or("the netlist has no modules")?;
+    for m in modules.iter_mut().filter_map(|m| m.as_table_mut()) {
+        let name = m.get("name").and_then(|n| n.as_str()).unwrap_or_default();
+        if let Some(d) = assignment.get(name) {
+            m.insert("dnm".into(), d.clone().into());
+        }
+        if unpin {
+            m.remove("pinned");
+        }
+    }
+    toml::to_string(&doc).map_err(|e| e.to_string())
+}

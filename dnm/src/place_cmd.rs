@@ -39,37 +39,6 @@ fn row(netlist: &Netlist, name: &str, assignment: &BTreeMap<String, String>) -> 
     }
 }
 
-/// The netlist text with every module on its placed DNM and the placement's new DNMs declared.
-pub fn placed_text(text: &str, placement: &Placement) -> anyhow::Result<String> {
-    let mut doc: toml::Table = text.parse().context("parsing the netlist")?;
-    if !placement.new_dnms.is_empty() {
-        let dnms = doc
-            .entry("dnm")
-            .or_insert_with(|| toml::Value::Array(Vec::new()))
-            .as_array_mut()
-            .context("`dnm` is not an array")?;
-        for (name, parent) in &placement.new_dnms {
-            let mut t = toml::Table::new();
-            t.insert("name".into(), name.clone().into());
-            if let Some(p) = parent {
-                t.insert("parent".into(), p.clone().into());
-            }
-            dnms.push(t.into());
-        }
-    }
-    let modules = doc
-        .get_mut("module")
-        .and_then(|m| m.as_array_mut())
-        .context("the netlist has no modules")?;
-    for m in modules.iter_mut().filter_map(|m| m.as_table_mut()) {
-        let name = m.get("name").and_then(|n| n.as_str()).unwrap_or_default();
-        if let Some(d) = placement.assignment.get(name) {
-            m.insert("dnm".into(), d.clone().into());
-        }
-    }
-    Ok(toml::to_string(&doc)?)
-}
-
 pub fn run(args: &PlaceArgs) -> anyhow::Result<ExitCode> {
     let netlist = dnm::load_netlist(&args.netlist).map_err(|e| anyhow::anyhow!("{e}"))?;
     let options = PlaceOptions {
@@ -106,7 +75,8 @@ pub fn run(args: &PlaceArgs) -> anyhow::Result<ExitCode> {
     if let Some(out) = &args.write {
         let text = std::fs::read_to_string(&args.netlist)
             .with_context(|| format!("reading {}", args.netlist.display()))?;
-        let placed = placed_text(&text, &placement)?;
+        let placed = dnm::placed_text(&text, &placement.assignment, &placement.new_dnms, false)
+            .map_err(anyhow::Error::msg)?;
         // The result must be a valid netlist before it is written.
         dnm::parse_netlist(out, &placed).map_err(|e| anyhow::anyhow!("placed netlist: {e}"))?;
         std::fs::write(out, placed).with_context(|| format!("writing {}", out.display()))?;

@@ -364,3 +364,24 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn pins_need_a_dnm_and_are_kept() {
+    let pinned = good_with("dnm = \"ground\"\n", "dnm = \"ground\"\npinned = true\n");
+    let n = parse(&pinned).unwrap();
+    assert!(n.module("joystick").unwrap().pinned);
+    assert!(!n.module("drive").unwrap().pinned);
+    let text = good_with(
+        "name = \"joystick\"\nkind = \"joystick\"\ndnm = \"ground\"\n",
+        "name = \"joystick\"\nkind = \"joystick\"\npinned = true\n",
+    );
+    let e = error_of(&text);
+    assert!(
+        e.contains("module[0].pinned: module `joystick` is pinned but names no DNM"),
+        "{e}"
+    );
+    assert!(
+        e.contains(&format!(":{}:", line_of(&text, "pinned = true"))),
+        "{e}"
+    );
+}
