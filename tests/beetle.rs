@@ -48,6 +48,7 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
         ])
         .arg(&path)
         .env("DNM_RUN_DIR", path.parent().unwrap())
+        .env("DNM_RECORD_DIR", path.parent().unwrap().join("recordings"))
         .env("RUST_LOG", "warn")
         .output()
         .unwrap();
@@ -143,6 +144,7 @@ fn watchdog_stops_the_motors_when_the_joystick_dies() {
         ])
         .arg(&path)
         .env("DNM_RUN_DIR", path.parent().unwrap())
+        .env("DNM_RECORD_DIR", path.parent().unwrap().join("recordings"))
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
         .spawn()

@@ -81,6 +81,7 @@ impl System {
             .arg("up")
             .arg(&path)
             .env("DNM_MODULE_HOST", env!("CARGO_BIN_EXE_dnm-module-host"))
+            .env("DNM_RECORD_DIR", &dir)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
             .spawn()

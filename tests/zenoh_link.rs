@@ -29,6 +29,7 @@ impl Proc {
         let child = Command::new(DNM)
             .args(args)
             .env("DNM_RUN_DIR", run_dir)
+            .env("DNM_RECORD_DIR", run_dir.join("recordings"))
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
             .spawn()

@@ -33,6 +33,8 @@ pub struct DemoArgs {
     pub json: bool,
     /// Seconds of joystick driving before and after the autopilot.
     pub teleop_s: f64,
+    /// Record every port to MCAP.
+    pub record: Option<dnm::record::RecordOptions>,
 }
 
 /// Reads last values of ports over Zenoh, as any operator tool would.
@@ -299,7 +301,8 @@ fn with_camera_fov(text: &str, fov_deg: f64) -> anyhow::Result<String> {
 pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCode> {
     let netlist = load(args)?;
     let dnms: Vec<String> = netlist.dnms.iter().map(|d| d.name.clone()).collect();
-    let options = DnmOptions::standard().context("locating the module host")?;
+    let mut options = DnmOptions::standard().context("locating the module host")?;
+    options.record = args.record.clone();
     let tty = std::io::stdout().is_terminal() && !args.json;
     if !args.json {
         println!(
@@ -308,6 +311,13 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
             dnms.join(", "),
             netlist.modules.len()
         );
+        if let Some(r) = &args.record {
+            println!(
+                "recording every port to {}/{}-<dnm>.mcap",
+                r.dir.display(),
+                r.stem
+            );
+        }
     }
     let host = Host::start(netlist.clone(), &dnms, options, zenoh.config()?)?;
     let result = mission(&host, &netlist, args, tty);

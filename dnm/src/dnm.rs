@@ -86,6 +86,8 @@ pub struct DnmOptions {
     pub prepare_timeout: Duration,
     /// Supervision period: exits, restarts, CPU readings.
     pub tick: Duration,
+    /// Record every output port to MCAP (see [`crate::record`]); `None`: no recording.
+    pub record: Option<crate::record::RecordOptions>,
 }
 
 /// Lifecycle of a hosted module, as the DNM sees it.
@@ -159,6 +161,9 @@ pub struct DnmReport {
     /// Traffic of the routes to and from other DNMs.
     #[serde(default)]
     pub routes: NetReport,
+    /// The recorder's progress, when recording.
+    #[serde(default)]
+    pub recording: Option<crate::record::RecordReport>,
 }
 
 /// Commands a DNM's loop takes from other threads.
@@ -221,6 +226,7 @@ pub struct Dnm {
     cpu: CpuMeter,
     cleaned: u64,
     net: Option<Net>,
+    recorder: Option<crate::record::Recorder>,
     /// Answers to the last Zenoh commands, by id, so a retried command is applied once.
     answered: std::collections::VecDeque<(String, crate::admin::Response)>,
 }
@@ -279,6 +285,8 @@ impl Dnm {
         let word = writer.entry::<u64>(&0).map_err(ipc("task entry"))?;
         let dnm_event =
             event_service(&node, DNM_EVENT).map_err(|e| DnmError::Ipc(e.to_string()))?;
+        let options_record = options.record.clone();
+        let prefix_for_recorder = prefix.clone();
         Ok(Self {
             system: system.into(),
             name: name.into(),
@@ -299,6 +307,13 @@ impl Dnm {
             cpu: CpuMeter::default(),
             cleaned,
             net: None,
+            recorder: match &options_record {
+                Some(r) => Some(
+                    crate::record::Recorder::start(name, &prefix_for_recorder, r.clone())
+                        .map_err(DnmError::Ipc)?,
+                ),
+                None => None,
+            },
             answered: std::collections::VecDeque::new(),
         })
     }
@@ -479,9 +494,12 @@ impl Dnm {
                 post_plan(slot, &module_plan(netlist, &name, revision))?;
             }
         }
-        // 6. Routes to and from other DNMs follow the committed revision.
+        // 6. Routes to and from other DNMs, and the recording, follow the committed revision.
         if let Some(net) = self.net.as_mut() {
             net.commit(netlist, &self.node);
+        }
+        if let Some(rec) = self.recorder.as_mut() {
+            rec.commit(netlist, &self.name, revision);
         }
         tracing::info!(dnm = %self.name, revision, task = ?self.active, "netlist applied");
         Ok(revision)
@@ -513,6 +531,9 @@ impl Dnm {
         for slot in self.modules.values() {
             // Wake modules that wait for input so they re-read their sources now.
             let _ = slot.wake.notify();
+        }
+        if let Some(rec) = &self.recorder {
+            rec.switch(&record);
         }
         self.switches.push(record.clone());
         if self.switches.len() > 64 {
@@ -831,6 +852,7 @@ impl Dnm {
                 .map(|n| n.peer_reports(self.netlist.as_ref()))
                 .unwrap_or_default(),
             routes: self.net.as_ref().map(Net::report).unwrap_or_default(),
+            recording: self.recorder.as_ref().map(crate::record::Recorder::report),
         }
     }
 
@@ -1126,6 +1148,8 @@ impl Dnm {
         for name in names {
             self.stop_module(&name);
         }
+        // Finishes the recording: summary and footer.
+        self.recorder.take();
         tracing::info!(dnm = %self.name, "stopped");
     }
 }

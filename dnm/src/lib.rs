@@ -26,6 +26,7 @@ pub mod keys;
 pub mod net;
 pub mod plan;
 pub mod procfs;
+pub mod record;
 pub mod remote;
 pub mod values;
 
@@ -46,6 +47,7 @@ impl DnmOptions {
             module_host: module_host_path()?,
             prepare_timeout: Duration::from_secs(5),
             tick: Duration::from_millis(100),
+            record: None,
         })
     }
 }

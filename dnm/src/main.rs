@@ -63,6 +63,36 @@ impl ZenohArgs {
     }
 }
 
+/// Recording of every port to MCAP (on by default).
+#[derive(clap::Args, Debug)]
+struct RecordArgs {
+    /// Do not record.
+    #[arg(long)]
+    no_record: bool,
+    /// Folder of the recordings (default: $DNM_RECORD_DIR, else `recordings`).
+    #[arg(long)]
+    record_dir: Option<PathBuf>,
+    /// Record only this module or `module/port` (repeatable; default: every output).
+    #[arg(long)]
+    record_only: Vec<String>,
+}
+
+impl RecordArgs {
+    fn options(&self) -> Option<dnm::record::RecordOptions> {
+        if self.no_record {
+            return None;
+        }
+        let dir = self.record_dir.clone().unwrap_or_else(|| {
+            std::env::var_os("DNM_RECORD_DIR")
+                .map(PathBuf::from)
+                .unwrap_or_else(|| PathBuf::from("recordings"))
+        });
+        let mut o = dnm::record::RecordOptions::timestamped(&dir);
+        o.only = self.record_only.clone();
+        Some(o)
+    }
+}
+
 /// Sends a request to the running system: over Zenoh if asked to, else on this machine.
 fn send(z: &ZenohArgs, system: &str, req: &Request) -> anyhow::Result<Response> {
     if !z.remote() {
@@ -94,6 +124,8 @@ enum Cmd {
         /// DNMs to run here (default: every DNM of the netlist).
         #[arg(long = "dnm")]
         dnms: Vec<String>,
+        #[command(flatten)]
+        record: RecordArgs,
     },
     /// Report the running system's DNMs and modules.
     Status {
@@ -138,6 +170,8 @@ enum Cmd {
         /// Print only the summary, as JSON.
         #[arg(long)]
         json: bool,
+        #[command(flatten)]
+        record: RecordArgs,
     },
     /// Place modules on DNMs by clustering the module graph (Newman's greedy modularity,
     /// weighted by traffic), and compare the predicted traffic between DNMs.
@@ -245,7 +279,11 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let z = &cli.zenoh;
     match cli.command {
         Cmd::Check { netlist, json } => check(&netlist, json),
-        Cmd::Up { netlist, dnms } => {
+        Cmd::Up {
+            netlist,
+            dnms,
+            record,
+        } => {
             let n = dnm::load_netlist(&netlist).map_err(|e| anyhow::anyhow!("{e}"))?;
             let dnms = if dnms.is_empty() {
                 n.dnms.iter().map(|d| d.name.clone()).collect()
@@ -257,7 +295,15 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 }
                 dnms
             };
-            let options = DnmOptions::standard().context("locating the module host")?;
+            let mut options = DnmOptions::standard().context("locating the module host")?;
+            options.record = record.options();
+            if let Some(r) = &options.record {
+                println!(
+                    "recording every port to {}/{}-<dnm>.mcap",
+                    r.dir.display(),
+                    r.stem
+                );
+            }
             println!(
                 "system `{}`: DNMs {} up, task {}; Ctrl-C to stop",
                 n.system,
@@ -311,6 +357,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             keep_running,
             teleop_seconds,
             json,
+            record,
         } => demo::run(
             &z.options(),
             &demo::DemoArgs {
@@ -318,6 +365,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 keep_running,
                 json,
                 teleop_s: teleop_seconds,
+                record: record.options(),
             },
         ),
         Cmd::Place {

@@ -70,7 +70,8 @@ pub fn up(system: &str, netlist: &str, args: &[String], dnm: Option<&str>, dnms:
     let path = dir.join("netlist.toml");
     std::fs::write(&path, netlist).unwrap();
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_dnm"));
-    cmd.args(args).arg("up").arg(&path);
+    // Benchmarks measure without recording unless they say otherwise.
+    cmd.args(args).arg("up").arg(&path).arg("--no-record");
     if let Some(d) = dnm {
         cmd.args(["--dnm", d]);
     }

@@ -1,0 +1,735 @@
+//! Recording a DNM's output ports to MCAP, off the hot path.
+//!
+//! A reader thread holds its own subscriber on every recorded port and wakes on the ports'
+//! events; it copies each sample into a bounded queue and never blocks: if the queue is full
+//! the sample is counted as dropped, and samples a slow reader missed are counted from gaps in
+//! the per-port sequence numbers. A writer thread turns the queue into an MCAP file: one channel
+//! per output port (`/<dnm>/<module>/<port>`), zstd-compressed chunks finished every second, so a
+//! killed DNM leaves a file readable up to its last second. Files rotate by size and age.
+//!
+//! Encodings the robotics tools read without our code: fixed-size messages are ROS 2 `.msg`
+//! schemas with CDR messages (their `repr(C)` layout of 8-byte fields is CDR's, after the
+//! 4-byte encapsulation header); images become `sensor_msgs/msg/Image`; JSON stays JSON with a
+//! JSON schema; other bytes are `uint8[] data` in CDR. Log and publish times are the producer's
+//! send stamps, mapped from CLOCK_MONOTONIC to Unix time. The netlist of each revision is an
+//! attachment and a metadata record; task switches are a JSON channel `/<dnm>/_switches`.
+
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{self, Receiver, Sender, SyncSender, TrySendError};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use dnm_module::protocol::{PortHeader, dnm_config, monotonic_ns, output_event, output_service};
+use dnm_module::{event_service, port_service};
+use dnm_netlist::{MessageType, Netlist};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use serde::{Deserialize, Serialize};
+
+type Svc = ipc::Service;
+
+/// Event service that wakes a DNM's recorder after its port set changed.
+const RECORDER_EVENT: &str = "_dnm/recorder";
+/// Samples queued between the reader and the writer.
+const QUEUE: usize = 65_536;
+/// Longest a chunk stays open: what a crash can lose.
+const CHUNK_PERIOD: Duration = Duration::from_secs(1);
+
+/// Where and what a DNM records.
+#[derive(Debug, Clone)]
+pub struct RecordOptions {
+    /// Folder of the files (`recordings/` by default).
+    pub dir: PathBuf,
+    /// File name stem; files are `<stem>-<dnm>[-<n>].mcap`.
+    pub stem: String,
+    /// Record only these modules or `module/port`s (all when empty).
+    pub only: Vec<String>,
+    /// Start a new file after this many bytes...
+    pub rotate_bytes: u64,
+    /// ...or this long.
+    pub rotate_after: Duration,
+}
+
+impl RecordOptions {
+    /// `recordings/<UTC timestamp>`, 1 GiB or 1 hour per file.
+    pub fn timestamped(dir: &Path) -> Self {
+        let secs = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        Self {
+            dir: dir.to_path_buf(),
+            stem: format!("rec-{secs}"),
+            only: Vec::new(),
+            rotate_bytes: 1 << 30,
+            rotate_after: Duration::from_secs(3600),
+        }
+    }
+
+    fn wants(&self, module: &str, port: &str) -> bool {
+        self.only.is_empty()
+            || self
+                .only
+                .iter()
+                .any(|s| s == module || *s == format!("{module}/{port}"))
+    }
+}
+
+/// What the recorder has done, for reports.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct RecordReport {
+    pub file: String,
+    pub messages: u64,
+    pub bytes: u64,
+    /// Samples not recorded: queue full, or overwritten before the reader got to them.
+    pub dropped: u64,
+    pub files: u64,
+}
+
+#[derive(Debug, Default)]
+struct Counters {
+    messages: AtomicU64,
+    bytes: AtomicU64,
+    dropped: AtomicU64,
+    files: AtomicU64,
+    file: std::sync::Mutex<String>,
+}
+
+#[derive(Debug, Clone)]
+struct RecPort {
+    module: String,
+    port: String,
+    message: MessageType,
+}
+
+enum Item {
+    Sample {
+        port: usize,
+        header: PortHeader,
+        bytes: Vec<u8>,
+    },
+    Ports(Vec<RecPort>),
+    Netlist {
+        revision: u64,
+        file: String,
+        text: String,
+    },
+    Switch(String),
+}
+
+/// A DNM's recorder: the reader and writer threads.
+pub(crate) struct Recorder {
+    control: Sender<Vec<RecPort>>,
+    queue: SyncSender<Item>,
+    wake: iceoryx2::port::notifier::Notifier<ipc_threadsafe::Service>,
+    _wake_node: Node<ipc_threadsafe::Service>,
+    counters: Arc<Counters>,
+    options: RecordOptions,
+    reader: Option<JoinHandle<()>>,
+    writer: Option<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for Recorder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Recorder")
+            .field("options", &self.options)
+            .finish_non_exhaustive()
+    }
+}
+
+fn dbg<E: std::fmt::Debug>(what: &str) -> impl FnOnce(E) -> String + '_ {
+    move |e| format!("{what}: {e:?}")
+}
+
+impl Recorder {
+    pub(crate) fn start(dnm: &str, prefix: &str, options: RecordOptions) -> Result<Self, String> {
+        std::fs::create_dir_all(&options.dir)
+            .map_err(|e| format!("recordings folder {}: {e}", options.dir.display()))?;
+        let counters = Arc::new(Counters::default());
+        let (queue, items) = mpsc::sync_channel::<Item>(QUEUE);
+        let writer = {
+            let counters = counters.clone();
+            let options = options.clone();
+            let dnm = dnm.to_string();
+            std::thread::Builder::new()
+                .name(format!("record-{dnm}"))
+                .spawn(move || {
+                    if let Err(e) = write_loop(&dnm, &options, &items, &counters) {
+                        tracing::error!(dnm, "recording stopped: {e}");
+                    }
+                })
+                .map_err(|e| e.to_string())?
+        };
+        let (control, ports) = mpsc::channel::<Vec<RecPort>>();
+        let (ready_tx, ready_rx) = mpsc::sync_channel(1);
+        let reader = {
+            let counters = counters.clone();
+            let prefix = prefix.to_string();
+            let queue = queue.clone();
+            std::thread::Builder::new()
+                .name(format!("record-in-{dnm}"))
+                .spawn(move || {
+                    if let Err(e) = read_loop(&prefix, &ports, &queue, &counters, &ready_tx) {
+                        tracing::error!("recorder input stopped: {e}");
+                        let _ = ready_tx.try_send(Err(e));
+                    }
+                })
+                .map_err(|e| e.to_string())?
+        };
+        match ready_rx.recv() {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return Err(e),
+            Err(_) => return Err("recorder stopped while starting".into()),
+        }
+        let config = dnm_config(prefix)?;
+        let wake_node = NodeBuilder::new()
+            .config(&config)
+            .create::<ipc_threadsafe::Service>()
+            .map_err(dbg("recorder node"))?;
+        let wake = event_service(&wake_node, RECORDER_EVENT)
+            .map_err(|e| e.to_string())?
+            .notifier_builder()
+            .create()
+            .map_err(dbg("recorder notifier"))?;
+        Ok(Self {
+            control,
+            queue,
+            wake,
+            _wake_node: wake_node,
+            counters,
+            options,
+            reader: Some(reader),
+            writer: Some(writer),
+        })
+    }
+
+    /// After a revision is committed: record its netlist and exactly the wanted ports of the
+    /// DNM's modules.
+    pub(crate) fn commit(&mut self, netlist: &Netlist, dnm: &str, revision: u64) {
+        let ports: Vec<RecPort> = netlist
+            .modules_on(dnm)
+            .filter_map(|m| netlist.kind_of(&m.name).map(|k| (m, k)))
+            .flat_map(|(m, k)| {
+                k.outputs
+                    .iter()
+                    .filter(|p| self.options.wants(&m.name, &p.name))
+                    .map(|p| RecPort {
+                        module: m.name.clone(),
+                        port: p.name.clone(),
+                        message: p.message.clone(),
+                    })
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let _ = self.queue.send(Item::Netlist {
+            revision,
+            file: netlist.file.display().to_string(),
+            text: netlist.text.clone(),
+        });
+        let _ = self.queue.send(Item::Ports(ports.clone()));
+        if self.control.send(ports).is_ok() {
+            let _ = self.wake.notify();
+        }
+    }
+
+    /// Records a task switch.
+    pub(crate) fn switch(&self, record: &crate::SwitchRecord) {
+        if let Ok(json) = serde_json::to_string(record) {
+            let _ = self.queue.try_send(Item::Switch(json));
+        }
+    }
+
+    pub(crate) fn report(&self) -> RecordReport {
+        RecordReport {
+            file: self
+                .counters
+                .file
+                .lock()
+                .map(|f| f.clone())
+                .unwrap_or_default(),
+            messages: self.counters.messages.load(Ordering::Relaxed),
+            bytes: self.counters.bytes.load(Ordering::Relaxed),
+            dropped: self.counters.dropped.load(Ordering::Relaxed),
+            files: self.counters.files.load(Ordering::Relaxed),
+        }
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        drop(std::mem::replace(&mut self.control, mpsc::channel().0));
+        let _ = self.wake.notify();
+        if let Some(t) = self.reader.take() {
+            let _ = t.join();
+        }
+        // The reader held the other queue sender; dropping ours ends the writer, which
+        // finishes the file (summary and footer).
+        drop(std::mem::replace(&mut self.queue, mpsc::sync_channel(1).0));
+        if let Some(t) = self.writer.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+struct OpenPort {
+    subscriber: Subscriber<Svc, [u8], PortHeader>,
+    listener: Listener<Svc>,
+}
+
+fn read_loop(
+    prefix: &str,
+    ports: &Receiver<Vec<RecPort>>,
+    queue: &SyncSender<Item>,
+    counters: &Counters,
+    ready: &SyncSender<Result<(), String>>,
+) -> Result<(), String> {
+    let config = dnm_config(prefix)?;
+    let node = NodeBuilder::new()
+        .config(&config)
+        .create::<Svc>()
+        .map_err(dbg("recorder node"))?;
+    let control = event_service(&node, RECORDER_EVENT)
+        .map_err(|e| e.to_string())?
+        .listener_builder()
+        .create()
+        .map_err(dbg("recorder listener"))?;
+    let _ = ready.send(Ok(()));
+    let mut wanted: Vec<RecPort> = Vec::new();
+    let newest = |current: Option<Vec<RecPort>>| -> Option<Option<Vec<RecPort>>> {
+        let mut latest = current;
+        loop {
+            match ports.try_recv() {
+                Ok(set) => latest = Some(set),
+                Err(mpsc::TryRecvError::Empty) => return Some(latest),
+                Err(mpsc::TryRecvError::Disconnected) => return None,
+            }
+        }
+    };
+    loop {
+        let mut open: Vec<OpenPort> = Vec::new();
+        for p in &wanted {
+            let service = output_service(&p.module, &p.port);
+            let opened = port_service(&node, &service, &p.message.payload)
+                .map_err(|e| e.to_string())
+                .and_then(|s| s.subscriber_builder().create().map_err(dbg("subscriber")))
+                .and_then(|subscriber| {
+                    let listener = event_service(&node, &output_event(&p.module, &p.port))
+                        .map_err(|e| e.to_string())?
+                        .listener_builder()
+                        .create()
+                        .map_err(dbg("listener"))?;
+                    Ok(OpenPort {
+                        subscriber,
+                        listener,
+                    })
+                });
+            match opened {
+                Ok(o) => open.push(o),
+                Err(e) => {
+                    // Keep indices aligned with the writer's channels: an unopened port
+                    // records nothing.
+                    tracing::error!(port = %service, "not recorded: {e}");
+                    return Err(e);
+                }
+            }
+        }
+        let waitset = WaitSetBuilder::new()
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<Svc>()
+            .map_err(dbg("recorder waitset"))?;
+        let _control_guard = waitset
+            .attach_notification(&control)
+            .map_err(dbg("attach"))?;
+        let mut guards = Vec::new();
+        for o in &open {
+            guards.push(
+                waitset
+                    .attach_notification(&o.listener)
+                    .map_err(dbg("attach"))?,
+            );
+        }
+        match newest(None) {
+            None => return Ok(()),
+            Some(Some(set)) => {
+                wanted = set;
+                continue;
+            }
+            Some(None) => {}
+        }
+        let mut next_seq: Vec<Option<u64>> = vec![None; open.len()];
+        loop {
+            waitset
+                .wait_and_process_once(|_| CallbackProgression::Continue)
+                .map_err(dbg("recorder wait"))?;
+            for (i, (o, next)) in open.iter().zip(next_seq.iter_mut()).enumerate() {
+                let _ = o.listener.try_wait(|_| ());
+                while let Ok(Some(s)) = o.subscriber.receive() {
+                    let header = *s.user_header();
+                    if let Some(expected) = *next {
+                        // Samples overwritten before we read them.
+                        counters
+                            .dropped
+                            .fetch_add(header.seq.saturating_sub(expected), Ordering::Relaxed);
+                    }
+                    *next = Some(header.seq + 1);
+                    let item = Item::Sample {
+                        port: i,
+                        header,
+                        bytes: s.payload().to_vec(),
+                    };
+                    if let Err(TrySendError::Full(_)) = queue.try_send(item) {
+                        counters.dropped.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            }
+            let _ = control.try_wait(|_| ());
+            match newest(None) {
+                None => return Ok(()),
+                Some(Some(set)) => {
+                    wanted = set;
+                    break;
+                }
+                Some(None) => {}
+            }
+        }
+    }
+}
+
+/// CLOCK_MONOTONIC → Unix time, fixed when the recorder starts.
+struct Clock {
+    unix_minus_mono: i128,
+}
+
+impl Clock {
+    fn new() -> Self {
+        let unix = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as i128);
+        Self {
+            unix_minus_mono: unix - i128::from(monotonic_ns()),
+        }
+    }
+
+    fn unix(&self, mono: u64) -> u64 {
+        (i128::from(mono) + self.unix_minus_mono).max(0) as u64
+    }
+}
+
+/// Schema (name, encoding, text) and message encoding of a port in the file.
+pub fn mcap_encoding(message: &MessageType) -> (String, &'static str, String, &'static str) {
+    if message.encoding == dnm_module::msg::POD_ENCODING {
+        (
+            message.schema_name.clone(),
+            "ros2msg",
+            message.schema.clone(),
+            "cdr",
+        )
+    } else if message.encoding == "dnm-image-rgb8" {
+        (
+            "sensor_msgs/msg/Image".into(),
+            "ros2msg",
+            IMAGE_SCHEMA.into(),
+            "cdr",
+        )
+    } else if message.encoding == "application/json" {
+        (
+            message.schema_name.clone(),
+            "jsonschema",
+            message.schema.clone(),
+            "json",
+        )
+    } else {
+        (
+            message.schema_name.clone(),
+            "ros2msg",
+            "uint8[] data\n".into(),
+            "cdr",
+        )
+    }
+}
+
+/// `sensor_msgs/msg/Image` with its dependencies, as ROS 2 tools expect a schema.
+const IMAGE_SCHEMA: &str = "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n================================================================================\nMSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n================================================================================\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n";
+
+/// Little-endian CDR writer (after the encapsulation header, alignment is relative to it).
+struct Cdr(Vec<u8>);
+
+impl Cdr {
+    fn new(capacity: usize) -> Self {
+        let mut v = Vec::with_capacity(capacity + 64);
+        v.extend_from_slice(&[0, 1, 0, 0]);
+        Cdr(v)
+    }
+    fn align(&mut self, n: usize) {
+        while (self.0.len() - 4) % n != 0 {
+            self.0.push(0);
+        }
+    }
+    fn u32(&mut self, v: u32) {
+        self.align(4);
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn i32(&mut self, v: i32) {
+        self.align(4);
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    fn string(&mut self, s: &str) {
+        self.u32(s.len() as u32 + 1);
+        self.0.extend_from_slice(s.as_bytes());
+        self.0.push(0);
+    }
+    fn bytes(&mut self, b: &[u8]) {
+        self.u32(b.len() as u32);
+        self.0.extend_from_slice(b);
+    }
+}
+
+/// The bytes a port sample is stored as.
+pub fn encode(message: &MessageType, frame: &str, stamp_unix_ns: u64, bytes: &[u8]) -> Vec<u8> {
+    if message.encoding == dnm_module::msg::POD_ENCODING {
+        let mut c = Cdr::new(bytes.len());
+        c.0.extend_from_slice(bytes);
+        c.0
+    } else if message.encoding == "dnm-image-rgb8" && bytes.len() >= 12 {
+        let word =
+            |i: usize| u32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
+        let (width, height, step) = (word(0), word(4), word(8));
+        let mut c = Cdr::new(bytes.len());
+        c.i32((stamp_unix_ns / 1_000_000_000) as i32);
+        c.u32((stamp_unix_ns % 1_000_000_000) as u32);
+        c.string(frame);
+        c.u32(height);
+        c.u32(width);
+        c.string("rgb8");
+        c.0.push(0); // is_bigendian
+        c.u32(step);
+        c.bytes(&bytes[12..]);
+        c.0
+    } else if message.encoding == "application/json" {
+        bytes.to_vec()
+    } else {
+        let mut c = Cdr::new(bytes.len());
+        c.bytes(bytes);
+        c.0
+    }
+}
+
+struct OpenFile {
+    writer: mcap::Writer<BufWriter<File>>,
+    path: PathBuf,
+    opened: Instant,
+    bytes: u64,
+    channels: Vec<(u16, u32)>,
+    switches: u16,
+}
+
+fn open_file(
+    dnm: &str,
+    options: &RecordOptions,
+    index: u64,
+    ports: &[RecPort],
+    netlist: Option<&(u64, String, String)>,
+) -> Result<OpenFile, String> {
+    let name = if index == 0 {
+        format!("{}-{dnm}.mcap", options.stem)
+    } else {
+        format!("{}-{dnm}-{index}.mcap", options.stem)
+    };
+    let path = options.dir.join(name);
+    let file = File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut writer = mcap::WriteOptions::new()
+        .compression(Some(mcap::Compression::Zstd))
+        .profile("ros2")
+        .library("dnm")
+        .chunk_size(Some(1 << 20))
+        .create(BufWriter::new(file))
+        .map_err(|e| e.to_string())?;
+    let mut channels = Vec::new();
+    for p in ports {
+        let (schema_name, schema_encoding, schema, message_encoding) = mcap_encoding(&p.message);
+        let schema_id = writer
+            .add_schema(&schema_name, schema_encoding, schema.as_bytes())
+            .map_err(|e| e.to_string())?;
+        let mut meta = BTreeMap::new();
+        meta.insert("dnm".to_string(), dnm.to_string());
+        meta.insert("dnm_encoding".to_string(), p.message.encoding.clone());
+        let id = writer
+            .add_channel(
+                schema_id,
+                &format!("/{dnm}/{}/{}", p.module, p.port),
+                message_encoding,
+                &meta,
+            )
+            .map_err(|e| e.to_string())?;
+        channels.push((id, 0));
+    }
+    let schema_id = writer
+        .add_schema(
+            "dnm/TaskSwitch",
+            "jsonschema",
+            br#"{"type":"object","properties":{"dnm":{"type":"string"},"revision":{"type":"integer"},"from":{"type":["string","null"]},"to":{"type":"string"},"duration_ns":{"type":"integer"},"at_ns":{"type":"integer"}}}"#,
+        )
+        .map_err(|e| e.to_string())?;
+    let switches = writer
+        .add_channel(
+            schema_id,
+            &format!("/{dnm}/_switches"),
+            "json",
+            &BTreeMap::new(),
+        )
+        .map_err(|e| e.to_string())?;
+    let mut f = OpenFile {
+        writer,
+        path,
+        opened: Instant::now(),
+        bytes: 0,
+        channels,
+        switches,
+    };
+    if let Some((revision, file, text)) = netlist {
+        write_netlist(&mut f, *revision, file, text)?;
+    }
+    Ok(f)
+}
+
+fn write_netlist(f: &mut OpenFile, revision: u64, file: &str, text: &str) -> Result<(), String> {
+    let now = Clock::new().unix(monotonic_ns());
+    f.writer
+        .attach(&mcap::Attachment {
+            log_time: now,
+            create_time: now,
+            name: format!("netlist-r{revision}.toml"),
+            media_type: "application/toml".into(),
+            data: std::borrow::Cow::Borrowed(text.as_bytes()),
+        })
+        .map_err(|e| e.to_string())?;
+    let mut meta = BTreeMap::new();
+    meta.insert("revision".to_string(), revision.to_string());
+    meta.insert("file".to_string(), file.to_string());
+    meta.insert("text".to_string(), text.to_string());
+    f.writer
+        .write_metadata(&mcap::records::Metadata {
+            name: "dnm.netlist".into(),
+            metadata: meta,
+        })
+        .map_err(|e| e.to_string())
+}
+
+fn write_loop(
+    dnm: &str,
+    options: &RecordOptions,
+    items: &Receiver<Item>,
+    counters: &Counters,
+) -> Result<(), String> {
+    let clock = Clock::new();
+    let mut ports: Vec<RecPort> = Vec::new();
+    let mut netlist: Option<(u64, String, String)> = None;
+    let mut index = 0u64;
+    let mut file: Option<OpenFile> = None;
+    let mut last_flush = Instant::now();
+    loop {
+        let item = match items.recv_timeout(CHUNK_PERIOD) {
+            Ok(item) => Some(item),
+            Err(mpsc::RecvTimeoutError::Timeout) => None,
+            Err(mpsc::RecvTimeoutError::Disconnected) => break,
+        };
+        match item {
+            Some(Item::Ports(p)) => {
+                // A new port set starts a new file: channels are fixed per file.
+                if let Some(mut f) = file.take() {
+                    f.writer.finish().map_err(|e| e.to_string())?;
+                    index += 1;
+                }
+                ports = p;
+                let f = open_file(dnm, options, index, &ports, netlist.as_ref())?;
+                counters.files.fetch_add(1, Ordering::Relaxed);
+                if let Ok(mut name) = counters.file.lock() {
+                    *name = f.path.display().to_string();
+                }
+                file = Some(f);
+            }
+            Some(Item::Netlist {
+                revision,
+                file: name,
+                text,
+            }) => {
+                if let Some(f) = file.as_mut() {
+                    write_netlist(f, revision, &name, &text)?;
+                }
+                netlist = Some((revision, name, text));
+            }
+            Some(Item::Switch(json)) => {
+                if let Some(f) = file.as_mut() {
+                    let now = clock.unix(monotonic_ns());
+                    let header = mcap::records::MessageHeader {
+                        channel_id: f.switches,
+                        sequence: 0,
+                        log_time: now,
+                        publish_time: now,
+                    };
+                    f.writer
+                        .write_to_known_channel(&header, json.as_bytes())
+                        .map_err(|e| e.to_string())?;
+                }
+            }
+            Some(Item::Sample {
+                port,
+                header,
+                bytes,
+            }) => {
+                let (Some(f), Some(p)) = (file.as_mut(), ports.get(port)) else {
+                    continue;
+                };
+                let time = clock.unix(header.stamp_ns);
+                let data = encode(&p.message, &p.module, time, &bytes);
+                let (channel, seq) = &mut f.channels[port];
+                *seq += 1;
+                f.writer
+                    .write_to_known_channel(
+                        &mcap::records::MessageHeader {
+                            channel_id: *channel,
+                            sequence: header.seq as u32,
+                            log_time: time,
+                            publish_time: time,
+                        },
+                        &data,
+                    )
+                    .map_err(|e| e.to_string())?;
+                f.bytes += data.len() as u64;
+                counters.messages.fetch_add(1, Ordering::Relaxed);
+                counters
+                    .bytes
+                    .fetch_add(data.len() as u64, Ordering::Relaxed);
+            }
+            None => {}
+        }
+        if last_flush.elapsed() >= CHUNK_PERIOD {
+            last_flush = Instant::now();
+            if let Some(f) = file.as_mut() {
+                f.writer.flush().map_err(|e| e.to_string())?;
+            }
+        }
+        let rotate = file.as_ref().is_some_and(|f| {
+            f.bytes >= options.rotate_bytes || f.opened.elapsed() >= options.rotate_after
+        });
+        if rotate && let Some(mut f) = file.take() {
+            f.writer.finish().map_err(|e| e.to_string())?;
+            index += 1;
+            let f = open_file(dnm, options, index, &ports, netlist.as_ref())?;
+            counters.files.fetch_add(1, Ordering::Relaxed);
+            if let Ok(mut name) = counters.file.lock() {
+                *name = f.path.display().to_string();
+            }
+            file = Some(f);
+        }
+    }
+    if let Some(mut f) = file.take() {
+        f.writer.finish().map_err(|e| e.to_string())?;
+    }
+    Ok(())
+}
