@@ -28,6 +28,7 @@ pub mod plan;
 pub mod procfs;
 pub mod record;
 pub mod remote;
+pub mod stats;
 pub mod values;
 
 pub use dnm::{

@@ -201,6 +201,19 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// Analyse a recording: per channel count, rate, gaps, bytes; task switches; latency
+    /// through linked modules; optionally export channels to CSV.
+    Stats {
+        file: PathBuf,
+        /// Export this channel (topic) to CSV (repeatable).
+        #[arg(long)]
+        csv: Vec<String>,
+        /// Folder for the CSV files.
+        #[arg(long, default_value = ".")]
+        out: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
     /// Run a Zenoh router (joins the rover's and the ground's networks), until Ctrl-C.
     Router,
     /// List the standard module kinds.
@@ -392,6 +405,41 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             write,
             json,
         }),
+        Cmd::Stats {
+            file,
+            csv,
+            out,
+            json,
+        } => {
+            let bytes =
+                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+            let s = dnm::stats::stats(&bytes).map_err(|e| {
+                anyhow::anyhow!("{}: not a readable MCAP file: {e}", file.display())
+            })?;
+            if !csv.is_empty() {
+                let written =
+                    dnm::stats::export_csv(&bytes, &csv, &out).map_err(anyhow::Error::msg)?;
+                for t in &csv {
+                    if !written.contains(t) {
+                        bail!(
+                            "{}: no channel `{t}`; channels: {}",
+                            file.display(),
+                            s.channels
+                                .iter()
+                                .map(|c| c.topic.as_str())
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        );
+                    }
+                }
+            }
+            if json {
+                println!("{}", serde_json::to_string_pretty(&s)?);
+            } else {
+                print_stats(&file, &s);
+            }
+            Ok(ExitCode::SUCCESS)
+        }
         Cmd::Router => {
             dnm_router::run_router(&z.options())?;
             Ok(ExitCode::SUCCESS)
@@ -566,6 +614,41 @@ fn print_dnm(d: &DnmReport) {
                 r.key, r.messages, r.bytes, r.dropped
             );
         }
+    }
+}
+
+fn print_stats(file: &Path, s: &dnm::stats::Stats) {
+    println!(
+        "{}: {} messages over {:.1} s, netlist revisions {}",
+        file.display(),
+        s.messages,
+        s.duration_s,
+        s.netlist_revisions.join(", ")
+    );
+    println!(
+        "  {:<36} {:<26} {:>8} {:>9} {:>11} {:>8} {:>12}",
+        "channel", "schema", "messages", "rate Hz", "max gap ms", "missing", "bytes"
+    );
+    for c in &s.channels {
+        println!(
+            "  {:<36} {:<26} {:>8} {:>9.1} {:>11.1} {:>8} {:>12}",
+            c.topic, c.schema, c.messages, c.rate_hz, c.max_gap_ms, c.missing, c.bytes
+        );
+    }
+    for l in &s.links {
+        println!(
+            "  latency {:<40} p50 {:.2} ms, p99 {:.2} ms ({} samples)",
+            l.link, l.p50_ms, l.p99_ms, l.samples
+        );
+    }
+    for sw in &s.switches {
+        println!(
+            "  switch {} -> {} on {} (revision {})",
+            sw["from"].as_str().unwrap_or("?"),
+            sw["to"].as_str().unwrap_or("?"),
+            sw["dnm"].as_str().unwrap_or("?"),
+            sw["revision"]
+        );
     }
 }
 
