@@ -28,6 +28,7 @@ pub mod plan;
 pub mod procfs;
 pub mod record;
 pub mod remote;
+pub mod replay;
 pub mod stats;
 pub mod values;
 

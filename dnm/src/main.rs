@@ -214,6 +214,24 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// Replay a recording into the ports of a system running on this machine.
+    Replay {
+        file: PathBuf,
+        /// System to replay into (default: the recorded one).
+        #[arg(long)]
+        system: Option<String>,
+        /// Replay only this channel (topic, repeatable; default: all).
+        #[arg(long)]
+        only: Vec<String>,
+        /// Speed factor against the recorded timing (default 1.0).
+        #[arg(long, default_value_t = 1.0, conflicts_with = "fast")]
+        rate: f64,
+        /// As fast as consumers keep up, ignoring the recorded timing.
+        #[arg(long)]
+        fast: bool,
+        #[arg(long)]
+        json: bool,
+    },
     /// Run a Zenoh router (joins the rover's and the ground's networks), until Ctrl-C.
     Router,
     /// List the standard module kinds.
@@ -437,6 +455,35 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 println!("{}", serde_json::to_string_pretty(&s)?);
             } else {
                 print_stats(&file, &s);
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Cmd::Replay {
+            file,
+            system,
+            only,
+            rate,
+            fast,
+            json,
+        } => {
+            let bytes =
+                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+            let pace = if fast {
+                dnm::replay::Pace::Fast
+            } else {
+                dnm::replay::Pace::Rate(rate)
+            };
+            let r = dnm::replay::replay(&bytes, system.as_deref(), &only, pace)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&r)?);
+            } else {
+                println!(
+                    "replayed {} messages on {} in {:.1} s",
+                    r.messages,
+                    r.channels.join(", "),
+                    r.seconds
+                );
             }
             Ok(ExitCode::SUCCESS)
         }
