@@ -62,16 +62,31 @@ impl Up {
     }
 }
 
-/// Runs `dnm [zenoh args] up NETLIST [--dnm D]` and waits until `dnms` DNMs of the system on
-/// this machine report every module running.
+/// Runs `dnm [zenoh args] up NETLIST [--dnm D] --no-record` and waits until `dnms` DNMs of the
+/// system on this machine report every module running.
 pub fn up(system: &str, netlist: &str, args: &[String], dnm: Option<&str>, dnms: usize) -> Up {
+    up_recording(system, netlist, args, dnm, dnms, None)
+}
+
+/// [`up`], recording every port into `record_dir` when given.
+pub fn up_recording(
+    system: &str,
+    netlist: &str,
+    args: &[String],
+    dnm: Option<&str>,
+    dnms: usize,
+    record_dir: Option<&std::path::Path>,
+) -> Up {
     let dir = std::env::temp_dir().join(format!("dnm-bench-{system}-{}", dnm.unwrap_or("all")));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("netlist.toml");
     std::fs::write(&path, netlist).unwrap();
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_dnm"));
-    // Benchmarks measure without recording unless they say otherwise.
-    cmd.args(args).arg("up").arg(&path).arg("--no-record");
+    cmd.args(args).arg("up").arg(&path);
+    match record_dir {
+        Some(d) => cmd.arg("--record-dir").arg(d),
+        None => cmd.arg("--no-record"),
+    };
     if let Some(d) = dnm {
         cmd.args(["--dnm", d]);
     }

@@ -1,0 +1,197 @@
+//! Recording to MCAP, all in one run:
+//!
+//! 1. writer capacity: how fast the writer path (encode + MCAP + zstd chunks + file) takes
+//!    small messages and camera frames, fed directly;
+//! 2. a live system recording at a sustained load (small messages and camera frames): what was
+//!    recorded, what was dropped, and the DNM's CPU;
+//! 3. one-hop latency between two modules with recording off and on, same payloads.
+//!
+//! Run: `cargo bench -p dnm --bench recording`.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use common::{human, latencies, percentiles, unique, up, up_recording};
+use dnm::admin::{Request, request};
+use dnm_netlist::{MessageType, Payload};
+use iceoryx2::prelude::{LogLevel, set_log_level};
+
+const SAMPLES: usize = 2000;
+const RATE_HZ: f64 = 500.0;
+
+fn main() {
+    set_log_level(LogLevel::Error);
+    println!("# recording benchmark\n");
+    writer_capacity();
+    live_load();
+    latency();
+}
+
+fn writer_capacity() {
+    let dir = std::env::temp_dir().join(unique("wcap"));
+    std::fs::create_dir_all(&dir).unwrap();
+    println!("| writer fed directly | messages/s | MB/s (port bytes) |");
+    println!("|---|---|---|");
+    for (name, size, count) in [("16 B ticks", 16usize, 400_000usize), ("225 KiB frames", 320 * 240 * 3, 600)] {
+        let message = MessageType {
+            schema_name: "bench/Blob".into(),
+            encoding: "application/octet-stream".into(),
+            schema: "uint8[] data\n".into(),
+            payload: Payload::Bytes { max_bytes: size },
+        };
+        let file = std::fs::File::create(dir.join(format!("{size}.mcap"))).unwrap();
+        let mut w = mcap::WriteOptions::new()
+            .compression(Some(mcap::Compression::Zstd))
+            .chunk_size(Some(1 << 20))
+            .create(std::io::BufWriter::new(file))
+            .unwrap();
+        let schema = w.add_schema("bench/Blob", "ros2msg", b"uint8[] data\n").unwrap();
+        let channel = w.add_channel(schema, "/x", "cdr", &BTreeMap::new()).unwrap();
+        // Frames of a rendered scene compress; random bytes would not: use a gradient.
+        let payload: Vec<u8> = (0..size).map(|i| (i / 3 % 251) as u8).collect();
+        let t = Instant::now();
+        for seq in 0..count {
+            let data = dnm::record::encode(&message, "x", seq as u64, &payload);
+            w.write_to_known_channel(
+                &mcap::records::MessageHeader {
+                    channel_id: channel,
+                    sequence: seq as u32,
+                    log_time: seq as u64,
+                    publish_time: seq as u64,
+                },
+                &data,
+            )
+            .unwrap();
+        }
+        w.finish().unwrap();
+        let s = t.elapsed().as_secs_f64();
+        println!(
+            "| {name} | {:.0} | {:.1} |",
+            count as f64 / s,
+            (count * size) as f64 / s / 1e6
+        );
+    }
+    println!();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn live_load() {
+    let system = unique("live");
+    let netlist = format!(
+        r#"[system]
+name = "{system}"
+[[module]]
+name = "t1"
+kind = "ticker"
+rate_hz = 1000
+[[module]]
+name = "t2"
+kind = "ticker"
+rate_hz = 1000
+[[module]]
+name = "cam1"
+kind = "blob_source"
+rate_hz = 30
+params = {{ bytes = 230400 }}
+[[module]]
+name = "cam2"
+kind = "blob_source"
+rate_hz = 30
+params = {{ bytes = 230400 }}
+[[module]]
+name = "r1"
+kind = "relay"
+[task.run]
+links = ["t1.out -> r1.in"]
+"#
+    );
+    let dir = std::env::temp_dir().join(unique("liverec"));
+    let up = up_recording(&system, &netlist, &[], None, 1, Some(&dir));
+    std::thread::sleep(Duration::from_secs(2));
+    let read = || request(&system, &Request::Status).unwrap().dnms.remove(0);
+    let (a, t0) = (read(), Instant::now());
+    let cpu0 = cpu_seconds(up.pid());
+    std::thread::sleep(Duration::from_secs(10));
+    let (b, dt) = (read(), t0.elapsed().as_secs_f64());
+    let cpu1 = cpu_seconds(up.pid());
+    let (ra, rb) = (a.recording.unwrap(), b.recording.unwrap());
+    println!("| live system: 2 × 1 kHz ticks, 1 relay, 2 × 30 Hz 225 KiB frames | value |");
+    println!("|---|---|");
+    println!(
+        "| recorded messages/s | {:.0} |",
+        (rb.messages - ra.messages) as f64 / dt
+    );
+    println!(
+        "| recorded MB/s (encoded, before compression) | {:.2} |",
+        (rb.bytes - ra.bytes) as f64 / dt / 1e6
+    );
+    println!("| dropped in the window | {} |", rb.dropped - ra.dropped);
+    println!(
+        "| DNM process CPU (recorder included), % of one core | {:.1} |\n",
+        (cpu1 - cpu0) / dt * 100.0
+    );
+    drop(up);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn cpu_seconds(pid: u32) -> f64 {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<&str> = after.split_whitespace().collect();
+    let ticks: f64 = f.get(11).and_then(|x| x.parse().ok()).unwrap_or(0.0)
+        + f.get(12).and_then(|x| x.parse().ok()).unwrap_or(0.0);
+    // SAFETY: sysconf with a valid name has no side effects.
+    ticks / unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64
+}
+
+fn latency() {
+    println!(
+        "| payload | recording off p50 / p99 (µs) | recording on p50 / p99 (µs) | added p50 | added p99 |"
+    );
+    println!("|---|---|---|---|---|");
+    for size in [64usize, 4096, 320 * 240 * 3] {
+        let run = |record: bool| {
+            let system = unique(&format!("l{size}{}", u8::from(record)));
+            let netlist = format!(
+                r#"[system]
+name = "{system}"
+[[module]]
+name = "src"
+kind = "blob_source"
+rate_hz = {RATE_HZ}
+params = {{ bytes = {size} }}
+[[module]]
+name = "lat"
+kind = "latency"
+[task.run]
+links = ["src.out -> lat.in"]
+"#
+            );
+            let dir = std::env::temp_dir().join(unique(&format!("lr{size}")));
+            let _up = if record {
+                up_recording(&system, &netlist, &[], None, 1, Some(&dir))
+            } else {
+                up(&system, &netlist, &[], None, 1)
+            };
+            let lat = percentiles(latencies(&system, "local", "lat", SAMPLES, 100));
+            let _ = std::fs::remove_dir_all(&dir);
+            lat
+        };
+        let off = run(false);
+        let on = run(true);
+        println!(
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.0} % | {:+.0} % |",
+            human(size),
+            off.0,
+            off.1,
+            on.0,
+            on.1,
+            (on.0 / off.0 - 1.0) * 100.0,
+            (on.1 / off.1 - 1.0) * 100.0
+        );
+    }
+}
