@@ -1,7 +1,7 @@
 //! Recording a DNM's output ports to MCAP, off the hot path.
 //!
-//! A reader thread holds its own subscriber on every recorded port and wakes on the ports'
-//! events; it copies each sample into a bounded queue and never blocks: if the queue is full
+//! A reader thread holds its own subscriber on every recorded port and drains them every 10 ms
+//! (it does not wake per sample); it copies each sample into a bounded queue and never blocks: if the queue is full
 //! the sample is counted as dropped, and samples a slow reader missed are counted from gaps in
 //! the per-port sequence numbers. A writer thread turns the queue into an MCAP file: one channel
 //! per output port (`/<dnm>/<module>/<port>`), zstd-compressed chunks finished every second, so a
@@ -24,10 +24,9 @@ use std::sync::mpsc::{self, Receiver, Sender, SyncSender, TrySendError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use dnm_module::protocol::{PortHeader, dnm_config, monotonic_ns, output_event, output_service};
+use dnm_module::protocol::{PortHeader, dnm_config, monotonic_ns, output_service};
 use dnm_module::{event_service, port_service};
 use dnm_netlist::{MessageType, Netlist};
-use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -278,8 +277,13 @@ impl Drop for Recorder {
 
 struct OpenPort {
     subscriber: Subscriber<Svc, [u8], PortHeader>,
-    listener: Listener<Svc>,
 }
+
+/// How often the reader drains its subscribers. It does not wake per sample (that would compete
+/// with the modules' own wake-ups for the CPU); its subscribers hold
+/// [`dnm_module::protocol::recorder_buffer`] samples, more than a port sends in this time at the
+/// rates the DNM is built for (1 kHz small messages, 500 Hz up to 64 KiB).
+const DRAIN_PERIOD: Duration = Duration::from_millis(10);
 
 fn read_loop(
     prefix: &str,
@@ -314,29 +318,20 @@ fn read_loop(
         let mut open: Vec<OpenPort> = Vec::new();
         for p in &wanted {
             let service = output_service(&p.module, &p.port);
-            let opened = port_service(&node, &service, &p.message.payload)
+            let subscriber = port_service(&node, &service, &p.message.payload)
                 .map_err(|e| e.to_string())
-                .and_then(|s| s.subscriber_builder().create().map_err(dbg("subscriber")))
-                .and_then(|subscriber| {
-                    let listener = event_service(&node, &output_event(&p.module, &p.port))
-                        .map_err(|e| e.to_string())?
-                        .listener_builder()
+                .and_then(|s| {
+                    s.subscriber_builder()
+                        .buffer_size(dnm_module::protocol::recorder_buffer(&p.message.payload))
                         .create()
-                        .map_err(dbg("listener"))?;
-                    Ok(OpenPort {
-                        subscriber,
-                        listener,
-                    })
-                });
-            match opened {
-                Ok(o) => open.push(o),
-                Err(e) => {
-                    // Keep indices aligned with the writer's channels: an unopened port
-                    // records nothing.
+                        .map_err(dbg("subscriber"))
+                })
+                .map_err(|e| {
+                    // Indices must stay aligned with the writer's channels.
                     tracing::error!(port = %service, "not recorded: {e}");
-                    return Err(e);
-                }
-            }
+                    e
+                })?;
+            open.push(OpenPort { subscriber });
         }
         let waitset = WaitSetBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)
@@ -345,14 +340,9 @@ fn read_loop(
         let _control_guard = waitset
             .attach_notification(&control)
             .map_err(dbg("attach"))?;
-        let mut guards = Vec::new();
-        for o in &open {
-            guards.push(
-                waitset
-                    .attach_notification(&o.listener)
-                    .map_err(dbg("attach"))?,
-            );
-        }
+        let _tick_guard = waitset
+            .attach_interval(DRAIN_PERIOD)
+            .map_err(dbg("attach"))?;
         match newest(None) {
             None => return Ok(()),
             Some(Some(set)) => {
@@ -367,7 +357,6 @@ fn read_loop(
                 .wait_and_process_once(|_| CallbackProgression::Continue)
                 .map_err(dbg("recorder wait"))?;
             for (i, (o, next)) in open.iter().zip(next_seq.iter_mut()).enumerate() {
-                let _ = o.listener.try_wait(|_| ());
                 while let Ok(Some(s)) = o.subscriber.receive() {
                     let header = *s.user_header();
                     if let Some(expected) = *next {

@@ -36,7 +36,10 @@ fn writer_capacity() {
     std::fs::create_dir_all(&dir).unwrap();
     println!("| writer fed directly | messages/s | MB/s (port bytes) |");
     println!("|---|---|---|");
-    for (name, size, count) in [("16 B ticks", 16usize, 400_000usize), ("225 KiB frames", 320 * 240 * 3, 600)] {
+    for (name, size, count) in [
+        ("16 B ticks", 16usize, 400_000usize),
+        ("225 KiB frames", 320 * 240 * 3, 600),
+    ] {
         let message = MessageType {
             schema_name: "bench/Blob".into(),
             encoding: "application/octet-stream".into(),
@@ -49,8 +52,12 @@ fn writer_capacity() {
             .chunk_size(Some(1 << 20))
             .create(std::io::BufWriter::new(file))
             .unwrap();
-        let schema = w.add_schema("bench/Blob", "ros2msg", b"uint8[] data\n").unwrap();
-        let channel = w.add_channel(schema, "/x", "cdr", &BTreeMap::new()).unwrap();
+        let schema = w
+            .add_schema("bench/Blob", "ros2msg", b"uint8[] data\n")
+            .unwrap();
+        let channel = w
+            .add_channel(schema, "/x", "cdr", &BTreeMap::new())
+            .unwrap();
         // Frames of a rendered scene compress; random bytes would not: use a gradient.
         let payload: Vec<u8> = (0..size).map(|i| (i / 3 % 251) as u8).collect();
         let t = Instant::now();

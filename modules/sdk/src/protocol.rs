@@ -52,6 +52,17 @@ pub const PORT_BUFFER: usize = 4;
 /// Samples a subscriber of a large port keeps.
 pub const LARGE_PORT_BUFFER: usize = 2;
 
+/// Samples a recorder's subscriber may hold: it drains the port periodically instead of
+/// waking on every sample, so it needs a deeper buffer than a module (which keeps only the
+/// latest). Consumers still use [`port_limits`]'s buffer.
+pub fn recorder_buffer(payload: &dnm_netlist::Payload) -> usize {
+    match payload.max_bytes() {
+        b if b <= 1024 => 32,
+        b if b <= LARGE_PAYLOAD_BYTES => 8,
+        _ => LARGE_PORT_BUFFER,
+    }
+}
+
 /// (max subscribers, subscriber buffer) of a port with this payload. Shared memory per
 /// publisher is about `subscribers * (buffer + borrowed) + 3` samples of the largest size.
 pub fn port_limits(payload: &dnm_netlist::Payload) -> (usize, usize) {

@@ -415,14 +415,14 @@ pub fn port_service<S: iceoryx2::service::Service>(
     ModuleError,
 > {
     let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
-    let (max_subscribers, buffer) = port_limits(payload);
+    let (max_subscribers, _) = port_limits(payload);
     node.service_builder(&service_name)
         .publish_subscribe::<[u8]>()
         .user_header::<PortHeader>()
         .payload_alignment(Alignment::new(8).ok_or_else(|| ModuleError::Ipc("alignment".into()))?)
         .max_publishers(MAX_PORT_PUBLISHERS)
         .max_subscribers(max_subscribers)
-        .subscriber_max_buffer_size(buffer)
+        .subscriber_max_buffer_size(crate::protocol::recorder_buffer(payload))
         .subscriber_max_borrowed_samples(PORT_BORROWED)
         .history_size(1)
         .enable_safe_overflow(true)
