@@ -195,6 +195,10 @@ enum Cmd {
         /// Move pinned modules too (what-if studies; the paper's placements had no pins).
         #[arg(long)]
         ignore_pins: bool,
+        /// Weigh links by the traffic measured in this recording (a DNM's MCAP file); ports it
+        /// lacks keep the netlist's prediction.
+        #[arg(long)]
+        from_recording: Option<PathBuf>,
         /// Write the placed netlist (modules' `dnm` fields set) to this file.
         #[arg(long)]
         write: Option<PathBuf>,
@@ -407,6 +411,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             capacity,
             max_dnms,
             ignore_pins,
+            from_recording,
             write,
             json,
         } => place_cmd::run(&place_cmd::PlaceArgs {
@@ -420,6 +425,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             capacity,
             max_dnms,
             ignore_pins,
+            from_recording,
             write,
             json,
         }),

@@ -17,6 +17,7 @@ pub struct PlaceArgs {
     pub capacity: Option<usize>,
     pub max_dnms: Option<usize>,
     pub ignore_pins: bool,
+    pub from_recording: Option<PathBuf>,
     pub write: Option<PathBuf>,
     pub json: bool,
 }
@@ -30,13 +31,41 @@ struct Row {
     plain_modularity: f64,
 }
 
-fn row(netlist: &Netlist, name: &str, assignment: &BTreeMap<String, String>) -> Row {
+fn row(
+    netlist: &Netlist,
+    measured: Option<&dnm_place::Measured>,
+    name: &str,
+    assignment: &BTreeMap<String, String>,
+) -> Row {
     Row {
         placement: name.into(),
-        predicted: dnm_place::predict(netlist, assignment),
+        predicted: dnm_place::predict_with(netlist, assignment, measured),
         weighted_modularity: dnm_place::modularity_of(netlist, assignment, Weighting::Weighted),
         plain_modularity: dnm_place::modularity_of(netlist, assignment, Weighting::Plain),
     }
+}
+
+/// Bytes per message and rate of every recorded port, from a recording's channels.
+fn measured(file: &Path) -> anyhow::Result<dnm_place::Measured> {
+    let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
+    let stats = dnm::stats::stats(&bytes)
+        .map_err(|e| anyhow::anyhow!("{}: not a readable recording: {e}", file.display()))?;
+    let mut out = dnm_place::Measured::new();
+    for c in stats.channels {
+        let mut parts = c.topic.trim_start_matches('/').splitn(3, '/');
+        if let (Some(_dnm), Some(module), Some(port)) = (parts.next(), parts.next(), parts.next())
+            && c.messages > 0
+        {
+            out.insert(
+                (module.to_string(), port.to_string()),
+                (c.bytes as f64 / c.messages as f64, c.rate_hz),
+            );
+        }
+    }
+    if out.is_empty() {
+        anyhow::bail!("{}: the recording has no port data", file.display());
+    }
+    Ok(out)
 }
 
 pub fn run(args: &PlaceArgs) -> anyhow::Result<ExitCode> {
@@ -47,7 +76,12 @@ pub fn run(args: &PlaceArgs) -> anyhow::Result<ExitCode> {
         capacity: args.capacity,
         max_dnms: args.max_dnms,
         ignore_pins: args.ignore_pins,
+        measured: match &args.from_recording {
+            Some(f) => Some(measured(f)?),
+            None => None,
+        },
     };
+    let m = options.measured.as_ref();
     let placement = dnm_place::place(&netlist, &options)
         .with_context(|| format!("placing {}", args.netlist.display()))?;
     let as_written: BTreeMap<String, String> = netlist
@@ -67,10 +101,10 @@ pub fn run(args: &PlaceArgs) -> anyhow::Result<ExitCode> {
     let plain = other(Weighting::Plain)?;
     let weighted = other(Weighting::Weighted)?;
     let rows = vec![
-        row(&netlist, "as written", &as_written),
-        row(&netlist, "single DNM", &dnm_place::single_dnm(&netlist)),
-        row(&netlist, "plain Newman", &plain.assignment),
-        row(&netlist, "weighted Newman", &weighted.assignment),
+        row(&netlist, m, "as written", &as_written),
+        row(&netlist, m, "single DNM", &dnm_place::single_dnm(&netlist)),
+        row(&netlist, m, "plain Newman", &plain.assignment),
+        row(&netlist, m, "weighted Newman", &weighted.assignment),
     ];
     if let Some(out) = &args.write {
         let text = std::fs::read_to_string(&args.netlist)

@@ -37,7 +37,12 @@ pub struct PlaceOptions {
     pub max_dnms: Option<usize>,
     /// Treat pinned modules as free (to study placements as the paper does, without pins).
     pub ignore_pins: bool,
+    /// Measured traffic per output port (from a recording), replacing the netlist's prediction.
+    pub measured: Option<Measured>,
 }
+
+/// Measured traffic of output ports: (module, port) → (bytes per message, messages per second).
+pub type Measured = BTreeMap<(String, String), (f64, f64)>;
 
 impl Default for PlaceOptions {
     fn default() -> Self {
@@ -47,6 +52,7 @@ impl Default for PlaceOptions {
             capacity: None,
             max_dnms: None,
             ignore_pins: false,
+            measured: None,
         }
     }
 }
@@ -100,6 +106,21 @@ pub fn module_rates(netlist: &Netlist) -> BTreeMap<String, f64> {
     rates
 }
 
+/// Every link of every task, once, with its traffic: measured where `measured` has the port,
+/// else predicted from the netlist.
+pub fn traffic_with(netlist: &Netlist, measured: Option<&Measured>) -> Vec<LinkTraffic> {
+    let mut links = traffic(netlist);
+    if let Some(m) = measured {
+        for l in &mut links {
+            if let Some(&(bytes, rate)) = m.get(&(l.from_module.clone(), l.from_port.clone())) {
+                l.bytes_per_message = bytes;
+                l.messages_per_second = rate;
+            }
+        }
+    }
+    links
+}
+
 /// Every link of every task, once, with its predicted traffic.
 pub fn traffic(netlist: &Netlist) -> Vec<LinkTraffic> {
     let rates = module_rates(netlist);
@@ -129,13 +150,22 @@ pub fn traffic(netlist: &Netlist) -> Vec<LinkTraffic> {
 
 /// The module graph as an undirected weighted graph, nodes in netlist order.
 pub fn module_graph(netlist: &Netlist, weighting: Weighting) -> Graph {
+    module_graph_with(netlist, weighting, None)
+}
+
+/// [`module_graph`] with measured traffic where known.
+pub fn module_graph_with(
+    netlist: &Netlist,
+    weighting: Weighting,
+    measured: Option<&Measured>,
+) -> Graph {
     let index: BTreeMap<&str, usize> = netlist
         .modules
         .iter()
         .enumerate()
         .map(|(i, m)| (m.name.as_str(), i))
         .collect();
-    let links = traffic(netlist);
+    let links = traffic_with(netlist, measured);
     let raw: Vec<f64> = links
         .iter()
         .map(|t| match weighting {
@@ -190,8 +220,17 @@ pub struct Prediction {
 /// What crosses DNMs under `assignment`: each output a remote DNM reads is sent once to each
 /// such DNM (the DNM's egress publishes it once; Zenoh delivers it per remote DNM).
 pub fn predict(netlist: &Netlist, assignment: &BTreeMap<String, String>) -> Prediction {
+    predict_with(netlist, assignment, None)
+}
+
+/// [`predict`] with measured traffic where known.
+pub fn predict_with(
+    netlist: &Netlist,
+    assignment: &BTreeMap<String, String>,
+    measured: Option<&Measured>,
+) -> Prediction {
     let mut sent: BTreeMap<(String, String, String), (f64, f64)> = BTreeMap::new();
-    for t in traffic(netlist) {
+    for t in traffic_with(netlist, measured) {
         let (Some(a), Some(b)) = (assignment.get(&t.from_module), assignment.get(&t.to_module))
         else {
             continue;
@@ -230,7 +269,8 @@ pub fn single_dnm(netlist: &Netlist) -> BTreeMap<String, String> {
 /// a DNM goes there; the others take the unused DNMs in declaration order, then new DNMs
 /// `<first DNM>-<n>` under the first DNM.
 pub fn place(netlist: &Netlist, options: &PlaceOptions) -> Result<Placement, PlaceError> {
-    let g = module_graph(netlist, options.weighting);
+    let measured = options.measured.as_ref();
+    let g = module_graph_with(netlist, options.weighting, measured);
     let dnm_index: BTreeMap<&str, usize> = netlist
         .dnms
         .iter()
@@ -299,7 +339,7 @@ pub fn place(netlist: &Netlist, options: &PlaceOptions) -> Result<Placement, Pla
     Ok(Placement {
         weighting: options.weighting,
         refined: options.refine,
-        predicted: predict(netlist, &assignment),
+        predicted: predict_with(netlist, &assignment, measured),
         assignment,
         clusters,
         new_dnms,
