@@ -230,7 +230,8 @@ impl Recorder {
             file: netlist.file.display().to_string(),
             text: netlist.text.clone(),
         });
-        let _ = self.queue.send(Item::Ports(ports.clone()));
+        // The reader announces the new port set to the writer itself, in queue order, so no
+        // sample read under the old set is written to a channel of the new one.
         if self.control.send(ports).is_ok() {
             let _ = self.wake.notify();
         }
@@ -315,6 +316,9 @@ fn read_loop(
         }
     };
     loop {
+        if queue.send(Item::Ports(wanted.clone())).is_err() {
+            return Ok(()); // the writer is gone
+        }
         let mut open: Vec<OpenPort> = Vec::new();
         for p in &wanted {
             let service = output_service(&p.module, &p.port);
@@ -635,6 +639,10 @@ fn write_loop(
                     index += 1;
                 }
                 ports = p;
+                // Nothing to record (yet): no file.
+                if ports.is_empty() {
+                    continue;
+                }
                 let f = open_file(dnm, options, index, &ports, netlist.as_ref())?;
                 counters.files.fetch_add(1, Ordering::Relaxed);
                 if let Ok(mut name) = counters.file.lock() {
