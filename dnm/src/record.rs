@@ -35,8 +35,10 @@ type Svc = ipc::Service;
 
 /// Event service that wakes a DNM's recorder after its port set changed.
 const RECORDER_EVENT: &str = "_dnm/recorder";
-/// Samples queued between the reader and the writer.
+/// Samples queued between the reader and the writer...
 const QUEUE: usize = 65_536;
+/// ...and at most this many bytes of them: beyond it, new samples are dropped (and counted).
+const QUEUE_BYTES: u64 = 256 << 20;
 /// Longest a chunk stays open: what a crash can lose.
 const CHUNK_PERIOD: Duration = Duration::from_secs(1);
 
@@ -92,6 +94,8 @@ pub struct RecordReport {
 
 #[derive(Debug, Default)]
 struct Counters {
+    /// Bytes of samples queued for the writer.
+    queued: AtomicU64,
     messages: AtomicU64,
     bytes: AtomicU64,
     dropped: AtomicU64,
@@ -319,7 +323,9 @@ fn read_loop(
         if queue.send(Item::Ports(wanted.clone())).is_err() {
             return Ok(()); // the writer is gone
         }
-        let mut open: Vec<OpenPort> = Vec::new();
+        // One slot per port, aligned with the writer's channels; a port that cannot be
+        // subscribed to (all its subscriber slots taken) is reported and left out.
+        let mut open: Vec<Option<OpenPort>> = Vec::new();
         for p in &wanted {
             let service = output_service(&p.module, &p.port);
             let subscriber = port_service(&node, &service, &p.message.payload)
@@ -329,13 +335,14 @@ fn read_loop(
                         .buffer_size(dnm_module::protocol::recorder_buffer(&p.message.payload))
                         .create()
                         .map_err(dbg("subscriber"))
-                })
-                .map_err(|e| {
-                    // Indices must stay aligned with the writer's channels.
+                });
+            match subscriber {
+                Ok(subscriber) => open.push(Some(OpenPort { subscriber })),
+                Err(e) => {
                     tracing::error!(port = %service, "not recorded: {e}");
-                    e
-                })?;
-            open.push(OpenPort { subscriber });
+                    open.push(None);
+                }
+            }
         }
         let waitset = WaitSetBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)
@@ -355,14 +362,19 @@ fn read_loop(
             }
             Some(None) => {}
         }
-        let mut next_seq: Vec<Option<u64>> = vec![None; open.len()];
+        let mut next_seq: Vec<
+            std::collections::HashMap<iceoryx2::identifiers::UniquePublisherId, Option<u64>>,
+        > = vec![std::collections::HashMap::new(); open.len()];
         loop {
             waitset
                 .wait_and_process_once(|_| CallbackProgression::Continue)
                 .map_err(dbg("recorder wait"))?;
             for (i, (o, next)) in open.iter().zip(next_seq.iter_mut()).enumerate() {
+                let Some(o) = o else { continue };
                 while let Ok(Some(s)) = o.subscriber.receive() {
                     let header = *s.user_header();
+                    // Per publisher: a replay or a replacement publishes beside the module.
+                    let next = next.entry(s.origin()).or_insert(None);
                     if let Some(expected) = *next {
                         // Samples overwritten before we read them.
                         counters
@@ -370,12 +382,19 @@ fn read_loop(
                             .fetch_add(header.seq.saturating_sub(expected), Ordering::Relaxed);
                     }
                     *next = Some(header.seq + 1);
+                    let len = s.payload().len() as u64;
+                    if counters.queued.load(Ordering::Relaxed) + len > QUEUE_BYTES {
+                        counters.dropped.fetch_add(1, Ordering::Relaxed);
+                        continue;
+                    }
                     let item = Item::Sample {
                         port: i,
                         header,
                         bytes: s.payload().to_vec(),
                     };
+                    counters.queued.fetch_add(len, Ordering::Relaxed);
                     if let Err(TrySendError::Full(_)) = queue.try_send(item) {
+                        counters.queued.fetch_sub(len, Ordering::Relaxed);
                         counters.dropped.fetch_add(1, Ordering::Relaxed);
                     }
                 }
@@ -517,7 +536,7 @@ struct OpenFile {
     path: PathBuf,
     opened: Instant,
     bytes: u64,
-    channels: Vec<(u16, u32)>,
+    channels: Vec<u16>,
     switches: u16,
 }
 
@@ -559,7 +578,7 @@ fn open_file(
                 &meta,
             )
             .map_err(|e| e.to_string())?;
-        channels.push((id, 0));
+        channels.push(id);
     }
     let schema_id = writer
         .add_schema(
@@ -588,6 +607,20 @@ fn open_file(
         write_netlist(&mut f, *revision, file, text)?;
     }
     Ok(f)
+}
+
+/// Writes the summary and footer and flushes the file, reporting any error (a full disk).
+fn close(f: OpenFile) -> Result<(), String> {
+    use std::io::Write;
+    let path = f.path.clone();
+    let mut writer = f.writer;
+    writer
+        .finish()
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    writer
+        .into_inner()
+        .flush()
+        .map_err(|e| format!("{}: {e}", path.display()))
 }
 
 fn write_netlist(f: &mut OpenFile, revision: u64, file: &str, text: &str) -> Result<(), String> {
@@ -634,8 +667,8 @@ fn write_loop(
         match item {
             Some(Item::Ports(p)) => {
                 // A new port set starts a new file: channels are fixed per file.
-                if let Some(mut f) = file.take() {
-                    f.writer.finish().map_err(|e| e.to_string())?;
+                if let Some(f) = file.take() {
+                    close(f)?;
                     index += 1;
                 }
                 ports = p;
@@ -655,9 +688,8 @@ fn write_loop(
                 file: name,
                 text,
             }) => {
-                if let Some(f) = file.as_mut() {
-                    write_netlist(f, revision, &name, &text)?;
-                }
+                // Written into the file the revision's port set opens (it always follows), so
+                // each file holds the netlist of its own data.
                 netlist = Some((revision, name, text));
             }
             Some(Item::Switch(json)) => {
@@ -679,17 +711,19 @@ fn write_loop(
                 header,
                 bytes,
             }) => {
+                counters
+                    .queued
+                    .fetch_sub(bytes.len() as u64, Ordering::Relaxed);
                 let (Some(f), Some(p)) = (file.as_mut(), ports.get(port)) else {
                     continue;
                 };
                 let time = clock.unix(header.stamp_ns);
                 let data = encode(&p.message, &p.module, time, &bytes);
-                let (channel, seq) = &mut f.channels[port];
-                *seq += 1;
+                let channel = f.channels[port];
                 f.writer
                     .write_to_known_channel(
                         &mcap::records::MessageHeader {
-                            channel_id: *channel,
+                            channel_id: channel,
                             sequence: header.seq as u32,
                             log_time: time,
                             publish_time: time,
@@ -714,8 +748,8 @@ fn write_loop(
         let rotate = file.as_ref().is_some_and(|f| {
             f.bytes >= options.rotate_bytes || f.opened.elapsed() >= options.rotate_after
         });
-        if rotate && let Some(mut f) = file.take() {
-            f.writer.finish().map_err(|e| e.to_string())?;
+        if rotate && let Some(f) = file.take() {
+            close(f)?;
             index += 1;
             let f = open_file(dnm, options, index, &ports, netlist.as_ref())?;
             counters.files.fetch_add(1, Ordering::Relaxed);
@@ -725,8 +759,8 @@ fn write_loop(
             file = Some(f);
         }
     }
-    if let Some(mut f) = file.take() {
-        f.writer.finish().map_err(|e| e.to_string())?;
+    if let Some(f) = file.take() {
+        close(f)?;
     }
     Ok(())
 }

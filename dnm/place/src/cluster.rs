@@ -382,6 +382,31 @@ pub fn greedy(g: &Graph, c: &Constraints) -> Result<Clustering, ClusterError> {
         x
     };
     let mut labels: Vec<usize> = (0..n).map(|v| root(community[v])).collect();
+    // Modules with no links change no modularity wherever they go: put each unpinned one in
+    // the largest community that has room, instead of a DNM of its own.
+    let mut sizes: HashMap<usize, usize> = HashMap::new();
+    for &l in &labels {
+        *sizes.entry(l).or_default() += 1;
+    }
+    for (v, label) in labels.iter_mut().enumerate() {
+        let isolated = g.degree[v] == 0.0
+            && c.pinned.get(v).copied().flatten().is_none()
+            && sizes.get(label) == Some(&1);
+        if !isolated {
+            continue;
+        }
+        let own = *label;
+        let target = sizes
+            .iter()
+            .filter(|(l, s)| **l != own && c.capacity.is_none_or(|cap| **s < cap))
+            .max_by_key(|(l, s)| (**s, std::cmp::Reverse(**l)))
+            .map(|(l, _)| *l);
+        if let Some(t) = target {
+            sizes.remove(&own);
+            *sizes.entry(t).or_default() += 1;
+            *label = t;
+        }
+    }
     compact(&mut labels);
     let modularity = g.modularity(&labels);
     Ok(Clustering {
@@ -424,7 +449,8 @@ pub fn refine(g: &Graph, c: &Constraints, clustering: &mut Clustering) -> usize 
             }
             let own = comm[v];
             let kv = g.degree[v];
-            let mut links: HashMap<usize, f64> = HashMap::new();
+            // Ordered, so ties go to the lowest community id and results repeat.
+            let mut links: std::collections::BTreeMap<usize, f64> = Default::default();
             for (u, w) in g.neighbors(v) {
                 *links.entry(comm[u]).or_default() += w;
             }
@@ -485,6 +511,17 @@ mod tests {
         let c = greedy(&g, &Constraints::default()).unwrap();
         assert_eq!(c.community, [0, 0, 0, 1, 1, 1]);
         assert!((c.modularity - q).abs() < 1e-12);
+    }
+
+    #[test]
+    fn unlinked_nodes_join_a_community_instead_of_their_own() {
+        let mut g = Graph::new(8);
+        for (a, b) in [(0, 1), (1, 2), (0, 2), (3, 4), (4, 5), (3, 5), (2, 3)] {
+            g.add_edge(a, b, 1.0);
+        }
+        let c = greedy(&g, &Constraints::default()).unwrap();
+        assert_eq!(c.communities(), 2);
+        assert!((c.modularity - (6.0 / 7.0 - 0.5)).abs() < 1e-12);
     }
 
     #[test]

@@ -319,7 +319,11 @@ pub fn place(netlist: &Netlist, options: &PlaceOptions) -> Result<Placement, Pla
         *t = Some(match free.pop() {
             Some(d) => d,
             None => {
-                let name = format!("{first}-{}", new_dnms.len() + 1);
+                // A fresh name: not declared, not made already.
+                let name = (1..)
+                    .map(|n| format!("{first}-{n}"))
+                    .find(|n| netlist.dnm(n).is_none() && !new_dnms.iter().any(|(d, _)| d == n))
+                    .unwrap_or_default();
                 new_dnms.push((name.clone(), Some(first.clone())));
                 name
             }
