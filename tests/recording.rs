@@ -45,13 +45,15 @@ kind = "pair"
 links = ["src_a.out -> relay.in", "relay.out -> pair.a", "src_b.out -> pair.b"]
 "#;
 
-fn start(tag: &str) -> (Child, PathBuf, String) {
+/// `dnm up` of `netlist` (with `SYSTEM` replaced by a name of its own), recording into its
+/// folder's `recordings/`.
+fn start(tag: &str, netlist: &str) -> (Child, PathBuf, String) {
     let system = format!("rec{}{tag}", std::process::id());
     let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("netlist.toml");
-    std::fs::write(&path, NETLIST.replace("SYSTEM", &system)).unwrap();
+    std::fs::write(&path, netlist.replace("SYSTEM", &system)).unwrap();
     let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
         .args(["--no-multicast", "up"])
         .arg(&path)
@@ -108,7 +110,7 @@ fn read(bytes: &[u8], lenient: bool) -> (Channels, usize) {
 
 #[test]
 fn every_port_is_recorded_with_schemas_counts_and_times() {
-    let (mut child, dir, _) = start("all");
+    let (mut child, dir, _) = start("all", NETLIST);
     let file = recording(&dir);
     std::thread::sleep(Duration::from_secs(3));
     // SAFETY: kill(2) on our own child; SIGTERM lets the DNM finish the file.
@@ -165,7 +167,7 @@ fn every_port_is_recorded_with_schemas_counts_and_times() {
 
 #[test]
 fn a_recording_from_a_killed_dnm_still_reads() {
-    let (mut child, dir, _) = start("kill");
+    let (mut child, dir, _) = start("kill", NETLIST);
     let file = recording(&dir);
     std::thread::sleep(Duration::from_secs(3));
     child.kill().unwrap();
@@ -201,27 +203,10 @@ links = ["src.out -> relay.in"]
 "#;
 
 fn start_chain(tag: &str, rate: &str, origin: u64) -> (Child, PathBuf, String) {
-    let system = format!("rec{}{tag}", std::process::id());
-    let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join("netlist.toml");
     let text = CHAIN
-        .replace("SYSTEM", &system)
         .replace("RATE", rate)
         .replace("ORIGIN", &origin.to_string());
-    std::fs::write(&path, text).unwrap();
-    let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
-        .args(["--no-multicast", "up"])
-        .arg(&path)
-        .arg("--record-dir")
-        .arg(dir.join("recordings"))
-        .env("DNM_RUN_DIR", &dir)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    (child, dir, system)
+    start(tag, &text)
 }
 
 /// (origin, seq) of every Tick on `topic`, in order.

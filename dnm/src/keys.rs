@@ -13,8 +13,9 @@
 //! e.g. `dnm-pod;dnm_msgs/Tick`) and a 24-byte attachment: send time (CLOCK_MONOTONIC ns of the
 //! producing machine), sequence number and task word, little-endian `u64`s.
 //!
-//! Names of systems, DNMs, modules and ports are validated by the netlist to contain no `/`,
-//! `*`, `$`, `?` or `#`, so they are single key chunks.
+//! The netlist validates system, DNM and module names (a letter, then letters, digits, `_`,
+//! `-`), so each is one key chunk. Port names come from the kinds: the built-in ones follow the
+//! same rule; names an external executable declares are not checked yet.
 
 /// `<system>/dnm/<dnm>`.
 pub fn dnm(system: &str, dnm: &str) -> String {

@@ -31,6 +31,7 @@ pub mod remote;
 pub mod replay;
 pub mod stats;
 pub mod values;
+mod worker;
 
 pub use dnm::{
     Command, Dnm, DnmError, DnmOptions, DnmReport, ModuleReport, ModuleRunState, SwitchRecord,

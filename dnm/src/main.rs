@@ -175,36 +175,7 @@ enum Cmd {
     },
     /// Place modules on DNMs by clustering the module graph (Newman's greedy modularity,
     /// weighted by traffic), and compare the predicted traffic between DNMs.
-    Place {
-        netlist: PathBuf,
-        /// Every link weighs 1 (default: weighted by bytes × rate).
-        #[arg(long, conflicts_with = "weighted")]
-        plain: bool,
-        /// Weight links by bytes per message × messages per second (the default).
-        #[arg(long)]
-        weighted: bool,
-        /// Improve the greedy result by moving single modules (never lowers modularity).
-        #[arg(long)]
-        refine: bool,
-        /// Most modules on one DNM.
-        #[arg(long)]
-        capacity: Option<usize>,
-        /// Most DNMs to use.
-        #[arg(long)]
-        max_dnms: Option<usize>,
-        /// Move pinned modules too (what-if studies; the paper's placements had no pins).
-        #[arg(long)]
-        ignore_pins: bool,
-        /// Weigh links by the traffic measured in this recording (a DNM's MCAP file); ports it
-        /// lacks keep the netlist's prediction.
-        #[arg(long)]
-        from_recording: Option<PathBuf>,
-        /// Write the placed netlist (modules' `dnm` fields set) to this file.
-        #[arg(long)]
-        write: Option<PathBuf>,
-        #[arg(long)]
-        json: bool,
-    },
+    Place(place_cmd::PlaceArgs),
     /// Analyse a recording: per channel count, rate, gaps, bytes; task switches; latency
     /// through linked modules; optionally export channels to CSV.
     Stats {
@@ -403,32 +374,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 record: record.options(),
             },
         ),
-        Cmd::Place {
-            netlist,
-            plain,
-            weighted: _,
-            refine,
-            capacity,
-            max_dnms,
-            ignore_pins,
-            from_recording,
-            write,
-            json,
-        } => place_cmd::run(&place_cmd::PlaceArgs {
-            netlist,
-            weighting: if plain {
-                dnm_place::Weighting::Plain
-            } else {
-                dnm_place::Weighting::Weighted
-            },
-            refine,
-            capacity,
-            max_dnms,
-            ignore_pins,
-            from_recording,
-            write,
-            json,
-        }),
+        Cmd::Place(args) => place_cmd::run(&args),
         Cmd::Stats {
             file,
             csv,
@@ -656,6 +602,12 @@ fn print_dnm(d: &DnmReport) {
             })
             .collect();
         println!("  peers: {}", peers.join(", "));
+    }
+    if let Some(r) = &d.recording {
+        println!(
+            "  recording {}: {} messages, {} bytes, {} dropped, {} files",
+            r.file, r.messages, r.bytes, r.dropped, r.files
+        );
     }
     for (dir, routes) in [
         ("publishes", &d.routes.published),

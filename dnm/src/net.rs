@@ -17,9 +17,8 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{self, Receiver, Sender};
+use std::sync::mpsc::{self, Receiver};
 use std::sync::{Arc, Mutex};
-use std::thread::JoinHandle;
 
 use dnm_module::protocol::{DNM_EVENT, PortHeader, dnm_config, output_event, output_service};
 use dnm_module::{event_service, port_service};
@@ -38,6 +37,7 @@ use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Sample, SampleKind};
 
 use crate::keys;
+use crate::worker::{Control, Sets, Worker, dbg, err};
 
 type Svc = ipc::Service;
 type TsSvc = ipc_threadsafe::Service;
@@ -204,9 +204,7 @@ pub(crate) struct Net {
     module_tokens: BTreeMap<String, LivelinessToken>,
     ingress: BTreeMap<String, Ingress>,
     egress: Vec<EgressRoute>,
-    egress_tx: Sender<Vec<EgressRoute>>,
-    egress_wake: Notifier<TsSvc>,
-    egress_thread: Option<JoinHandle<()>>,
+    egress_worker: Worker<EgressRoute>,
     monitors: BTreeMap<String, Monitor>,
     peers: BTreeMap<String, (bool, std::time::Instant)>,
 }
@@ -218,14 +216,6 @@ impl std::fmt::Debug for Net {
             .field("dnm", &self.dnm)
             .finish_non_exhaustive()
     }
-}
-
-fn err<E: std::fmt::Display>(what: &str) -> impl FnOnce(E) -> String + '_ {
-    move |e| format!("{what}: {e}")
-}
-
-fn dbg<E: std::fmt::Debug>(what: &str) -> impl FnOnce(E) -> String + '_ {
-    move |e| format!("{what}: {e:?}")
 }
 
 impl Net {
@@ -305,32 +295,15 @@ impl Net {
                 .map_err(err("watching DNMs"))?
         };
 
-        let egress_wake = event_service(&ts_node, EGRESS_EVENT)
-            .map_err(err("egress event"))?
-            .notifier_builder()
-            .create()
-            .map_err(dbg("egress notifier"))?;
-        let (egress_tx, egress_rx) = mpsc::channel();
-        let (ready_tx, ready_rx) = mpsc::sync_channel(1);
-        let egress_thread = {
+        let egress = {
             let session = session.clone();
-            let prefix = prefix.to_string();
-            std::thread::Builder::new()
-                .name(format!("egress-{dnm}"))
-                .spawn(move || {
-                    if let Err(e) = egress_loop(&session, &prefix, &egress_rx, &ready_tx) {
-                        tracing::error!("egress stopped: {e}");
-                        let _ = ready_tx.try_send(Err(e));
-                    }
-                })
-                .map_err(err("spawning egress thread"))?
+            Worker::spawn(
+                format!("egress-{dnm}"),
+                prefix,
+                EGRESS_EVENT,
+                move |control| egress_loop(&session, &control),
+            )?
         };
-        // The thread's control listener must exist before anyone notifies it.
-        match ready_rx.recv() {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => return Err(e),
-            Err(_) => return Err("egress thread stopped while starting".into()),
-        }
         drop(tx);
         Ok(Self {
             session,
@@ -344,9 +317,7 @@ impl Net {
             module_tokens: BTreeMap::new(),
             ingress: BTreeMap::new(),
             egress: Vec::new(),
-            egress_tx,
-            egress_wake,
-            egress_thread: Some(egress_thread),
+            egress_worker: egress,
             monitors: BTreeMap::new(),
             peers: BTreeMap::new(),
         })
@@ -535,9 +506,7 @@ impl Net {
                 })
                 .collect();
             self.egress = egress.clone();
-            if self.egress_tx.send(egress).is_ok() {
-                let _ = self.egress_wake.notify();
-            }
+            self.egress_worker.send(egress);
         }
 
         let outputs: BTreeMap<String, MessageType> = netlist
@@ -677,16 +646,6 @@ fn output_message(netlist: &Netlist, port: &dnm_netlist::PortRef) -> Option<Mess
         .map(|p| p.message.clone())
 }
 
-impl Drop for Net {
-    fn drop(&mut self) {
-        drop(std::mem::replace(&mut self.egress_tx, mpsc::channel().0));
-        let _ = self.egress_wake.notify();
-        if let Some(t) = self.egress_thread.take() {
-            let _ = t.join();
-        }
-    }
-}
-
 /// An egress route with its ports open.
 struct OpenRoute {
     subscriber: Subscriber<Svc, [u8], PortHeader>,
@@ -746,39 +705,12 @@ impl OpenRoute {
 
 /// Forwards local samples of the routed outputs to Zenoh as they are sent. Reopens its ports
 /// when the DNM sends a new route set; returns when the DNM drops its sender.
-fn egress_loop(
-    session: &zenoh::Session,
-    prefix: &str,
-    routes: &Receiver<Vec<EgressRoute>>,
-    ready: &mpsc::SyncSender<Result<(), String>>,
-) -> Result<(), String> {
-    let config = dnm_config(prefix)?;
-    let node = NodeBuilder::new()
-        .config(&config)
-        .create::<Svc>()
-        .map_err(dbg("egress node"))?;
-    let control = event_service(&node, EGRESS_EVENT)
-        .map_err(err("egress event"))?
-        .listener_builder()
-        .create()
-        .map_err(dbg("egress listener"))?;
-    let _ = ready.send(Ok(()));
+fn egress_loop(session: &zenoh::Session, control: &Control<EgressRoute>) -> Result<(), String> {
     let mut wanted: Vec<EgressRoute> = Vec::new();
-    // The newest route set queued, or `None` when the DNM dropped its sender.
-    let newest = |current: Option<Vec<EgressRoute>>| -> Option<Option<Vec<EgressRoute>>> {
-        let mut latest = current;
-        loop {
-            match routes.try_recv() {
-                Ok(set) => latest = Some(set),
-                Err(mpsc::TryRecvError::Empty) => return Some(latest),
-                Err(mpsc::TryRecvError::Disconnected) => return None,
-            }
-        }
-    };
     loop {
         let open: Vec<OpenRoute> = wanted
             .iter()
-            .filter_map(|r| match OpenRoute::open(&node, session, r) {
+            .filter_map(|r| match OpenRoute::open(&control.node, session, r) {
                 Ok(o) => Some(o),
                 Err(e) => {
                     tracing::error!(key = %r.key, "cannot publish: {e}");
@@ -792,7 +724,7 @@ fn egress_loop(
             .create::<Svc>()
             .map_err(dbg("egress waitset"))?;
         let _control_guard = waitset
-            .attach_notification(&control)
+            .attach_notification(&control.listener)
             .map_err(dbg("attach"))?;
         let mut guards = Vec::new();
         for o in &open {
@@ -802,30 +734,21 @@ fn egress_loop(
                     .map_err(dbg("attach"))?,
             );
         }
-        // Sets queued before the control listener was attached count too.
-        match newest(None) {
-            None => return Ok(()),
-            Some(Some(set)) => {
-                wanted = set;
-                continue;
-            }
-            Some(None) => {}
-        }
+        // Sets sent before the waitset was attached count too.
         loop {
+            match control.newest() {
+                Sets::Closed => return Ok(()),
+                Sets::New(set) => {
+                    wanted = set;
+                    break;
+                }
+                Sets::Same => {}
+            }
             waitset
                 .wait_and_process_once(|_| CallbackProgression::Continue)
                 .map_err(dbg("egress wait"))?;
             for o in &open {
                 o.forward();
-            }
-            let _ = control.try_wait(|_| ());
-            match newest(None) {
-                None => return Ok(()),
-                Some(Some(set)) => {
-                    wanted = set;
-                    break;
-                }
-                Some(None) => {}
             }
         }
     }

@@ -9,17 +9,46 @@ use dnm_netlist::Netlist;
 use dnm_place::{PlaceOptions, Placement, Prediction, Weighting};
 use serde::Serialize;
 
-#[derive(Debug, Clone)]
+#[derive(clap::Args, Debug, Clone)]
 pub struct PlaceArgs {
     pub netlist: PathBuf,
-    pub weighting: Weighting,
+    /// Every link weighs 1 (default: weighted by bytes × rate).
+    #[arg(long, conflicts_with = "weighted")]
+    pub plain: bool,
+    /// Weight links by bytes per message × messages per second (the default).
+    #[arg(long)]
+    pub weighted: bool,
+    /// Improve the greedy result by moving single modules (never lowers modularity).
+    #[arg(long)]
     pub refine: bool,
+    /// Most modules on one DNM.
+    #[arg(long)]
     pub capacity: Option<usize>,
+    /// Most DNMs to use.
+    #[arg(long)]
     pub max_dnms: Option<usize>,
+    /// Move pinned modules too (what-if studies; the paper's placements had no pins).
+    #[arg(long)]
     pub ignore_pins: bool,
+    /// Weigh links by the traffic measured in this recording (a DNM's MCAP file); ports it
+    /// lacks keep the netlist's prediction.
+    #[arg(long)]
     pub from_recording: Option<PathBuf>,
+    /// Write the placed netlist (modules' `dnm` fields set) to this file.
+    #[arg(long)]
     pub write: Option<PathBuf>,
+    #[arg(long)]
     pub json: bool,
+}
+
+impl PlaceArgs {
+    fn weighting(&self) -> Weighting {
+        if self.plain {
+            Weighting::Plain
+        } else {
+            Weighting::Weighted
+        }
+    }
 }
 
 /// One row of the comparison table.
@@ -71,7 +100,7 @@ fn measured(file: &Path) -> anyhow::Result<dnm_place::Measured> {
 pub fn run(args: &PlaceArgs) -> anyhow::Result<ExitCode> {
     let netlist = dnm::load_netlist(&args.netlist).map_err(|e| anyhow::anyhow!("{e}"))?;
     let options = PlaceOptions {
-        weighting: args.weighting,
+        weighting: args.weighting(),
         refine: args.refine,
         capacity: args.capacity,
         max_dnms: args.max_dnms,

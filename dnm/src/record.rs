@@ -20,16 +20,20 @@ use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{self, Receiver, Sender, SyncSender, TrySendError};
+use std::sync::mpsc::{self, Receiver, SyncSender, TrySendError};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use dnm_module::protocol::{PortHeader, dnm_config, monotonic_ns, output_service};
-use dnm_module::{event_service, port_service};
+use dnm_module::port_service;
+use dnm_module::protocol::{PortHeader, monotonic_ns, output_service};
 use dnm_netlist::{MessageType, Netlist};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 use serde::{Deserialize, Serialize};
+
+use crate::worker::{Control, Sets, Worker, dbg};
+use iceoryx2::identifiers::UniquePublisherId;
+use std::collections::HashMap;
 
 type Svc = ipc::Service;
 
@@ -127,13 +131,10 @@ enum Item {
 
 /// A DNM's recorder: the reader and writer threads.
 pub(crate) struct Recorder {
-    control: Sender<Vec<RecPort>>,
     queue: SyncSender<Item>,
-    wake: iceoryx2::port::notifier::Notifier<ipc_threadsafe::Service>,
-    _wake_node: Node<ipc_threadsafe::Service>,
     counters: Arc<Counters>,
     options: RecordOptions,
-    reader: Option<JoinHandle<()>>,
+    reader: Option<Worker<RecPort>>,
     writer: Option<JoinHandle<()>>,
 }
 
@@ -143,10 +144,6 @@ impl std::fmt::Debug for Recorder {
             .field("options", &self.options)
             .finish_non_exhaustive()
     }
-}
-
-fn dbg<E: std::fmt::Debug>(what: &str) -> impl FnOnce(E) -> String + '_ {
-    move |e| format!("{what}: {e:?}")
 }
 
 impl Recorder {
@@ -168,42 +165,18 @@ impl Recorder {
                 })
                 .map_err(|e| e.to_string())?
         };
-        let (control, ports) = mpsc::channel::<Vec<RecPort>>();
-        let (ready_tx, ready_rx) = mpsc::sync_channel(1);
         let reader = {
             let counters = counters.clone();
-            let prefix = prefix.to_string();
             let queue = queue.clone();
-            std::thread::Builder::new()
-                .name(format!("record-in-{dnm}"))
-                .spawn(move || {
-                    if let Err(e) = read_loop(&prefix, &ports, &queue, &counters, &ready_tx) {
-                        tracing::error!("recorder input stopped: {e}");
-                        let _ = ready_tx.try_send(Err(e));
-                    }
-                })
-                .map_err(|e| e.to_string())?
+            Worker::spawn(
+                format!("record-in-{dnm}"),
+                prefix,
+                RECORDER_EVENT,
+                move |control| read_loop(&control, &queue, &counters),
+            )?
         };
-        match ready_rx.recv() {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => return Err(e),
-            Err(_) => return Err("recorder stopped while starting".into()),
-        }
-        let config = dnm_config(prefix)?;
-        let wake_node = NodeBuilder::new()
-            .config(&config)
-            .create::<ipc_threadsafe::Service>()
-            .map_err(dbg("recorder node"))?;
-        let wake = event_service(&wake_node, RECORDER_EVENT)
-            .map_err(|e| e.to_string())?
-            .notifier_builder()
-            .create()
-            .map_err(dbg("recorder notifier"))?;
         Ok(Self {
-            control,
             queue,
-            wake,
-            _wake_node: wake_node,
             counters,
             options,
             reader: Some(reader),
@@ -236,8 +209,8 @@ impl Recorder {
         });
         // The reader announces the new port set to the writer itself, in queue order, so no
         // sample read under the old set is written to a channel of the new one.
-        if self.control.send(ports).is_ok() {
-            let _ = self.wake.notify();
+        if let Some(reader) = &self.reader {
+            reader.send(ports);
         }
     }
 
@@ -266,11 +239,8 @@ impl Recorder {
 
 impl Drop for Recorder {
     fn drop(&mut self) {
-        drop(std::mem::replace(&mut self.control, mpsc::channel().0));
-        let _ = self.wake.notify();
-        if let Some(t) = self.reader.take() {
-            let _ = t.join();
-        }
+        // Stops the reader first.
+        self.reader.take();
         // The reader held the other queue sender; dropping ours ends the writer, which
         // finishes the file (summary and footer).
         drop(std::mem::replace(&mut self.queue, mpsc::sync_channel(1).0));
@@ -280,10 +250,6 @@ impl Drop for Recorder {
     }
 }
 
-struct OpenPort {
-    subscriber: Subscriber<Svc, [u8], PortHeader>,
-}
-
 /// How often the reader drains its subscribers. It does not wake per sample (that would compete
 /// with the modules' own wake-ups for the CPU); its subscribers hold
 /// [`dnm_module::protocol::recorder_buffer`] samples, more than a port sends in this time at the
@@ -291,44 +257,22 @@ struct OpenPort {
 const DRAIN_PERIOD: Duration = Duration::from_millis(10);
 
 fn read_loop(
-    prefix: &str,
-    ports: &Receiver<Vec<RecPort>>,
+    control: &Control<RecPort>,
     queue: &SyncSender<Item>,
     counters: &Counters,
-    ready: &SyncSender<Result<(), String>>,
 ) -> Result<(), String> {
-    let config = dnm_config(prefix)?;
-    let node = NodeBuilder::new()
-        .config(&config)
-        .create::<Svc>()
-        .map_err(dbg("recorder node"))?;
-    let control = event_service(&node, RECORDER_EVENT)
-        .map_err(|e| e.to_string())?
-        .listener_builder()
-        .create()
-        .map_err(dbg("recorder listener"))?;
-    let _ = ready.send(Ok(()));
+    let node = &control.node;
     let mut wanted: Vec<RecPort> = Vec::new();
-    let newest = |current: Option<Vec<RecPort>>| -> Option<Option<Vec<RecPort>>> {
-        let mut latest = current;
-        loop {
-            match ports.try_recv() {
-                Ok(set) => latest = Some(set),
-                Err(mpsc::TryRecvError::Empty) => return Some(latest),
-                Err(mpsc::TryRecvError::Disconnected) => return None,
-            }
-        }
-    };
     loop {
         if queue.send(Item::Ports(wanted.clone())).is_err() {
             return Ok(()); // the writer is gone
         }
         // One slot per port, aligned with the writer's channels; a port that cannot be
         // subscribed to (all its subscriber slots taken) is reported and left out.
-        let mut open: Vec<Option<OpenPort>> = Vec::new();
+        let mut open: Vec<Option<Subscriber<Svc, [u8], PortHeader>>> = Vec::new();
         for p in &wanted {
             let service = output_service(&p.module, &p.port);
-            let subscriber = port_service(&node, &service, &p.message.payload)
+            let subscriber = port_service(node, &service, &p.message.payload)
                 .map_err(|e| e.to_string())
                 .and_then(|s| {
                     s.subscriber_builder()
@@ -337,7 +281,7 @@ fn read_loop(
                         .map_err(dbg("subscriber"))
                 });
             match subscriber {
-                Ok(subscriber) => open.push(Some(OpenPort { subscriber })),
+                Ok(subscriber) => open.push(Some(subscriber)),
                 Err(e) => {
                     tracing::error!(port = %service, "not recorded: {e}");
                     open.push(None);
@@ -349,39 +293,37 @@ fn read_loop(
             .create::<Svc>()
             .map_err(dbg("recorder waitset"))?;
         let _control_guard = waitset
-            .attach_notification(&control)
+            .attach_notification(&control.listener)
             .map_err(dbg("attach"))?;
         let _tick_guard = waitset
             .attach_interval(DRAIN_PERIOD)
             .map_err(dbg("attach"))?;
-        match newest(None) {
-            None => return Ok(()),
-            Some(Some(set)) => {
-                wanted = set;
-                continue;
-            }
-            Some(None) => {}
-        }
-        let mut next_seq: Vec<
-            std::collections::HashMap<iceoryx2::identifiers::UniquePublisherId, Option<u64>>,
-        > = vec![std::collections::HashMap::new(); open.len()];
+        // Next expected sequence number, per port and publisher (a replay or a replacement
+        // publishes beside the module).
+        let mut next_seq: Vec<HashMap<UniquePublisherId, u64>> = vec![HashMap::new(); open.len()];
         loop {
+            // Sets sent before the waitset was attached count too.
+            match control.newest() {
+                Sets::Closed => return Ok(()),
+                Sets::New(set) => {
+                    wanted = set;
+                    break;
+                }
+                Sets::Same => {}
+            }
             waitset
                 .wait_and_process_once(|_| CallbackProgression::Continue)
                 .map_err(dbg("recorder wait"))?;
             for (i, (o, next)) in open.iter().zip(next_seq.iter_mut()).enumerate() {
-                let Some(o) = o else { continue };
-                while let Ok(Some(s)) = o.subscriber.receive() {
+                let Some(subscriber) = o else { continue };
+                while let Ok(Some(s)) = subscriber.receive() {
                     let header = *s.user_header();
-                    // Per publisher: a replay or a replacement publishes beside the module.
-                    let next = next.entry(s.origin()).or_insert(None);
-                    if let Some(expected) = *next {
+                    if let Some(expected) = next.insert(s.origin(), header.seq + 1) {
                         // Samples overwritten before we read them.
                         counters
                             .dropped
                             .fetch_add(header.seq.saturating_sub(expected), Ordering::Relaxed);
                     }
-                    *next = Some(header.seq + 1);
                     let len = s.payload().len() as u64;
                     if counters.queued.load(Ordering::Relaxed) + len > QUEUE_BYTES {
                         counters.dropped.fetch_add(1, Ordering::Relaxed);
@@ -398,15 +340,6 @@ fn read_loop(
                         counters.dropped.fetch_add(1, Ordering::Relaxed);
                     }
                 }
-            }
-            let _ = control.try_wait(|_| ());
-            match newest(None) {
-                None => return Ok(()),
-                Some(Some(set)) => {
-                    wanted = set;
-                    break;
-                }
-                Some(None) => {}
             }
         }
     }
@@ -763,4 +696,77 @@ fn write_loop(
         close(f)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dnm_module::msg::{Message, Tick};
+
+    #[test]
+    fn files_rotate_by_size_and_each_one_reads_whole() {
+        let dir = std::env::temp_dir().join(format!("dnm-rotate-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let options = RecordOptions {
+            dir: dir.clone(),
+            stem: "t".into(),
+            only: Vec::new(),
+            rotate_bytes: 2000,
+            rotate_after: Duration::from_secs(3600),
+        };
+        let (tx, rx) = mpsc::sync_channel(1000);
+        tx.send(Item::Netlist {
+            revision: 1,
+            file: "t.toml".into(),
+            text: "[system]\nname = \"t\"\n".into(),
+        })
+        .unwrap();
+        tx.send(Item::Ports(vec![RecPort {
+            module: "m".into(),
+            port: "out".into(),
+            message: Tick::message_type(),
+        }]))
+        .unwrap();
+        for seq in 0..300u64 {
+            let tick = Tick { origin: 1, seq };
+            tx.send(Item::Sample {
+                port: 0,
+                header: PortHeader {
+                    stamp_ns: monotonic_ns(),
+                    seq,
+                    task_word: 0,
+                },
+                bytes: bytemuck::bytes_of(&tick).to_vec(),
+            })
+            .unwrap();
+        }
+        drop(tx);
+        let counters = Counters::default();
+        write_loop("d", &options, &rx, &counters).unwrap();
+        // 300 × 20 stored bytes in files of about 2000: at least three files.
+        let files: Vec<PathBuf> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        assert!(files.len() >= 3, "{files:?}");
+        let mut seqs = Vec::new();
+        for f in &files {
+            let bytes = std::fs::read(f).unwrap();
+            let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+            assert!(
+                summary
+                    .metadata_indexes
+                    .iter()
+                    .any(|m| m.name == "dnm.netlist")
+            );
+            for m in mcap::MessageStream::new(&bytes).unwrap() {
+                seqs.push(m.unwrap().sequence);
+            }
+        }
+        seqs.sort_unstable();
+        assert_eq!(seqs, (0..300).collect::<Vec<u32>>());
+        assert_eq!(counters.messages.load(Ordering::Relaxed), 300);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

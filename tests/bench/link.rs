@@ -13,11 +13,10 @@
 
 mod common;
 
-use std::net::TcpListener;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use common::{human, latencies, percentiles, unique, up};
+use common::{free_port, human, latencies, percentiles, unique, up};
 use dnm_module::protocol::monotonic_ns;
 use iceoryx2::prelude::{LogLevel, set_log_level};
 use zenoh::Wait;
@@ -60,14 +59,6 @@ fn main() {
             crossing.0 / local.0,
         );
     }
-}
-
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
 }
 
 fn session(listen: Option<u16>, connect: Option<u16>) -> zenoh::Session {

@@ -15,7 +15,7 @@ mod common;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use common::{human, latencies, percentiles, unique, up, up_recording};
+use common::{cpu_seconds, human, latencies, percentiles, unique, up, up_recording};
 use dnm::admin::{Request, request};
 use dnm_netlist::{MessageType, Payload};
 use iceoryx2::prelude::{LogLevel, set_log_level};
@@ -143,16 +143,6 @@ links = ["t1.out -> r1.in"]
     );
     drop(up);
     let _ = std::fs::remove_dir_all(&dir);
-}
-
-fn cpu_seconds(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<&str> = after.split_whitespace().collect();
-    let ticks: f64 = f.get(11).and_then(|x| x.parse().ok()).unwrap_or(0.0)
-        + f.get(12).and_then(|x| x.parse().ok()).unwrap_or(0.0);
-    // SAFETY: sysconf with a valid name has no side effects.
-    ticks / unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64
 }
 
 fn latency() {
