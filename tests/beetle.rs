@@ -118,7 +118,7 @@ impl Drop for Up {
 fn last<T: bytemuck::Pod>(
     session: &zenoh::Session,
     key: &str,
-) -> Option<(T, dnm_module::protocol::PortHeader)> {
+) -> Option<(T, dnm::keys::SampleHeader)> {
     let replies = session
         .get(key)
         .timeout(Duration::from_secs(5))

@@ -80,7 +80,7 @@ impl System {
         let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
             .arg("up")
             .arg(&path)
-            .env("DNM_MODULE_HOST", env!("CARGO_BIN_EXE_dnm-module-host"))
+            .env("DNM_MODULE_HOST", std::path::Path::new(env!("CARGO_BIN_EXE_dnm")).with_file_name("dnm-module-host"))
             .env("DNM_RECORD_DIR", &dir)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())

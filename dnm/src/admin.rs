@@ -9,56 +9,17 @@
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{self, Receiver, SyncSender};
+use std::sync::Arc;
+use std::sync::mpsc::{self, SyncSender};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use dnm_module::protocol::{DNM_EVENT, dnm_config, dnm_prefix};
+use dnm_core::{Command, Commander, Dnm, Reply};
 use dnm_netlist::Netlist;
-use iceoryx2::prelude::*;
-use serde::{Deserialize, Serialize};
 
-use crate::{Command, Dnm, DnmOptions, DnmReport, SwitchRecord};
+pub use dnm_proto::{Request, Response, merge};
 
-/// A request to a running system.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(tag = "cmd", rename_all = "snake_case")]
-pub enum Request {
-    /// Every hosted DNM's report.
-    Status,
-    /// The netlist text in force.
-    Netlist,
-    /// Switch every hosted DNM to `task`.
-    Switch { task: String },
-    /// Validate and apply a new netlist; `file` names it in errors.
-    Apply { file: String, text: String },
-}
-
-/// The answer to a [`Request`].
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
-pub struct Response {
-    pub ok: bool,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub error: Option<String>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub revision: Option<u64>,
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub switches: Vec<SwitchRecord>,
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub dnms: Vec<DnmReport>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub netlist: Option<String>,
-}
-
-impl Response {
-    pub fn error(msg: impl Into<String>) -> Self {
-        Self {
-            ok: false,
-            error: Some(msg.into()),
-            ..Self::default()
-        }
-    }
-}
+use crate::HostOptions;
 
 /// Failure to reach a running system.
 #[derive(Debug, thiserror::Error)]
@@ -130,32 +91,6 @@ pub fn request(system: &str, req: &Request) -> Result<Response, AdminError> {
     Ok(merge(answers))
 }
 
-/// One answer from several processes: all must agree to be ok.
-pub fn merge(answers: Vec<Response>) -> Response {
-    let mut out = Response {
-        ok: true,
-        ..Response::default()
-    };
-    let mut errors = Vec::new();
-    for r in answers {
-        if !r.ok {
-            out.ok = false;
-            errors.extend(r.error);
-        }
-        out.revision = out.revision.max(r.revision);
-        out.switches.extend(r.switches);
-        out.dnms.extend(r.dnms);
-        if out.netlist.is_none() {
-            out.netlist = r.netlist;
-        }
-    }
-    if !errors.is_empty() {
-        out.error = Some(errors.join("\n"));
-    }
-    out.dnms.sort_by(|a, b| a.dnm.cmp(&b.dnm));
-    out
-}
-
 fn request_one(system: &str, path: &Path, req: &Request) -> Result<Response, AdminError> {
     let mut stream = UnixStream::connect(path).map_err(|reason| AdminError::NotRunning {
         system: system.into(),
@@ -181,8 +116,7 @@ fn request_one(system: &str, path: &Path, req: &Request) -> Result<Response, Adm
 }
 
 struct DnmHandle {
-    name: String,
-    commands: SyncSender<Command>,
+    commander: Commander,
     thread: JoinHandle<()>,
 }
 
@@ -192,7 +126,7 @@ struct DnmHandle {
 pub fn run_host(
     netlist: Netlist,
     dnms: &[String],
-    options: DnmOptions,
+    options: HostOptions,
     zenoh: zenoh::Config,
 ) -> anyhow::Result<()> {
     Host::start(netlist, dnms, options, zenoh)?.wait();
@@ -238,7 +172,7 @@ impl Host {
 
     /// Stops every DNM of the process (their modules first) and waits for them.
     pub fn stop(self) {
-        crate::dnm::request_stop();
+        dnm_core::request_stop();
         self.wait();
     }
 
@@ -246,7 +180,7 @@ impl Host {
     pub fn start(
         netlist: Netlist,
         dnms: &[String],
-        options: DnmOptions,
+        options: HostOptions,
         zenoh: zenoh::Config,
     ) -> anyhow::Result<Host> {
         start(netlist, dnms, options, zenoh)
@@ -256,7 +190,7 @@ impl Host {
 fn start(
     netlist: Netlist,
     dnms: &[String],
-    options: DnmOptions,
+    options: HostOptions,
     zenoh: zenoh::Config,
 ) -> anyhow::Result<Host> {
     use anyhow::Context;
@@ -268,7 +202,7 @@ fn start(
     // Joining a running system: continue from the netlist, revision and task in force there.
     let mut netlist = netlist;
     let mut joined = None;
-    if let Some(state) = crate::net::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT) {
+    if let Some(state) = dnm_zenoh::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT) {
         if let Some((newer, revision, task)) = adopt(&state, &netlist.file, dnms) {
             tracing::info!(revision, task = ?task, "joining the running system");
             netlist = newer;
@@ -277,8 +211,7 @@ fn start(
     }
     let mut handles = Vec::new();
     for name in dnms {
-        let (tx, rx) = mpsc::sync_channel::<Command>(16);
-        let (ready_tx, ready_rx) = mpsc::sync_channel::<Result<(), String>>(1);
+        let (ready_tx, ready_rx) = mpsc::sync_channel::<Result<Commander, String>>(1);
         let netlist = netlist.clone();
         let options = options.clone();
         let dnm_name = name.clone();
@@ -288,30 +221,23 @@ fn start(
             .name(format!("dnm-{name}"))
             .spawn(move || {
                 let joined = joined.as_ref().map(|(r, t)| (*r, t.as_deref()));
-                run_dnm(
-                    &netlist, &dnm_name, options, session, joined, &rx, &ready_tx,
-                )
+                run_dnm(&netlist, &dnm_name, options, session, joined, &ready_tx)
             })
             .context("spawning DNM thread")?;
-        match ready_rx.recv() {
-            Ok(Ok(())) => {}
+        let commander = match ready_rx.recv() {
+            Ok(Ok(c)) => c,
             Ok(Err(e)) => {
-                drop(tx);
                 for h in handles {
                     let h: DnmHandle = h;
-                    drop(h.commands);
+                    drop(h.commander);
                     let _ = h.thread.join();
                 }
                 let _ = thread.join();
                 anyhow::bail!("DNM `{name}` did not start: {e}");
             }
             Err(_) => anyhow::bail!("DNM `{name}` stopped while starting"),
-        }
-        handles.push(DnmHandle {
-            name: name.clone(),
-            commands: tx,
-            thread,
-        });
+        };
+        handles.push(DnmHandle { commander, thread });
     }
 
     let path = socket_path(&netlist.system, dnms);
@@ -331,15 +257,11 @@ fn start(
         UnixListener::bind(&path).with_context(|| format!("binding {}", path.display()))?;
     tracing::info!(socket = %path.display(), "admin socket ready");
 
-    let senders: Vec<(String, SyncSender<Command>)> = handles
-        .iter()
-        .map(|h| (h.name.clone(), h.commands.clone()))
-        .collect();
+    let commanders: Vec<Commander> = handles.iter().map(|h| h.commander.clone()).collect();
     let system = netlist.system.clone();
-    let hosted: Vec<String> = dnms.to_vec();
     std::thread::Builder::new()
         .name("dnm-admin".into())
-        .spawn(move || serve(&listener, &system, &hosted, &senders))
+        .spawn(move || serve(&listener, &system, &commanders))
         .context("spawning admin thread")?;
     Ok(Host {
         session,
@@ -352,32 +274,48 @@ fn start(
 fn run_dnm(
     netlist: &Netlist,
     name: &str,
-    options: DnmOptions,
+    options: HostOptions,
     session: zenoh::Session,
     joined: Option<(u64, Option<&str>)>,
-    commands: &Receiver<Command>,
-    ready: &SyncSender<Result<(), String>>,
+    ready: &SyncSender<Result<Commander, String>>,
 ) {
     let started = (|| {
-        let mut dnm = Dnm::new(&netlist.system, name, options)?;
-        let events = dnm.status_listener()?;
+        let mut dnm = Dnm::new(&netlist.system, name, options.dnm)?;
+        let parse: dnm_zenoh::ParseNetlist = Arc::new(crate::parse_netlist_text);
+        let bridge = dnm_zenoh::Bridge::new(
+            session,
+            &netlist.system,
+            name,
+            dnm.prefix(),
+            dnm.commander()?,
+            parse,
+        )
+        .map_err(dnm_core::DnmError::Refused)?;
+        dnm.add_plugin(Box::new(bridge));
+        if let Some(r) = options.record {
+            let recorder = crate::record::Recorder::start(name, dnm.prefix(), r)
+                .map_err(dnm_core::DnmError::Refused)?;
+            dnm.add_plugin(Box::new(recorder));
+        }
         // A DNM joining a running system continues from the netlist and task in force there.
-        dnm.attach_zenoh(session)?;
         if let Some((revision, task)) = joined {
             dnm.continue_from(revision.saturating_sub(1), task);
         }
-        dnm.apply(netlist, &events)?;
-        Ok::<_, crate::DnmError>((dnm, events))
+        dnm.apply(netlist)?;
+        let commander = dnm.commander()?;
+        Ok::<_, dnm_core::DnmError>((dnm, commander))
     })();
-    let (mut dnm, events) = match started {
-        Ok(x) => x,
+    let mut dnm = match started {
+        Ok((dnm, commander)) => {
+            let _ = ready.send(Ok(commander));
+            dnm
+        }
         Err(e) => {
             let _ = ready.send(Err(e.to_string()));
             return;
         }
     };
-    let _ = ready.send(Ok(()));
-    if let Err(e) = dnm.run(commands, &events) {
+    if let Err(e) = dnm.run() {
         tracing::error!(dnm = name, "DNM loop failed: {e}");
     }
     dnm.shutdown();
@@ -389,7 +327,7 @@ const JOIN_TIMEOUT: Duration = Duration::from_secs(1);
 /// The netlist, revision and task joining DNMs take over, if the running system's netlist is
 /// valid here and still has all of them.
 fn adopt(
-    state: &crate::net::NetlistState,
+    state: &dnm_proto::NetlistState,
     local_file: &Path,
     dnms: &[String],
 ) -> Option<(Netlist, u64, Option<String>)> {
@@ -407,49 +345,7 @@ fn adopt(
     }
 }
 
-/// Wakes the loop of each DNM after a command is queued.
-struct Wakers {
-    _nodes: Vec<Node<ipc::Service>>,
-    notifiers: Vec<iceoryx2::port::notifier::Notifier<ipc::Service>>,
-}
-
-impl Wakers {
-    fn new(system: &str, dnms: &[String]) -> anyhow::Result<Self> {
-        let mut nodes = Vec::new();
-        let mut notifiers = Vec::new();
-        for d in dnms {
-            let config = dnm_config(&dnm_prefix(system, d)).map_err(anyhow::Error::msg)?;
-            let node = NodeBuilder::new()
-                .config(&config)
-                .create::<ipc::Service>()
-                .map_err(|e| anyhow::anyhow!("admin node: {e:?}"))?;
-            let notifier = dnm_module::event_service(&node, DNM_EVENT)?
-                .notifier_builder()
-                .create()
-                .map_err(|e| anyhow::anyhow!("admin notifier: {e:?}"))?;
-            nodes.push(node);
-            notifiers.push(notifier);
-        }
-        Ok(Self {
-            _nodes: nodes,
-            notifiers,
-        })
-    }
-}
-
-fn serve(
-    listener: &UnixListener,
-    system: &str,
-    hosted: &[String],
-    dnms: &[(String, SyncSender<Command>)],
-) {
-    let wakers = match Wakers::new(system, hosted) {
-        Ok(w) => w,
-        Err(e) => {
-            tracing::error!("admin socket disabled: {e}");
-            return;
-        }
-    };
+fn serve(listener: &UnixListener, system: &str, dnms: &[Commander]) {
     for stream in listener.incoming() {
         let Ok(stream) = stream else { continue };
         let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
@@ -459,7 +355,7 @@ fn serve(
             continue;
         }
         let response = match serde_json::from_str::<Request>(&line) {
-            Ok(req) => dispatch(req, system, dnms, &wakers),
+            Ok(req) => dispatch(req, system, dnms),
             Err(e) => Response::error(format!(
                 "bad request `{}`: {e}; send e.g. {{\"cmd\":\"status\"}}",
                 line.trim()
@@ -474,18 +370,16 @@ fn serve(
 }
 
 /// Sends a command to every hosted DNM and collects the answers.
-fn fan_out<T>(
-    dnms: &[(String, SyncSender<Command>)],
-    wakers: &Wakers,
-    make: impl Fn(SyncSender<T>) -> Command,
+fn fan_out<T: Send + 'static>(
+    dnms: &[Commander],
+    make: impl Fn(Reply<T>) -> Command,
 ) -> Result<Vec<(String, T)>, String> {
     let mut waiting = Vec::new();
-    for ((name, tx), waker) in dnms.iter().zip(&wakers.notifiers) {
-        let (rtx, rrx) = mpsc::sync_channel(1);
-        tx.send(make(rtx))
-            .map_err(|_| format!("DNM `{name}` has stopped"))?;
-        let _ = waker.notify();
-        waiting.push((name.clone(), rrx));
+    for c in dnms {
+        let (reply, rx) = Reply::channel();
+        c.send(make(reply))
+            .map_err(|e| format!("DNM `{}`: {e}", c.dnm()))?;
+        waiting.push((c.dnm().to_string(), rx));
     }
     waiting
         .into_iter()
@@ -497,14 +391,9 @@ fn fan_out<T>(
         .collect()
 }
 
-fn dispatch(
-    req: Request,
-    system: &str,
-    dnms: &[(String, SyncSender<Command>)],
-    wakers: &Wakers,
-) -> Response {
+fn dispatch(req: Request, system: &str, dnms: &[Commander]) -> Response {
     match req {
-        Request::Status => match fan_out(dnms, wakers, Command::Status) {
+        Request::Status => match fan_out(dnms, Command::Status) {
             Ok(reports) => Response {
                 ok: true,
                 dnms: reports.into_iter().map(|(_, r)| r).collect(),
@@ -513,7 +402,7 @@ fn dispatch(
             Err(e) => Response::error(e),
         },
         // The DNMs hold the netlist in force (it may have been applied over Zenoh).
-        Request::Netlist => match fan_out(dnms, wakers, Command::Netlist) {
+        Request::Netlist => match fan_out(dnms, Command::Netlist) {
             Ok(states) => {
                 let newest = states
                     .into_iter()
@@ -529,7 +418,12 @@ fn dispatch(
             Err(e) => Response::error(e),
         },
         Request::Switch { task } => {
-            match fan_out(dnms, wakers, |r| Command::Switch(task.clone(), r)) {
+            let results = fan_out(dnms, |reply| Command::Switch {
+                task: task.clone(),
+                key: None,
+                reply,
+            });
+            match results {
                 Ok(results) => {
                     let mut switches = Vec::new();
                     for (name, r) in results {
@@ -561,13 +455,18 @@ fn dispatch(
                     new.system, system
                 ));
             }
-            if let Some((missing, _)) = dnms.iter().find(|(d, _)| new.dnm(d).is_none()) {
+            if let Some(missing) = dnms.iter().find(|d| new.dnm(d.dnm()).is_none()) {
                 return Response::error(format!(
-                    "netlist drops DNM `{missing}`, which runs here; nothing changed"
+                    "netlist drops DNM `{}`, which runs here; nothing changed",
+                    missing.dnm()
                 ));
             }
-            let boxed = Box::new(new.clone());
-            match fan_out(dnms, wakers, |r| Command::Apply(boxed.clone(), r)) {
+            let results = fan_out(dnms, |reply| Command::Apply {
+                netlist: Box::new(new.clone()),
+                key: None,
+                reply,
+            });
+            match results {
                 Ok(results) => {
                     let mut revision = None;
                     for (name, r) in results {

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use bytemuck::Pod;
 use dnm::admin::{Host, Request, Response};
-use dnm::{DnmOptions, SwitchRecord};
+use dnm::{HostOptions, SwitchRecord};
 use dnm_netlist::Netlist;
 use dnm_rover::msgs::{BatteryState, Odometry, Progress, Range, WatchdogState, WorldState};
 use serde::Serialize;
@@ -301,7 +301,7 @@ fn with_camera_fov(text: &str, fov_deg: f64) -> anyhow::Result<String> {
 pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCode> {
     let netlist = load(args)?;
     let dnms: Vec<String> = netlist.dnms.iter().map(|d| d.name.clone()).collect();
-    let mut options = DnmOptions::standard().context("locating the module host")?;
+    let mut options = HostOptions::standard().context("locating the module host")?;
     options.record = args.record.clone();
     let tty = std::io::stdout().is_terminal() && !args.json;
     if !args.json {

@@ -1,80 +1,51 @@
-//! The connection layer: a database node module (DNM) per computer or process group.
-//!
-//! A DNM hosts its modules as separate processes, each with its own shared memory for its
-//! output ports (iceoryx2). It turns the netlist into references from inputs to outputs, and
-//! prepares, when a netlist is applied, every subscription any defined task needs; switching
-//! the active task is then a single store into a shared task word that every module reads once
-//! per step. It supervises its modules (restarts, CPU, rates) and cleans up the shared memory of
-//! processes that died.
+//! The `dnm` command's library: runs a machine's DNMs ([`admin::Host`]: each DNM on its own
+//! thread, with its Zenoh bridge, its recorder and the machine's admin socket), reads netlists
+//! against the built-in kinds, and the Beetle-One demo. The layers it puts together live in
+//! their own crates: [`dnm_core`] (the DNM), [`dnm_zenoh`] (DNMs on Zenoh), [`dnm_record`]
+//! (MCAP), [`dnm_proto`] (what they say to each other).
 //!
 //! ```no_run
 //! # fn main() -> anyhow::Result<()> {
-//! use dnm::{Dnm, DnmOptions};
 //! let netlist = dnm::load_netlist("configs/pipeline.toml".as_ref())?;
-//! let mut node = Dnm::new(&netlist.system, "local", DnmOptions::standard()?)?;
-//! let events = node.status_listener()?;
-//! node.apply(&netlist, &events)?;
-//! node.switch("b")?;
+//! let options = dnm::HostOptions::standard()?;
+//! let host = dnm::admin::Host::start(netlist, &["main".into()], options, zenoh::Config::default())?;
+//! let status = dnm::admin::request("pipeline", &dnm::proto::Request::Status)?;
+//! host.stop();
 //! # Ok(()) }
 //! ```
 
+pub use dnm_core::{
+    Command, Commander, Dnm, DnmError, DnmOptions, DnmReport, ModuleReport, ModuleRunState,
+    SwitchRecord, crossing_links,
+};
+pub use dnm_proto as proto;
+pub use dnm_proto::keys;
+pub use dnm_record::{record, replay, stats};
 pub use dnm_router::ZenohOptions;
+pub use dnm_zenoh::remote;
 
 pub mod admin;
-mod dnm;
-pub mod keys;
-pub mod net;
-pub mod plan;
-pub mod procfs;
-pub mod record;
-pub mod remote;
-pub mod replay;
-pub mod stats;
-pub mod values;
-mod worker;
 
-pub use dnm::{
-    Command, Dnm, DnmError, DnmOptions, DnmReport, ModuleReport, ModuleRunState, SwitchRecord,
-};
-
-use std::path::{Path, PathBuf};
-use std::time::Duration;
+use std::path::Path;
 
 use dnm_netlist::{KindSpec, Netlist, NetlistError};
 
-impl DnmOptions {
-    /// The module host next to the running executable (or `$DNM_MODULE_HOST`), 5 s to prepare
-    /// a revision, a 100 ms supervision tick.
+/// How a host runs its DNMs: the DNMs' own options and what they record.
+#[derive(Debug, Clone)]
+pub struct HostOptions {
+    pub dnm: DnmOptions,
+    /// Record every output port to MCAP; `None`: no recording.
+    pub record: Option<record::RecordOptions>,
+}
+
+impl HostOptions {
+    /// [`DnmOptions::standard`], no recording.
     pub fn standard() -> std::io::Result<Self> {
         Ok(Self {
-            module_host: module_host_path()?,
-            prepare_timeout: Duration::from_secs(5),
-            tick: Duration::from_millis(100),
+            dnm: DnmOptions::standard()?,
             record: None,
         })
     }
-}
-
-/// Where the standard module host executable is.
-pub fn module_host_path() -> std::io::Result<PathBuf> {
-    if let Some(p) = std::env::var_os("DNM_MODULE_HOST") {
-        return Ok(PathBuf::from(p));
-    }
-    let exe = std::env::current_exe()?;
-    let dir = exe.parent().unwrap_or(Path::new("."));
-    // Test and bench executables live one level down, in `deps/`.
-    for candidate in [dir.join("dnm-module-host"), dir.join("../dnm-module-host")] {
-        if candidate.exists() {
-            return Ok(candidate);
-        }
-    }
-    Err(std::io::Error::new(
-        std::io::ErrorKind::NotFound,
-        format!(
-            "dnm-module-host not found next to {}; build it with `cargo build --workspace` or set DNM_MODULE_HOST",
-            exe.display()
-        ),
-    ))
 }
 
 /// Asks a module executable for its kind (`EXEC describe`).
@@ -89,23 +60,9 @@ pub fn describe_exec(path: &Path) -> Result<KindSpec, String> {
     serde_json::from_slice(&out.stdout).map_err(|e| format!("`describe` printed no kind: {e}"))
 }
 
-/// Links whose output and input run on different DNMs, with (from DNM, to DNM): the routes
-/// Zenoh carries (see [`net`]).
-pub fn crossing_links(netlist: &Netlist) -> Vec<(dnm_netlist::Link, String, String)> {
-    let dnm_of = |m: &str| netlist.module(m).map(|m| m.dnm.clone()).unwrap_or_default();
-    netlist
-        .all_links()
-        .into_iter()
-        .filter_map(|l| {
-            let (a, b) = (dnm_of(&l.from.module), dnm_of(&l.to.module));
-            (a != b).then(|| (l.clone(), a, b))
-        })
-        .collect()
-}
-
 /// Every built-in kind: the standard ones and Beetle-One's. `dnm-module-host` runs them.
 pub fn registry() -> dnm_module::Registry {
-    dnm_rover::register(dnm_modules::registry())
+    dnm_module_host::registry()
 }
 
 /// The built-in kinds as a netlist catalog.
@@ -125,6 +82,11 @@ pub fn load_netlist(path: &Path) -> Result<Netlist, NetlistError> {
 /// Validates netlist text (e.g. sent by an operator) the same way.
 pub fn parse_netlist(path: &Path, text: &str) -> Result<Netlist, NetlistError> {
     Netlist::parse(path, text, &catalog(), &mut describe_exec)
+}
+
+/// [`parse_netlist`] with the error as text, as the Zenoh bridge and the recordings take it.
+pub fn parse_netlist_text(path: &Path, text: &str) -> Result<Netlist, String> {
+    parse_netlist(path, text).map_err(|e| e.to_string())
 }
 
 /// `text` (a netlist) with each module on the DNM `assignment` gives it and `new_dnms`

@@ -10,7 +10,7 @@ use clap::{Parser, Subcommand};
 mod demo;
 mod place_cmd;
 use dnm::admin::{Request, Response, request};
-use dnm::{DnmOptions, DnmReport};
+use dnm::{DnmReport, HostOptions};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -301,7 +301,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 }
                 dnms
             };
-            let mut options = DnmOptions::standard().context("locating the module host")?;
+            let mut options = HostOptions::standard().context("locating the module host")?;
             options.record = record.options();
             if let Some(r) = &options.record {
                 println!(
@@ -383,7 +383,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         } => {
             let bytes =
                 std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-            let s = dnm::stats::stats(&bytes).map_err(|e| {
+            let s = dnm::stats::stats(&bytes, &dnm::parse_netlist_text).map_err(|e| {
                 anyhow::anyhow!("{}: not a readable MCAP file: {e}", file.display())
             })?;
             if !csv.is_empty() {
@@ -425,7 +425,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             } else {
                 dnm::replay::Pace::Rate(rate)
             };
-            let r = dnm::replay::replay(&bytes, system.as_deref(), &only, pace)
+            let r = dnm::replay::replay(&bytes, system.as_deref(), &only, pace, &dnm::parse_netlist_text)
                 .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);

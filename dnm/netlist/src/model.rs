@@ -67,6 +67,7 @@ struct RawModule {
     rate_hz: Option<Spanned<f64>>,
     restart: Option<Spanned<RestartMode>>,
     max_restarts: Option<u32>,
+    hung_after: Option<Spanned<String>>,
     #[serde(default)]
     params: BTreeMap<Spanned<String>, Spanned<toml::Value>>,
 }
@@ -136,6 +137,10 @@ pub struct Module {
     /// Overrides the kind's periodic rate.
     pub rate_hz: Option<f64>,
     pub restart: RestartPolicy,
+    /// `hung_after = "2s"`: how long it may go without stepping (or, while waiting for input,
+    /// without a heartbeat) before its DNM reports it hung; by default derived from its rate.
+    #[serde(default)]
+    pub hung_after_ms: Option<u64>,
     /// Every declared parameter, defaults filled in.
     pub params: BTreeMap<String, ParamValue>,
 }
@@ -544,15 +549,48 @@ fn validate(
             );
         }
         if let Some(rate) = &m.rate_hz
-            && !(rate.get_ref().is_finite() && *rate.get_ref() > 0.0)
+            && !(rate.get_ref().is_finite()
+                && (MIN_RATE_HZ..=MAX_RATE_HZ).contains(rate.get_ref()))
         {
             r.error(
                 span_of(rate),
                 format!("{field}.rate_hz"),
-                format!("rate {} Hz is not a positive number", rate.get_ref()),
-                Some("use a rate above 0, e.g. `rate_hz = 20.0`".into()),
+                format!(
+                    "rate {} Hz is outside {MIN_RATE_HZ}..={MAX_RATE_HZ} Hz",
+                    rate.get_ref()
+                ),
+                Some(format!(
+                    "use a rate from {MIN_RATE_HZ} to {MAX_RATE_HZ}, e.g. `rate_hz = 20.0`"
+                )),
             );
         }
+        let hung_after_ms = match &m.hung_after {
+            None => None,
+            Some(h) => match parse_duration_ms(h.get_ref()) {
+                Some(ms) if (MIN_HUNG_AFTER_MS..=MAX_HUNG_AFTER_MS).contains(&ms) => Some(ms),
+                Some(ms) => {
+                    r.error(
+                        span_of(h),
+                        format!("{field}.hung_after"),
+                        format!(
+                            "{ms} ms is outside {MIN_HUNG_AFTER_MS} ms..={} s",
+                            MAX_HUNG_AFTER_MS / 1000
+                        ),
+                        Some("use e.g. `hung_after = \"2s\"`".into()),
+                    );
+                    None
+                }
+                None => {
+                    r.error(
+                        span_of(h),
+                        format!("{field}.hung_after"),
+                        format!("`{}` is not a duration", h.get_ref()),
+                        Some("write a number and a unit: `500ms`, `2s`, `1.5s`, `1m`".into()),
+                    );
+                    None
+                }
+            },
+        };
         let mut params = BTreeMap::new();
         for (key, value) in &m.params {
             let pfield = format!("{field}.params.{}", key.get_ref());
@@ -626,6 +664,7 @@ fn validate(
                     .max_restarts
                     .unwrap_or(RestartPolicy::default().max_restarts),
             },
+            hung_after_ms,
             params,
         });
     }
@@ -847,4 +886,29 @@ mod tests {
         assert!(valid_name("a/b").is_err());
         assert!(valid_name("").is_err());
     }
+}
+
+/// Lowest `rate_hz` a module may run at.
+pub const MIN_RATE_HZ: f64 = 0.01;
+/// Highest `rate_hz` a module may run at.
+pub const MAX_RATE_HZ: f64 = 10_000.0;
+/// Shortest `hung_after`: below it, scheduling jitter would read as a hang.
+pub const MIN_HUNG_AFTER_MS: u64 = 100;
+/// Longest `hung_after`.
+pub const MAX_HUNG_AFTER_MS: u64 = 3_600_000;
+
+/// `"500ms"`, `"2s"`, `"1.5s"`, `"1m"` in milliseconds.
+pub fn parse_duration_ms(text: &str) -> Option<u64> {
+    let t = text.trim();
+    let (number, scale) = if let Some(n) = t.strip_suffix("ms") {
+        (n, 1.0)
+    } else if let Some(n) = t.strip_suffix('s') {
+        (n, 1_000.0)
+    } else if let Some(n) = t.strip_suffix('m') {
+        (n, 60_000.0)
+    } else {
+        return None;
+    };
+    let v: f64 = number.trim().parse().ok()?;
+    (v.is_finite() && v >= 0.0 && v * scale < 1e15).then(|| (v * scale).round() as u64)
 }

@@ -8,7 +8,7 @@
 //! | `<module>/<port>`       | pub/sub    | module     | the output port's samples (zero-copy)     |
 //! | `<module>/<port>/ev`    | event      | module     | "new sample" after every send             |
 //! | `_dnm/task`             | blackboard | DNM        | the active (revision, task slot) word     |
-//! | `_dnm/plan/<module>`    | pub/sub    | DNM        | the module's [`Plan`] (JSON, history 1)   |
+//! | `_dnm/plan/<module>`    | pub/sub    | DNM        | the module's [`Plan`]s (JSON, history 2)  |
 //! | `_dnm/wake/<module>`    | event      | DNM        | "a new plan is posted" / "stop"           |
 //! | `_dnm/status/<module>`  | pub/sub    | module     | [`Status`] heartbeats and plan acks       |
 //! | `_dnm/ev`               | event      | modules    | "a status was posted"                     |
@@ -207,7 +207,17 @@ pub struct Status {
     pub last_step_ns: u64,
     /// Failed steps (the step returned an error).
     pub step_errors: u64,
+    /// CLOCK_MONOTONIC time of the last heartbeat, ns: a module waiting for input posts one
+    /// every [`HEARTBEAT`], so its DNM tells an idle module from a hung one.
+    pub heartbeat_ns: u64,
 }
+
+/// How often a module posts its status at least, stepping or idle.
+pub const HEARTBEAT: std::time::Duration = std::time::Duration::from_millis(250);
+
+/// Plans a module finds as history when it (re)starts: the committed one and the one being
+/// prepared.
+pub const PLAN_HISTORY: usize = 2;
 
 /// CLOCK_MONOTONIC now, in nanoseconds: comparable across processes on one machine.
 pub fn monotonic_ns() -> u64 {

@@ -234,7 +234,18 @@ struct SourceConn {
     generation: u64,
 }
 
+/// Stands for "no step yet" where a task word is remembered.
+const UNSET_WORD: u64 = u64::MAX;
+
 impl SourceConn {
+    /// Drops everything queued and the newest sample taken: they predate the moment this
+    /// source became active for some input.
+    fn discard(&mut self) -> Result<(), ModuleError> {
+        while self.subscriber.receive().map_err(ipc("receive"))?.is_some() {}
+        self.latest = None;
+        Ok(())
+    }
+
     /// Takes everything queued, keeping only the newest sample.
     fn drain(&mut self) -> Result<bool, ModuleError> {
         let mut any = false;
@@ -546,10 +557,24 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
     let mut seen: Vec<Option<(usize, u64)>> = vec![None; spec.inputs.len()];
     let mut active: Vec<Option<usize>> = vec![None; spec.inputs.len()];
     let period = match launch.trigger {
-        Trigger::Periodic { rate_hz } => Some(Duration::from_secs_f64(1.0 / rate_hz)),
+        Trigger::Periodic { rate_hz } => Some(
+            Duration::try_from_secs_f64(1.0 / rate_hz)
+                .ok()
+                .filter(|p| !p.is_zero())
+                .ok_or_else(|| {
+                    ModuleError::Launch(format!(
+                        "rate_hz = {rate_hz} gives no usable period; use a rate between {} and {} Hz",
+                        dnm_netlist::MIN_RATE_HZ,
+                        dnm_netlist::MAX_RATE_HZ
+                    ))
+                })?,
+        ),
         Trigger::OnInput => None,
     };
     let mut last_status_ns = 0u64;
+    // The task word of the previous step, and the connections active under it.
+    let mut last_word = UNSET_WORD;
+    let mut was_active: Vec<usize> = Vec::new();
 
     loop {
         // Work that changes the set of subscriptions waits until the WaitSet is gone.
@@ -563,6 +588,15 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
             let tick_guard = match period {
                 Some(p) => Some(waitset.attach_interval(p).map_err(ipc("attach interval"))?),
                 None => None,
+            };
+            // A module waiting for input still tells its DNM it is alive.
+            let heartbeat_guard = match period {
+                Some(_) => None,
+                None => Some(
+                    waitset
+                        .attach_interval(HEARTBEAT)
+                        .map_err(ipc("attach heartbeat"))?,
+                ),
             };
             let mut _source_guards = Vec::new();
             if period.is_none() {
@@ -593,16 +627,27 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
 
                 let mut ticked = false;
                 let mut woken = false;
+                let mut beat = false;
                 let result = waitset
                     .wait_and_process_once(|id| {
                         if tick_guard.as_ref().is_some_and(|g| id.has_event_from(g)) {
                             ticked = true;
+                        } else if heartbeat_guard.as_ref().is_some_and(|g| id.has_event_from(g)) {
+                            beat = true;
                         } else {
                             woken = true;
                         }
                         CallbackProgression::Continue
                     })
                     .map_err(ipc("wait"))?;
+                if beat {
+                    let now_ns = monotonic_ns();
+                    if now_ns.saturating_sub(status.heartbeat_ns) >= HEARTBEAT.as_nanos() as u64 / 2 {
+                        status.heartbeat_ns = now_ns;
+                        last_status_ns = now_ns;
+                        publish_status(&status)?;
+                    }
+                }
                 if matches!(
                     result,
                     WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
@@ -635,6 +680,21 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                 for (input, a) in active.iter_mut().enumerate() {
                     *a = routes.and_then(|r| r.source(input, slot));
                 }
+                if word != last_word {
+                    // A source that no input read under the previous word: what it queued
+                    // meanwhile is old (it may have gone quiet long ago). Only what it sends
+                    // from now on counts.
+                    if last_word != UNSET_WORD {
+                        for c in active.iter().flatten() {
+                            if !was_active.contains(c) {
+                                conns[*c].discard()?;
+                            }
+                        }
+                    }
+                    last_word = word;
+                    was_active.clear();
+                    was_active.extend(active.iter().flatten().copied());
+                }
                 let mut fresh = false;
                 for c in active.iter().flatten() {
                     fresh |= conns[*c].drain()?;
@@ -646,7 +706,7 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                             || active.iter().enumerate().any(|(input, c)| {
                                 c.is_some_and(|c| {
                                     let g = conns[c].generation;
-                                    g > 0 && seen[input] != Some((c, g))
+                                    conns[c].latest.is_some() && seen[input] != Some((c, g))
                                 })
                             })
                     }
@@ -667,6 +727,7 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                 };
                 status.steps += 1;
                 status.last_step_ns = now_ns;
+                status.heartbeat_ns = now_ns;
                 if let Err(e) = module.step(&mut io) {
                     status.step_errors += 1;
                     tracing::warn!(module = %launch.module, "step failed: {e}");
@@ -679,12 +740,14 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
         }
         if let Some(i) = retire_before {
             plans.drain(..i);
-            retire(&mut conns, &mut listeners, &mut plans, &mut seen);
+            retire(&mut conns, &mut listeners, &mut plans, &mut seen, &mut was_active);
         }
         if !pending.is_empty() {
             for plan in pending {
                 prepare(&node, &spec, plan, &mut conns, &mut listeners, &mut plans)?;
             }
+            // A plan that replaced a failed one may leave sources nothing uses.
+            retire(&mut conns, &mut listeners, &mut plans, &mut seen, &mut was_active);
             status.plan_revision = plans.last().map_or(0, |p| p.revision);
             status.state = ModuleState::Running as u32;
             publish_status(&status)?;
@@ -706,7 +769,7 @@ pub fn plan_service_factory(
         .map_err(ipc("service name"))?;
     node.service_builder(&name)
         .publish_subscribe::<[u8]>()
-        .history_size(1)
+        .history_size(PLAN_HISTORY)
         .subscriber_max_buffer_size(4)
         .max_publishers(1)
         .max_subscribers(2)
@@ -816,6 +879,7 @@ fn retire(
     listeners: &mut Vec<Listener<Svc>>,
     plans: &mut [Routes],
     seen: &mut [Option<(usize, u64)>],
+    was_active: &mut Vec<usize>,
 ) {
     let used: Vec<bool> = (0..conns.len())
         .map(|c| {
@@ -849,4 +913,5 @@ fn retire(
     for s in seen.iter_mut() {
         *s = s.and_then(|(c, g)| remap[c].map(|c| (c, g)));
     }
+    *was_active = was_active.iter().filter_map(|c| remap[*c]).collect();
 }

@@ -16,24 +16,26 @@ use iceoryx2::prelude::*;
 type Svc = ipc::Service;
 type TsSvc = ipc_threadsafe::Service;
 
-pub(crate) fn dbg<E: std::fmt::Debug>(what: &str) -> impl FnOnce(E) -> String + '_ {
+pub fn dbg<E: std::fmt::Debug>(what: &str) -> impl FnOnce(E) -> String + '_ {
     move |e| format!("{what}: {e:?}")
 }
 
-pub(crate) fn err<E: std::fmt::Display>(what: &str) -> impl FnOnce(E) -> String + '_ {
+pub fn err<E: std::fmt::Display>(what: &str) -> impl FnOnce(E) -> String + '_ {
     move |e| format!("{what}: {e}")
 }
 
 /// What the thread sees: its node, its control listener (attach it to the WaitSet) and the
 /// sets the DNM sends.
-pub(crate) struct Control<T> {
-    pub(crate) node: Node<Svc>,
-    pub(crate) listener: Listener<Svc>,
+#[allow(missing_debug_implementations)]
+pub struct Control<T> {
+    pub node: Node<Svc>,
+    pub listener: Listener<Svc>,
     sets: Receiver<Vec<T>>,
 }
 
 /// The outcome of [`Control::newest`].
-pub(crate) enum Sets<T> {
+#[allow(missing_debug_implementations)]
+pub enum Sets<T> {
     /// Nothing new: keep serving the current set.
     Same,
     /// The newest set sent since the last look.
@@ -44,7 +46,7 @@ pub(crate) enum Sets<T> {
 
 impl<T> Control<T> {
     /// Consumes pending control events and returns the newest set sent, if any.
-    pub(crate) fn newest(&self) -> Sets<T> {
+    pub fn newest(&self) -> Sets<T> {
         let _ = self.listener.try_wait(|_| ());
         let mut latest = None;
         loop {
@@ -58,7 +60,8 @@ impl<T> Control<T> {
 }
 
 /// The DNM's handle on a helper thread.
-pub(crate) struct Worker<T> {
+#[allow(missing_debug_implementations)]
+pub struct Worker<T> {
     sets: Sender<Vec<T>>,
     wake: Notifier<TsSvc>,
     _node: Node<TsSvc>,
@@ -68,7 +71,7 @@ pub(crate) struct Worker<T> {
 impl<T: Send + 'static> Worker<T> {
     /// Starts `body` on a thread named `name`, once its control listener (on service `event`
     /// of the namespace `prefix`) exists, so no notification is lost.
-    pub(crate) fn spawn(
+    pub fn spawn(
         name: String,
         prefix: &str,
         event: &'static str,
@@ -134,7 +137,7 @@ impl<T: Send + 'static> Worker<T> {
     }
 
     /// Hands the thread a new set and wakes it.
-    pub(crate) fn send(&self, set: Vec<T>) {
+    pub fn send(&self, set: Vec<T>) {
         if self.sets.send(set).is_ok() {
             let _ = self.wake.notify();
         }

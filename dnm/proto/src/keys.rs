@@ -54,11 +54,23 @@ pub fn dnm_of(system: &str, key: &str) -> Option<String> {
     (!name.is_empty()).then(|| name.to_string())
 }
 
+/// The header of a port sample as it crosses Zenoh (the module SDK's `PortHeader`, field for
+/// field).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SampleHeader {
+    /// CLOCK_MONOTONIC time the producer sent it, ns (the producing machine's clock).
+    pub stamp_ns: u64,
+    /// Per-port sequence number.
+    pub seq: u64,
+    /// The task word the producer ran under.
+    pub task_word: u64,
+}
+
 /// Bytes of a port sample's attachment.
 pub const ATTACHMENT_BYTES: usize = 24;
 
 /// The attachment of a port sample: send time, sequence number, task word.
-pub fn encode_header(h: &dnm_module::protocol::PortHeader) -> [u8; ATTACHMENT_BYTES] {
+pub fn encode_header(h: &SampleHeader) -> [u8; ATTACHMENT_BYTES] {
     let mut out = [0u8; ATTACHMENT_BYTES];
     out[0..8].copy_from_slice(&h.stamp_ns.to_le_bytes());
     out[8..16].copy_from_slice(&h.seq.to_le_bytes());
@@ -67,7 +79,7 @@ pub fn encode_header(h: &dnm_module::protocol::PortHeader) -> [u8; ATTACHMENT_BY
 }
 
 /// Reads a port sample's attachment; `None` if it is not one.
-pub fn decode_header(bytes: &[u8]) -> Option<dnm_module::protocol::PortHeader> {
+pub fn decode_header(bytes: &[u8]) -> Option<SampleHeader> {
     if bytes.len() != ATTACHMENT_BYTES {
         return None;
     }
@@ -76,22 +88,16 @@ pub fn decode_header(bytes: &[u8]) -> Option<dnm_module::protocol::PortHeader> {
         b.copy_from_slice(&bytes[i * 8..i * 8 + 8]);
         u64::from_le_bytes(b)
     };
-    Some(dnm_module::protocol::PortHeader {
+    Some(SampleHeader {
         stamp_ns: word(0),
         seq: word(1),
         task_word: word(2),
     })
 }
 
-/// Zenoh encoding of a port: the message encoding with the schema name as its schema.
-pub fn encoding(message: &dnm_netlist::MessageType) -> String {
-    format!("{};{}", message.encoding, message.schema_name)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dnm_module::protocol::PortHeader;
 
     #[test]
     fn keys_nest_under_the_system() {
@@ -107,7 +113,7 @@ mod tests {
 
     #[test]
     fn header_round_trips() {
-        let h = PortHeader {
+        let h = SampleHeader {
             stamp_ns: 1,
             seq: u64::MAX,
             task_word: 7 << 16,

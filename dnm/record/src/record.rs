@@ -29,9 +29,11 @@ use dnm_module::protocol::{PortHeader, monotonic_ns, output_service};
 use dnm_netlist::{MessageType, Netlist};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
-use serde::{Deserialize, Serialize};
 
-use crate::worker::{Control, Sets, Worker, dbg};
+
+use dnm_core::worker::{Control, Sets, Worker, dbg};
+use dnm_core::{Context, DnmReport, ModuleEvent, Plugin, SwitchRecord};
+pub use dnm_proto::RecordReport;
 use iceoryx2::identifiers::UniquePublisherId;
 use std::collections::HashMap;
 
@@ -85,17 +87,6 @@ impl RecordOptions {
     }
 }
 
-/// What the recorder has done, for reports.
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
-pub struct RecordReport {
-    pub file: String,
-    pub messages: u64,
-    pub bytes: u64,
-    /// Samples not recorded: queue full, or overwritten before the reader got to them.
-    pub dropped: u64,
-    pub files: u64,
-}
-
 #[derive(Debug, Default)]
 struct Counters {
     /// Bytes of samples queued for the writer.
@@ -105,6 +96,8 @@ struct Counters {
     dropped: AtomicU64,
     files: AtomicU64,
     file: std::sync::Mutex<String>,
+    /// Why the writer stopped, if it did.
+    error: std::sync::Mutex<Option<String>>,
 }
 
 #[derive(Debug, Clone)]
@@ -127,10 +120,11 @@ enum Item {
         text: String,
     },
     Switch(String),
+    Event(String),
 }
 
 /// A DNM's recorder: the reader and writer threads.
-pub(crate) struct Recorder {
+pub struct Recorder {
     queue: SyncSender<Item>,
     counters: Arc<Counters>,
     options: RecordOptions,
@@ -147,7 +141,9 @@ impl std::fmt::Debug for Recorder {
 }
 
 impl Recorder {
-    pub(crate) fn start(dnm: &str, prefix: &str, options: RecordOptions) -> Result<Self, String> {
+    /// Starts recording DNM `dnm`, whose shared-memory namespace is `prefix`; ports follow
+    /// each committed revision.
+    pub fn start(dnm: &str, prefix: &str, options: RecordOptions) -> Result<Self, String> {
         std::fs::create_dir_all(&options.dir)
             .map_err(|e| format!("recordings folder {}: {e}", options.dir.display()))?;
         let counters = Arc::new(Counters::default());
@@ -161,6 +157,9 @@ impl Recorder {
                 .spawn(move || {
                     if let Err(e) = write_loop(&dnm, &options, &items, &counters) {
                         tracing::error!(dnm, "recording stopped: {e}");
+                        if let Ok(mut err) = counters.error.lock() {
+                            *err = Some(e);
+                        }
                     }
                 })
                 .map_err(|e| e.to_string())?
@@ -186,7 +185,7 @@ impl Recorder {
 
     /// After a revision is committed: record its netlist and exactly the wanted ports of the
     /// DNM's modules.
-    pub(crate) fn commit(&mut self, netlist: &Netlist, dnm: &str, revision: u64) {
+    pub fn commit(&mut self, netlist: &Netlist, dnm: &str, revision: u64) {
         let ports: Vec<RecPort> = netlist
             .modules_on(dnm)
             .filter_map(|m| netlist.kind_of(&m.name).map(|k| (m, k)))
@@ -215,13 +214,20 @@ impl Recorder {
     }
 
     /// Records a task switch.
-    pub(crate) fn switch(&self, record: &crate::SwitchRecord) {
+    pub fn switch(&self, record: &SwitchRecord) {
         if let Ok(json) = serde_json::to_string(record) {
             let _ = self.queue.try_send(Item::Switch(json));
         }
     }
 
-    pub(crate) fn report(&self) -> RecordReport {
+    /// Records a module event (exit, hang, restart).
+    pub fn module_event(&self, event: &ModuleEvent) {
+        if let Ok(json) = serde_json::to_string(event) {
+            let _ = self.queue.try_send(Item::Event(json));
+        }
+    }
+
+    pub fn report(&self) -> RecordReport {
         RecordReport {
             file: self
                 .counters
@@ -233,7 +239,30 @@ impl Recorder {
             bytes: self.counters.bytes.load(Ordering::Relaxed),
             dropped: self.counters.dropped.load(Ordering::Relaxed),
             files: self.counters.files.load(Ordering::Relaxed),
+            error: self.counters.error.lock().ok().and_then(|e| e.clone()),
         }
+    }
+}
+
+impl Plugin for Recorder {
+    fn name(&self) -> &'static str {
+        "recorder"
+    }
+
+    fn commit(&mut self, ctx: &Context<'_>, netlist: &Netlist, revision: u64) {
+        Recorder::commit(self, netlist, ctx.dnm, revision);
+    }
+
+    fn switch(&mut self, record: &SwitchRecord) {
+        Recorder::switch(self, record);
+    }
+
+    fn module_event(&mut self, event: &ModuleEvent) {
+        Recorder::module_event(self, event);
+    }
+
+    fn report(&self, report: &mut DnmReport) {
+        report.recording = Some(Recorder::report(self));
     }
 }
 
@@ -264,9 +293,9 @@ fn read_loop(
     let node = &control.node;
     let mut wanted: Vec<RecPort> = Vec::new();
     loop {
-        if queue.send(Item::Ports(wanted.clone())).is_err() {
-            return Ok(()); // the writer is gone
-        }
+        // If the writer is gone (disk full, folder removed), the ports are still drained and
+        // every sample counted as dropped.
+        let _ = queue.send(Item::Ports(wanted.clone()));
         // One slot per port, aligned with the writer's channels; a port that cannot be
         // subscribed to (all its subscriber slots taken) is reported and left out.
         let mut open: Vec<Option<Subscriber<Svc, [u8], PortHeader>>> = Vec::new();
@@ -335,7 +364,9 @@ fn read_loop(
                         bytes: s.payload().to_vec(),
                     };
                     counters.queued.fetch_add(len, Ordering::Relaxed);
-                    if let Err(TrySendError::Full(_)) = queue.try_send(item) {
+                    if let Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) =
+                        queue.try_send(item)
+                    {
                         counters.queued.fetch_sub(len, Ordering::Relaxed);
                         counters.dropped.fetch_add(1, Ordering::Relaxed);
                     }
@@ -465,12 +496,38 @@ pub fn encode(message: &MessageType, frame: &str, stamp_unix_ns: u64, bytes: &[u
 }
 
 struct OpenFile {
-    writer: mcap::Writer<BufWriter<File>>,
+    writer: mcap::Writer<Counting<BufWriter<File>>>,
     path: PathBuf,
     opened: Instant,
-    bytes: u64,
+    /// Bytes written to the file so far.
+    written: Arc<AtomicU64>,
     channels: Vec<u16>,
     switches: u16,
+    events: u16,
+}
+
+/// Counts the bytes that reach the file (compressed chunks, indexes), for rotation by size.
+struct Counting<W> {
+    inner: W,
+    written: Arc<AtomicU64>,
+}
+
+impl<W: std::io::Write> std::io::Write for Counting<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.written.fetch_add(n as u64, Ordering::Relaxed);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+impl<W: std::io::Seek> std::io::Seek for Counting<W> {
+    fn seek(&mut self, pos: std::io::SeekFrom) -> std::io::Result<u64> {
+        self.inner.seek(pos)
+    }
 }
 
 fn open_file(
@@ -487,12 +544,16 @@ fn open_file(
     };
     let path = options.dir.join(name);
     let file = File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let written = Arc::new(AtomicU64::new(0));
     let mut writer = mcap::WriteOptions::new()
         .compression(Some(mcap::Compression::Zstd))
         .profile("ros2")
         .library("dnm")
         .chunk_size(Some(1 << 20))
-        .create(BufWriter::new(file))
+        .create(Counting {
+            inner: BufWriter::new(file),
+            written: written.clone(),
+        })
         .map_err(|e| e.to_string())?;
     let mut channels = Vec::new();
     for p in ports {
@@ -528,13 +589,24 @@ fn open_file(
             &BTreeMap::new(),
         )
         .map_err(|e| e.to_string())?;
+    let schema_id = writer
+        .add_schema(
+            "dnm/ModuleEvent",
+            "jsonschema",
+            br#"{"type":"object","properties":{"dnm":{"type":"string"},"module":{"type":"string"},"what":{"type":"string"},"detail":{"type":"string"},"at_ns":{"type":"integer"}}}"#,
+        )
+        .map_err(|e| e.to_string())?;
+    let events = writer
+        .add_channel(schema_id, &format!("/{dnm}/_events"), "json", &BTreeMap::new())
+        .map_err(|e| e.to_string())?;
     let mut f = OpenFile {
         writer,
         path,
         opened: Instant::now(),
-        bytes: 0,
+        written,
         channels,
         switches,
+        events,
     };
     if let Some((revision, file, text)) = netlist {
         write_netlist(&mut f, *revision, file, text)?;
@@ -625,11 +697,16 @@ fn write_loop(
                 // each file holds the netlist of its own data.
                 netlist = Some((revision, name, text));
             }
-            Some(Item::Switch(json)) => {
+            Some(item @ (Item::Switch(_) | Item::Event(_))) => {
+                let (json, events) = match item {
+                    Item::Switch(j) => (j, false),
+                    Item::Event(j) => (j, true),
+                    _ => continue,
+                };
                 if let Some(f) = file.as_mut() {
                     let now = clock.unix(monotonic_ns());
                     let header = mcap::records::MessageHeader {
-                        channel_id: f.switches,
+                        channel_id: if events { f.events } else { f.switches },
                         sequence: 0,
                         log_time: now,
                         publish_time: now,
@@ -664,7 +741,6 @@ fn write_loop(
                         &data,
                     )
                     .map_err(|e| e.to_string())?;
-                f.bytes += data.len() as u64;
                 counters.messages.fetch_add(1, Ordering::Relaxed);
                 counters
                     .bytes
@@ -679,7 +755,8 @@ fn write_loop(
             }
         }
         let rotate = file.as_ref().is_some_and(|f| {
-            f.bytes >= options.rotate_bytes || f.opened.elapsed() >= options.rotate_after
+            f.written.load(Ordering::Relaxed) >= options.rotate_bytes
+                || f.opened.elapsed() >= options.rotate_after
         });
         if rotate && let Some(f) = file.take() {
             close(f)?;

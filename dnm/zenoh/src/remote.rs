@@ -7,10 +7,7 @@ use std::time::Duration;
 use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 
-use crate::admin::{Request, Response, merge};
-use crate::keys;
-use crate::net::ZenohCommand;
-use crate::{DnmReport, net};
+use dnm_proto::{DnmReport, RemoteCommand, Request, Response, keys, merge};
 
 /// Times a command is sent to DNMs that have not answered (same id, so applied once).
 const ATTEMPTS: usize = 3;
@@ -31,6 +28,14 @@ pub fn alive_dnms(session: &zenoh::Session, system: &str, timeout: Duration) -> 
         }
     }
     out
+}
+
+/// This process's name as a command client: host and process id.
+pub fn client_name() -> String {
+    let host = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_string())
+        .unwrap_or_else(|_| "host".into());
+    format!("dnm-{host}-{}", std::process::id())
 }
 
 /// A fresh command id: unique per process and call.
@@ -82,7 +87,7 @@ pub fn request(
         }
         Request::Netlist => {
             let state =
-                net::newest_netlist(session, system, timeout).ok_or_else(|| no_dnms(system))?;
+                crate::newest_netlist(session, system, timeout).ok_or_else(|| no_dnms(system))?;
             Ok(Response {
                 ok: true,
                 revision: Some(state.revision),
@@ -110,10 +115,11 @@ fn command(
     if expected.is_empty() {
         return Err(no_dnms(system));
     }
-    let payload = serde_json::to_vec(&ZenohCommand {
-        id: Some(command_id()),
-        request: req.clone(),
-    })
+    let payload = serde_json::to_vec(&RemoteCommand::new(
+        client_name(),
+        command_id(),
+        req.clone(),
+    ))
     .map_err(|e| e.to_string())?;
     let mut answers: std::collections::BTreeMap<String, Response> = Default::default();
     for _ in 0..ATTEMPTS {

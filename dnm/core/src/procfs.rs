@@ -2,23 +2,7 @@
 
 use std::time::Instant;
 
-/// Resident memory of a process, split so shared-memory segments are counted separately.
-#[derive(Debug, Clone, Copy, Default, serde::Serialize, serde::Deserialize, PartialEq, Eq)]
-pub struct Memory {
-    /// Private anonymous memory (heap, stacks), KiB.
-    pub anon_kib: u64,
-    /// Mapped files (code, libraries), KiB.
-    pub file_kib: u64,
-    /// Shared memory (iceoryx2 segments), KiB.
-    pub shmem_kib: u64,
-}
-
-impl Memory {
-    /// Resident memory not counting shared-memory segments.
-    pub fn private_kib(&self) -> u64 {
-        self.anon_kib + self.file_kib
-    }
-}
+pub use dnm_proto::Memory;
 
 /// Reads `/proc/<pid>/status` for resident memory.
 pub fn memory(pid: u32) -> Option<Memory> {

@@ -51,7 +51,7 @@ struct Seen {
 }
 
 /// Reads a recording, tolerating a missing end (a DNM that was killed).
-pub fn stats(bytes: &[u8]) -> Result<Stats, String> {
+pub fn stats(bytes: &[u8], parse: &crate::ParseNetlist<'_>) -> Result<Stats, String> {
     let mut channels: BTreeMap<String, Seen> = BTreeMap::new();
     let mut switches = Vec::new();
     let options = enumset::enum_set!(mcap::read::Options::IgnoreEndMagic);
@@ -130,7 +130,7 @@ pub fn stats(bytes: &[u8]) -> Result<Stats, String> {
         });
     }
     let links = netlist_text
-        .and_then(|t| crate::parse_netlist(Path::new("recorded.toml"), &t).ok())
+        .and_then(|t| parse(Path::new("recorded.toml"), &t).ok())
         .map(|n| link_latencies(&n, &channels))
         .unwrap_or_default();
     Ok(Stats {
@@ -215,7 +215,7 @@ pub fn export_csv(bytes: &[u8], topics: &[String], dir: &Path) -> Result<Vec<Str
         let schema = m.channel.schema.as_ref();
         let value = match (m.channel.message_encoding.as_str(), schema) {
             ("cdr", Some(s)) if s.encoding == "ros2msg" && m.data.len() >= 4 => {
-                crate::values::decode_pod(&String::from_utf8_lossy(&s.data), &m.data[4..])
+                dnm_core::values::decode_pod(&String::from_utf8_lossy(&s.data), &m.data[4..])
             }
             ("json", _) => serde_json::from_slice(&m.data).ok(),
             _ => None,

@@ -2,5 +2,5 @@
 //! DNM, one process per module. Links the kinds and the module SDK only, not the DNM.
 
 fn main() -> std::process::ExitCode {
-    dnm_module::host_main(&dnm_rover::register(dnm_modules::registry()))
+    dnm_module::host_main(&dnm_module_host::registry())
 }

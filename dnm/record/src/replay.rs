@@ -64,6 +64,7 @@ pub fn replay(
     system: Option<&str>,
     only: &[String],
     pace: Pace,
+    parse: &crate::ParseNetlist<'_>,
 ) -> Result<ReplayReport, String> {
     // The recorded netlist: system name and port types.
     let summary = mcap::Summary::read(bytes).ok().flatten().ok_or(
@@ -78,7 +79,7 @@ pub fn replay(
         .next_back()
         .ok_or("the recording holds no netlist")?;
     let netlist =
-        crate::parse_netlist(Path::new("recorded.toml"), &text).map_err(|e| e.to_string())?;
+        parse(Path::new("recorded.toml"), &text)?;
     let system = system.unwrap_or(&netlist.system).to_string();
 
     let mut nodes: BTreeMap<String, Node<Svc>> = BTreeMap::new();

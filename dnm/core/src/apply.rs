@@ -1,0 +1,463 @@
+//! Applying a netlist as one transaction: prepare (start new modules, post every module its
+//! plan, let plugins prepare), wait without blocking until every module has prepared, then
+//! commit with one store into the task word, or abort and leave the DNM exactly as it was.
+//!
+//! Revision numbers are never reused: a failed apply burns its number, so a plan of a failed
+//! revision can never be mistaken for the plan of a later one. Modules find the plans of the
+//! committed and the pending revision as history, so a module restarted in the middle of an
+//! apply serves the committed task at once and the pending one after the commit. Switches to
+//! tasks of the committed revision go on while an apply is pending.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::Instant;
+
+use dnm_module::port_service;
+use dnm_module::protocol::*;
+use dnm_netlist::Netlist;
+use iceoryx2::port::update_connections::UpdateConnections;
+
+use crate::node::{Dnm, Outcome, PortServices};
+use crate::plan::{module_plan, task_slots};
+use crate::supervise::ModuleSlot;
+use crate::{CommandKey, Context, DnmError, ModuleRunState, Reply};
+
+/// An apply in progress.
+pub(crate) struct PendingApply {
+    pub(crate) netlist: Netlist,
+    pub(crate) revision: u64,
+    removed: Vec<String>,
+    replaced: Vec<String>,
+    /// New modules, started but not part of the DNM until the commit.
+    pub(crate) staged: BTreeMap<String, ModuleSlot>,
+    /// Port services this apply created (released if it fails).
+    new_ports: Vec<String>,
+    /// Plugins that prepared (aborted in reverse if the apply fails).
+    prepared_plugins: usize,
+    deadline: Instant,
+    pub(crate) key: Option<CommandKey>,
+    pub(crate) replies: Vec<Reply<Result<u64, String>>>,
+}
+
+impl Dnm {
+    /// Starts applying `netlist`: the answer goes to `reply` when the revision is committed or
+    /// refused. Only one apply runs at a time; later ones wait in order.
+    pub(crate) fn begin_apply(
+        &mut self,
+        netlist: Netlist,
+        key: Option<CommandKey>,
+        reply: Reply<Result<u64, String>>,
+    ) {
+        if let Some(a) = self.apply.as_mut() {
+            if key.is_some() && a.key == key {
+                a.replies.push(reply);
+                return;
+            }
+        }
+        if self.apply.is_some() || !self.queued_applies.is_empty() {
+            if self.queued_applies.len() >= crate::node::COMMAND_QUEUE {
+                reply.send(Err(DnmError::Busy(self.queued_applies.len()).to_string()));
+                return;
+            }
+            self.queued_applies.push_back((netlist, key, reply));
+            return;
+        }
+        match self.prepare_apply(netlist, key.clone()) {
+            Ok(mut pending) => {
+                pending.replies.push(reply);
+                self.apply = Some(pending);
+                // Modules that are already prepared (none changed) commit at once.
+                self.progress_apply();
+            }
+            Err(e) => {
+                let e = e.to_string();
+                if let Some(k) = key {
+                    self.remember(k, Outcome::Apply(Err(e.clone())));
+                }
+                reply.send(Err(e));
+            }
+        }
+    }
+
+    /// Everything of an apply up to waiting for the modules. On error nothing has changed.
+    fn prepare_apply(
+        &mut self,
+        netlist: Netlist,
+        key: Option<CommandKey>,
+    ) -> Result<PendingApply, DnmError> {
+        if netlist.dnm(&self.name).is_none() {
+            return Err(DnmError::DnmMissing(self.name.clone()));
+        }
+        // Never reuse a number: a failed apply's plans may still sit in modules' history.
+        let revision = self.revision.max(self.last_attempt) + 1;
+        self.last_attempt = revision;
+        let me = self.name.clone();
+        let wanted: BTreeMap<String, dnm_netlist::Module> = netlist
+            .modules_on(&me)
+            .map(|m| (m.name.clone(), m.clone()))
+            .collect();
+        let removed: Vec<String> = self
+            .modules
+            .keys()
+            .filter(|m| !wanted.contains_key(m.as_str()))
+            .cloned()
+            .collect();
+        let replaced: Vec<String> = self
+            .modules
+            .iter()
+            .filter(|(name, slot)| wanted.get(name.as_str()).is_some_and(|m| *m != slot.decl))
+            .map(|(n, _)| n.clone())
+            .collect();
+        let added: Vec<String> = wanted
+            .keys()
+            .filter(|m| !self.modules.contains_key(m.as_str()))
+            .cloned()
+            .collect();
+        let mut pending = PendingApply {
+            netlist,
+            revision,
+            removed,
+            replaced,
+            staged: BTreeMap::new(),
+            new_ports: Vec::new(),
+            prepared_plugins: 0,
+            deadline: Instant::now() + self.options.prepare_timeout,
+            key,
+            replies: Vec::new(),
+        };
+        match self.stage(&mut pending, &added) {
+            Ok(()) => Ok(pending),
+            Err(e) => {
+                self.undo(pending);
+                Err(e)
+            }
+        }
+    }
+
+    fn stage(&mut self, p: &mut PendingApply, added: &[String]) -> Result<(), DnmError> {
+        let netlist = &p.netlist;
+        // 1. Output services of new and replaced modules exist before anyone subscribes.
+        for name in added.iter().chain(&p.replaced) {
+            let spec = netlist
+                .kind_of(name)
+                .ok_or_else(|| DnmError::Ipc(format!("no kind for {name}")))?;
+            for port in &spec.outputs {
+                let service = output_service(name, &port.name);
+                if self.ports.contains_key(&service) {
+                    continue;
+                }
+                let data = port_service(&self.node, &service, &port.message.payload)
+                    .map_err(|e| DnmError::Ipc(e.to_string()))?;
+                let event = dnm_module::event_service(&self.node, &output_event(name, &port.name))
+                    .map_err(|e| DnmError::Ipc(e.to_string()))?;
+                self.ports
+                    .insert(service.clone(), PortServices { data, event });
+                p.new_ports.push(service);
+            }
+        }
+        // A replacement starts after the commit: its executable must be there now.
+        for name in &p.replaced {
+            let Some(module) = netlist.module(name) else {
+                continue;
+            };
+            let Some(entry) = netlist.catalog.get(&module.kind) else {
+                continue;
+            };
+            let exec = match &entry.source {
+                dnm_netlist::KindSource::BuiltIn => self.options.module_host.clone(),
+                dnm_netlist::KindSource::Exec { path } => path.into(),
+            };
+            if !is_executable(&exec) {
+                return Err(DnmError::Spawn {
+                    module: name.clone(),
+                    exec: exec.display().to_string(),
+                    why: "not an executable file".into(),
+                });
+            }
+        }
+        // 2. Plugins: remote outputs mirrored here before any plan references them.
+        let local_outputs = self.local_outputs();
+        for i in 0..self.plugins.len() {
+            let ctx = Context {
+                system: &self.system,
+                dnm: &self.name,
+                prefix: &self.prefix,
+                node: &self.node,
+                local_outputs: &local_outputs,
+            };
+            self.plugins[i]
+                .prepare(&ctx, netlist, p.revision)
+                .map_err(|why| DnmError::Plugin {
+                    plugin: self.plugins[i].name(),
+                    why,
+                })?;
+            p.prepared_plugins = i + 1;
+        }
+        // 3. New modules: control services, their plan (found as history), then the process.
+        for name in added {
+            let mut slot =
+                ModuleSlot::open(&self.node, netlist, name, self.options.on_input_hung_after)?;
+            slot.post_plan(&module_plan(netlist, name, p.revision))?;
+            let spawned = self.spawn(&mut slot);
+            // Staged even if it failed to start, so the undo releases its services.
+            p.staged.insert(name.clone(), slot);
+            spawned?;
+        }
+        // 4. Every module that stays gets the new plan and prepares it beside the current one.
+        for (name, slot) in &self.modules {
+            if p.removed.contains(name) || p.replaced.contains(name) {
+                continue;
+            }
+            slot.post_plan(&module_plan(netlist, name, p.revision))?;
+        }
+        Ok(())
+    }
+
+    /// Output services of the modules running here.
+    pub(crate) fn local_outputs(&self) -> BTreeSet<String> {
+        self.modules
+            .values()
+            .flat_map(|m| {
+                m.spec
+                    .outputs
+                    .iter()
+                    .map(|p| output_service(&m.decl.name, &p.name))
+            })
+            .collect()
+    }
+
+    /// Checks a pending apply: commits it when every module has prepared, aborts it when a new
+    /// module died or the deadline passed. Never blocks.
+    pub(crate) fn progress_apply(&mut self) {
+        let Some(p) = self.apply.as_ref() else {
+            return;
+        };
+        let revision = p.revision;
+        // A new module that exited while preparing fails the apply.
+        let mut exited = None;
+        if let Some(a) = self.apply.as_mut() {
+            for (name, slot) in a.staged.iter_mut() {
+                if let Some(child) = slot.child.as_mut() {
+                    if let Ok(Some(exit)) = child.try_wait() {
+                        slot.child = None;
+                        exited = Some((name.clone(), exit.to_string()));
+                        break;
+                    }
+                }
+            }
+        }
+        if let Some((module, exit)) = exited {
+            let e = DnmError::PrepareExit {
+                module,
+                revision,
+                exit,
+            };
+            self.fail_apply(e);
+            return;
+        }
+        let Some(p) = self.apply.as_ref() else {
+            return;
+        };
+        let waiting: Vec<String> = self
+            .modules
+            .iter()
+            .filter(|(n, _)| !p.removed.contains(n) && !p.replaced.contains(n))
+            .chain(p.staged.iter())
+            .filter(|(_, s)| {
+                // A module that is down (restarting) prepares when it comes back; it does not
+                // hold up the commit, and finds both plans as history.
+                s.child.is_some() && s.status.plan_revision < revision
+            })
+            .map(|(n, s)| {
+                // A module that subscribed after the plan was posted gets it (as history) only
+                // when the publisher updates its connections; then it needs a wake-up.
+                let _ = s.plan_pub.update_connections();
+                let _ = s.wake.notify();
+                n.clone()
+            })
+            .collect();
+        if waiting.is_empty() {
+            if let Some(p) = self.apply.take() {
+                self.commit(p);
+            }
+        } else if Instant::now() >= p.deadline {
+            let e = DnmError::PrepareTimeout {
+                revision,
+                timeout_ms: self.options.prepare_timeout.as_millis(),
+                modules: waiting.join(", "),
+            };
+            self.fail_apply(e);
+        }
+    }
+
+    fn fail_apply(&mut self, e: DnmError) {
+        if let Some(p) = self.apply.take() {
+            self.abort_apply(p, e.to_string());
+        }
+    }
+
+    /// Undoes a pending apply and answers it with `why`.
+    pub(crate) fn abort_apply(&mut self, mut p: PendingApply, why: String) {
+        tracing::warn!(dnm = %self.name, revision = p.revision, "apply refused: {why}");
+        let replies = std::mem::take(&mut p.replies);
+        let key = p.key.take();
+        self.undo(p);
+        if let Some(k) = key {
+            self.remember(k, Outcome::Apply(Err(why.clone())));
+        }
+        for r in replies {
+            r.send(Err(why.clone()));
+        }
+        self.next_apply();
+    }
+
+    /// Leaves the DNM as it was before `p`: staged processes stopped and forgotten, their port
+    /// services released, plugins aborted, and every module given back the committed plan so
+    /// the failed revision's references are dropped.
+    fn undo(&mut self, mut p: PendingApply) {
+        for (name, mut slot) in std::mem::take(&mut p.staged) {
+            if let Some(child) = slot.child.take() {
+                self.retire_process(&name, child);
+            }
+        }
+        for service in &p.new_ports {
+            self.ports.remove(service);
+        }
+        let local_outputs = self.local_outputs();
+        for i in (0..p.prepared_plugins).rev() {
+            let ctx = Context {
+                system: &self.system,
+                dnm: &self.name,
+                prefix: &self.prefix,
+                node: &self.node,
+                local_outputs: &local_outputs,
+            };
+            self.plugins[i].abort(&ctx, p.revision);
+        }
+        if let Some(committed) = &self.netlist {
+            for (name, slot) in &self.modules {
+                if let Err(e) = slot.post_plan(&module_plan(committed, name, self.revision)) {
+                    tracing::error!(module = %name, "cannot restore the committed plan: {e}");
+                }
+            }
+        }
+    }
+
+    /// Puts a prepared revision in force: one store into the task word, then the rest follows.
+    fn commit(&mut self, mut p: PendingApply) {
+        let revision = p.revision;
+        let netlist = p.netlist.clone();
+        // The active task carries over if the new netlist still defines it.
+        let tasks = task_slots(&netlist);
+        let task = self
+            .active
+            .clone()
+            .filter(|t| tasks.contains(t))
+            .or_else(|| netlist.initial_task().map(str::to_string));
+        let slot = task
+            .as_ref()
+            .and_then(|t| tasks.iter().position(|x| x == t))
+            .map_or(NO_TASK, |s| s as u16);
+        self.word.update_with_copy(task_word(revision, slot));
+        self.revision = revision;
+        self.tasks = tasks;
+        self.active = task;
+        self.netlist = Some(netlist.clone());
+        for slot in self.modules.values() {
+            // Wake modules that wait for input so they take the new references now.
+            let _ = slot.wake.notify();
+        }
+        // New modules join.
+        for (name, slot) in std::mem::take(&mut p.staged) {
+            self.modules.insert(name, slot);
+        }
+        // Removed modules stop; their port services go unless a module of the new revision
+        // keeps the name.
+        for name in &p.removed {
+            self.stop_module(name);
+            if let Some(slot) = self.modules.remove(name) {
+                for port in &slot.spec.outputs {
+                    self.ports.remove(&output_service(name, &port.name));
+                }
+            }
+        }
+        // Replaced modules: the old process stops; the new one starts once it is gone, and
+        // finds the new plan as history. A failure to start is a module failure (restarted per
+        // its policy), not a failed apply: the revision is committed.
+        for name in &p.replaced {
+            let old_child = self.modules.get_mut(name).and_then(|s| s.child.take());
+            if let Some(child) = old_child {
+                self.retire_process(name, child);
+            }
+            let hung_after = self.options.on_input_hung_after;
+            let Some(slot) = self.modules.get_mut(name) else {
+                continue;
+            };
+            if let Err(e) = slot.redeclare(&netlist, hung_after) {
+                tracing::error!(module = %name, "cannot replace: {e}");
+                slot.state = ModuleRunState::Stopped;
+                continue;
+            }
+            if let Err(e) = slot.post_plan(&module_plan(&netlist, name, revision)) {
+                tracing::error!(module = %name, "cannot post the plan of the replacement: {e}");
+            }
+            slot.state = ModuleRunState::Starting;
+            slot.start_at = Some(Instant::now());
+        }
+        // Routes to and from other DNMs and the recording follow the committed revision.
+        let local_outputs = self.local_outputs();
+        for i in 0..self.plugins.len() {
+            let ctx = Context {
+                system: &self.system,
+                dnm: &self.name,
+                prefix: &self.prefix,
+                node: &self.node,
+                local_outputs: &local_outputs,
+            };
+            self.plugins[i].commit(&ctx, &netlist, revision);
+        }
+        tracing::info!(dnm = %self.name, revision, task = ?self.active, "netlist applied");
+        if let Some(k) = p.key.take() {
+            self.remember(k, Outcome::Apply(Ok(revision)));
+        }
+        for r in std::mem::take(&mut p.replies) {
+            r.send(Ok(revision));
+        }
+        self.next_apply();
+    }
+
+    /// Starts the next queued apply, if any.
+    fn next_apply(&mut self) {
+        if self.apply.is_some() {
+            return;
+        }
+        if let Some((netlist, key, reply)) = self.queued_applies.pop_front() {
+            // Answered from memory if it was applied meanwhile under the same key.
+            if let Some(k) = &key {
+                if let Some(Outcome::Apply(r)) = self.answered(k) {
+                    reply.send(r);
+                    return self.next_apply();
+                }
+            }
+            match self.prepare_apply(netlist, key.clone()) {
+                Ok(mut pending) => {
+                    pending.replies.push(reply);
+                    self.apply = Some(pending);
+                    self.progress_apply();
+                }
+                Err(e) => {
+                    let e = e.to_string();
+                    if let Some(k) = key {
+                        self.remember(k, Outcome::Apply(Err(e.clone())));
+                    }
+                    reply.send(Err(e));
+                    self.next_apply();
+                }
+            }
+        }
+    }
+}
+
+fn is_executable(path: &std::path::Path) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::metadata(path).is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+}

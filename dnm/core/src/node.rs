@@ -1,0 +1,587 @@
+//! One DNM: its shared-memory namespace and task word, its modules, its commands and its loop.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::rc::Rc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use dnm_module::event_service;
+use dnm_module::protocol::*;
+use dnm_netlist::Netlist;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::writer::{EntryHandleMut, Writer};
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::blackboard::PortFactory as BlackboardFactory;
+use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+use iceoryx2::waitset::WaitSetRunResult;
+
+use crate::apply::PendingApply;
+use crate::procfs::CpuMeter;
+use crate::proto::{Memory, SupervisionReport};
+use crate::supervise::{ModuleSlot, Stopping};
+use crate::{
+    Command, CommandKey, DnmError, DnmOptions, DnmReport, ModuleEvent, ModuleReport, NetlistState,
+    Plugin, Reply, Snapshot, SwitchRecord,
+};
+
+pub(crate) type Svc = ipc::Service;
+type TsSvc = ipc_threadsafe::Service;
+
+pub(crate) fn ipc<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> DnmError {
+    move |e| DnmError::Ipc(format!("{what}: {e:?}"))
+}
+
+/// Commands queued for a DNM's thread at most; more are refused as busy.
+pub(crate) const COMMAND_QUEUE: usize = 64;
+/// Command answers remembered for retries.
+const ANSWERED: usize = 1024;
+
+/// Set when this process was asked to terminate; every DNM loop of the process stops.
+static STOP: AtomicBool = AtomicBool::new(false);
+
+/// Asks every DNM loop of this process to stop (as SIGTERM does).
+pub fn request_stop() {
+    STOP.store(true, Ordering::Relaxed);
+}
+
+/// Keeps an output port's services alive while the DNM runs, so they outlive module restarts.
+#[allow(dead_code)]
+pub(crate) struct PortServices {
+    pub(crate) data: PubSubFactory<Svc, [u8], PortHeader>,
+    pub(crate) event: EventFactory<Svc>,
+}
+
+/// The remembered answer of a command, by its key.
+#[derive(Debug, Clone)]
+pub(crate) enum Outcome {
+    Switch(Result<SwitchRecord, String>),
+    Apply(Result<u64, String>),
+}
+
+/// Hands commands to a DNM's thread from any other thread and wakes it. Cheap to clone.
+#[derive(Clone)]
+pub struct Commander {
+    dnm: String,
+    tx: SyncSender<Command>,
+    waker: Arc<Mutex<Notifier<TsSvc>>>,
+    _node: Arc<Node<TsSvc>>,
+}
+
+impl std::fmt::Debug for Commander {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Commander")
+            .field("dnm", &self.dnm)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Commander {
+    /// The DNM it commands.
+    pub fn dnm(&self) -> &str {
+        &self.dnm
+    }
+
+    /// Queues a command; refused at once when the DNM's queue is full or the DNM has stopped.
+    pub fn send(&self, command: Command) -> Result<(), DnmError> {
+        match self.tx.try_send(command) {
+            Ok(()) => {}
+            Err(TrySendError::Full(_)) => return Err(DnmError::Busy(COMMAND_QUEUE)),
+            Err(TrySendError::Disconnected(_)) => return Err(DnmError::Stopped),
+        }
+        if let Ok(n) = self.waker.lock() {
+            let _ = n.notify();
+        }
+        Ok(())
+    }
+
+    /// The DNM's report, waiting up to `timeout`.
+    pub fn status(&self, timeout: Duration) -> Result<DnmReport, DnmError> {
+        let (reply, rx) = Reply::channel();
+        self.send(Command::Status(reply))?;
+        rx.recv_timeout(timeout).map_err(|_| DnmError::Stopped)
+    }
+}
+
+/// A database node module.
+pub struct Dnm {
+    pub(crate) system: String,
+    pub(crate) name: String,
+    pub(crate) prefix: String,
+    pub(crate) options: DnmOptions,
+    pub(crate) node: Node<Svc>,
+    _board: BlackboardFactory<Svc, u64>,
+    _writer: Writer<Svc, u64>,
+    pub(crate) word: EntryHandleMut<Svc, u64, u64>,
+    _dnm_event: EventFactory<Svc>,
+    events: Rc<Listener<Svc>>,
+    pub(crate) ports: BTreeMap<String, PortServices>,
+    pub(crate) modules: BTreeMap<String, ModuleSlot>,
+    pub(crate) netlist: Option<Netlist>,
+    /// The committed revision.
+    pub(crate) revision: u64,
+    /// The newest revision number handed out (committed or not).
+    pub(crate) last_attempt: u64,
+    pub(crate) tasks: Vec<String>,
+    pub(crate) active: Option<String>,
+    switches: VecDeque<SwitchRecord>,
+    pub(crate) cpu: CpuMeter,
+    pub(crate) memory: Option<Memory>,
+    pub(crate) memory_read: Instant,
+    pub(crate) cleaned: u64,
+    pub(crate) plugins: Vec<Box<dyn Plugin>>,
+    answered: VecDeque<(CommandKey, Outcome)>,
+    pub(crate) apply: Option<PendingApply>,
+    pub(crate) queued_applies: VecDeque<(Netlist, Option<CommandKey>, Reply<Result<u64, String>>)>,
+    pub(crate) stopping: Vec<Stopping>,
+    pub(crate) events_log: VecDeque<ModuleEvent>,
+    commands: Receiver<Command>,
+    command_tx: Option<SyncSender<Command>>,
+    supervision: SupervisionReport,
+    last_pass: Option<Instant>,
+}
+
+impl std::fmt::Debug for Dnm {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Dnm")
+            .field("system", &self.system)
+            .field("name", &self.name)
+            .field("revision", &self.revision)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Dnm {
+    /// Opens this DNM's shared-memory namespace, removing leftovers of dead processes in it.
+    pub fn new(system: &str, name: &str, options: DnmOptions) -> Result<Self, DnmError> {
+        let prefix = dnm_prefix(system, name);
+        let config = dnm_config(&prefix).map_err(DnmError::Ipc)?;
+        let node_name: NodeName = format!("dnm-{name}")
+            .as_str()
+            .try_into()
+            .map_err(ipc("node name"))?;
+        let node = NodeBuilder::new()
+            .name(&node_name)
+            .config(&config)
+            .create::<Svc>()
+            .map_err(ipc("node"))?;
+        let cleaned = node.try_cleanup_dead_nodes().cleanups;
+        if cleaned > 0 {
+            tracing::info!(
+                dnm = name,
+                cleaned,
+                "removed shared memory of dead processes"
+            );
+        }
+        let board_name: ServiceName = TASK_SERVICE.try_into().map_err(ipc("service name"))?;
+        let board = node
+            .service_builder(&board_name)
+            .blackboard_creator::<u64>()
+            .max_readers(MAX_MODULES)
+            .max_nodes(MAX_MODULES)
+            .add::<u64>(0, task_word(0, NO_TASK))
+            .create()
+            .map_err(|e| {
+                tracing::debug!("blackboard create: {e:?}");
+                DnmError::AlreadyRunning {
+                    system: system.into(),
+                    dnm: name.into(),
+                }
+            })?;
+        let writer = board
+            .writer_builder()
+            .create()
+            .map_err(ipc("task writer"))?;
+        let word = writer.entry::<u64>(&0).map_err(ipc("task entry"))?;
+        let dnm_event =
+            event_service(&node, DNM_EVENT).map_err(|e| DnmError::Ipc(e.to_string()))?;
+        let events = dnm_event
+            .listener_builder()
+            .create()
+            .map_err(ipc("status listener"))?;
+        let (command_tx, commands) = std::sync::mpsc::sync_channel(COMMAND_QUEUE);
+        Ok(Self {
+            system: system.into(),
+            name: name.into(),
+            prefix,
+            options,
+            node,
+            _board: board,
+            _writer: writer,
+            word,
+            _dnm_event: dnm_event,
+            events: Rc::new(events),
+            ports: BTreeMap::new(),
+            modules: BTreeMap::new(),
+            netlist: None,
+            revision: 0,
+            last_attempt: 0,
+            tasks: Vec::new(),
+            active: None,
+            switches: VecDeque::new(),
+            cpu: CpuMeter::default(),
+            memory: None,
+            memory_read: Instant::now() - Duration::from_secs(2),
+            cleaned,
+            plugins: Vec::new(),
+            answered: VecDeque::new(),
+            apply: None,
+            queued_applies: VecDeque::new(),
+            stopping: Vec::new(),
+            events_log: VecDeque::new(),
+            commands,
+            command_tx: Some(command_tx),
+            supervision: SupervisionReport::default(),
+            last_pass: None,
+        })
+    }
+
+    /// Adds a plugin (the Zenoh bridge, the recorder). Add plugins before the first apply.
+    pub fn add_plugin(&mut self, plugin: Box<dyn Plugin>) {
+        self.plugins.push(plugin);
+    }
+
+    /// A handle for other threads to command this DNM. Take every commander you need before
+    /// [`Dnm::run`]: the loop ends when all of them are dropped.
+    pub fn commander(&self) -> Result<Commander, DnmError> {
+        let tx = self.command_tx.clone().ok_or(DnmError::Stopped)?;
+        let config = dnm_config(&self.prefix).map_err(DnmError::Ipc)?;
+        let node = NodeBuilder::new()
+            .config(&config)
+            .create::<TsSvc>()
+            .map_err(ipc("commander node"))?;
+        let notifier = event_service(&node, DNM_EVENT)
+            .map_err(|e| DnmError::Ipc(e.to_string()))?
+            .notifier_builder()
+            .create()
+            .map_err(ipc("commander notifier"))?;
+        Ok(Commander {
+            dnm: self.name.clone(),
+            tx,
+            waker: Arc::new(Mutex::new(notifier)),
+            _node: Arc::new(node),
+        })
+    }
+
+    /// Continues a running system: the next apply yields `revision + 1` and starts in `task`
+    /// (if its netlist defines it) instead of the netlist's initial task.
+    pub fn continue_from(&mut self, revision: u64, task: Option<&str>) {
+        self.revision = self.revision.max(revision);
+        self.last_attempt = self.last_attempt.max(revision);
+        if self.netlist.is_none() {
+            self.active = task.map(str::to_string);
+        }
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    pub fn system(&self) -> &str {
+        &self.system
+    }
+
+    /// The iceoryx2 file prefix of this DNM's namespace.
+    pub fn prefix(&self) -> &str {
+        &self.prefix
+    }
+
+    /// The committed revision.
+    pub fn revision(&self) -> u64 {
+        self.revision
+    }
+
+    /// Applies a netlist and waits for the outcome: starts added modules, prepares every
+    /// reference of every task in all modules, then commits the new revision with one store.
+    /// Modules it drops are stopped and changed ones replaced after the commit. On error the
+    /// DNM is exactly as it was.
+    pub fn apply(&mut self, netlist: &Netlist) -> Result<u64, DnmError> {
+        let (reply, rx) = Reply::channel();
+        self.begin_apply(netlist.clone(), None, reply);
+        loop {
+            if let Ok(r) = rx.try_recv() {
+                return r.map_err(DnmError::Refused);
+            }
+            // Blocks until a module posts a status (or 50 ms pass, to notice exits).
+            self.events
+                .timed_wait(|_| (), Duration::from_millis(50))
+                .map_err(ipc("wait for modules"))?;
+            self.read_statuses();
+            self.progress_apply();
+            self.supervise();
+        }
+    }
+
+    /// Switches the active task: one store of the task word. Everything the task needs was
+    /// prepared when the netlist was applied. Never waits for an apply in progress.
+    pub fn switch(&mut self, task: &str) -> Result<SwitchRecord, DnmError> {
+        let start = Instant::now();
+        let slot =
+            self.tasks
+                .iter()
+                .position(|t| t == task)
+                .ok_or_else(|| DnmError::UnknownTask {
+                    task: task.into(),
+                    known: self.tasks.join(", "),
+                })?;
+        self.word
+            .update_with_copy(task_word(self.revision, slot as u16));
+        let duration_ns = start.elapsed().as_nanos() as u64;
+        let record = SwitchRecord {
+            dnm: self.name.clone(),
+            revision: self.revision,
+            from: self.active.replace(task.to_string()),
+            to: task.to_string(),
+            duration_ns,
+            at_ns: monotonic_ns(),
+        };
+        for slot in self.modules.values() {
+            // Wake modules that wait for input so they re-read their sources now.
+            let _ = slot.wake.notify();
+        }
+        for p in &mut self.plugins {
+            p.switch(&record);
+        }
+        self.switches.push_back(record.clone());
+        if self.switches.len() > 64 {
+            self.switches.pop_front();
+        }
+        tracing::info!(dnm = %self.name, task, duration_ns, "task switched");
+        Ok(record)
+    }
+
+    /// The DNM's view of itself and its modules.
+    pub fn report(&self) -> DnmReport {
+        let now = monotonic_ns();
+        let mut report = DnmReport {
+            system: self.system.clone(),
+            dnm: self.name.clone(),
+            pid: std::process::id(),
+            revision: self.revision,
+            netlist_digest: self
+                .netlist
+                .as_ref()
+                .map(|n| format!("{:016x}", n.digest()))
+                .unwrap_or_default(),
+            netlist_file: self.netlist.as_ref().map(|n| n.file.display().to_string()),
+            active_task: self.active.clone(),
+            tasks: self.tasks.clone(),
+            preparing: self.apply.as_ref().map(|a| a.revision),
+            cpu_percent: self.cpu.percent,
+            memory: self.memory,
+            modules: self
+                .modules
+                .iter()
+                .map(|(name, s)| {
+                    let alive_ns = s.status.heartbeat_ns.max(s.status.last_step_ns);
+                    ModuleReport {
+                        name: name.clone(),
+                        kind: s.decl.kind.clone(),
+                        state: s.state,
+                        pid: s.pid(),
+                        restarts: s.restarts,
+                        hangs: s.hangs,
+                        last_exit: s.last_exit.clone(),
+                        plan_revision: s.status.plan_revision,
+                        steps: s.status.steps,
+                        sent: s.status.sent,
+                        step_errors: s.status.step_errors,
+                        rate_hz: s.rate.2,
+                        last_step_age_ms: (alive_ns > 0)
+                            .then(|| now.saturating_sub(alive_ns) / 1_000_000),
+                        hung_after_ms: s.hung_after.as_millis() as u64,
+                        cpu_percent: s.cpu.percent,
+                        memory: s.memory,
+                    }
+                })
+                .collect(),
+            switches: self.switches.iter().cloned().collect(),
+            events: self.events_log.iter().cloned().collect(),
+            cleaned_dead_nodes: self.cleaned,
+            supervision: self.supervision.clone(),
+            peers: Vec::new(),
+            routes: Default::default(),
+            recording: None,
+        };
+        for p in &self.plugins {
+            p.report(&mut report);
+        }
+        report
+    }
+
+    /// The netlist in force.
+    pub fn netlist(&self) -> Option<&Netlist> {
+        self.netlist.as_ref()
+    }
+
+    /// The committed netlist, for peers and tools.
+    pub fn netlist_state(&self) -> NetlistState {
+        NetlistState {
+            system: self.system.clone(),
+            dnm: self.name.clone(),
+            revision: self.revision,
+            digest: self
+                .netlist
+                .as_ref()
+                .map(|n| format!("{:016x}", n.digest()))
+                .unwrap_or_default(),
+            file: self.netlist.as_ref().map(|n| n.file.display().to_string()),
+            active_task: self.active.clone(),
+            text: self.netlist.as_ref().map(|n| n.text.clone()),
+        }
+    }
+
+    /// Runs the DNM until SIGINT/SIGTERM, [`request_stop`], or until every [`Commander`] is
+    /// dropped: waits on module notifications, commands and a supervision tick; never spins.
+    pub fn run(&mut self) -> Result<(), DnmError> {
+        // From now on the loop ends when the last commander goes.
+        self.command_tx = None;
+        let events = self.events.clone();
+        let waitset = WaitSetBuilder::new()
+            .create::<Svc>()
+            .map_err(ipc("waitset"))?;
+        let _events_guard = waitset.attach_notification(&*events).map_err(ipc("attach"))?;
+        let _tick_guard = waitset
+            .attach_interval(self.options.tick)
+            .map_err(ipc("attach"))?;
+        self.supervision.period_ms = self.options.tick.as_millis() as u64;
+        self.pass();
+        loop {
+            let result = waitset
+                .wait_and_process_once(|_| CallbackProgression::Continue)
+                .map_err(ipc("wait"))?;
+            if matches!(
+                result,
+                WaitSetRunResult::Interrupt | WaitSetRunResult::TerminationRequest
+            ) {
+                // iceoryx2 hands a signal to one waiter: tell the other DNMs of this process.
+                request_stop();
+                break;
+            }
+            if STOP.load(Ordering::Relaxed) {
+                break;
+            }
+            events.try_wait(|_| ()).map_err(ipc("events"))?;
+            let mut handled = false;
+            loop {
+                match self.commands.try_recv() {
+                    Ok(cmd) => {
+                        self.handle(cmd);
+                        handled = true;
+                    }
+                    Err(std::sync::mpsc::TryRecvError::Empty) => break,
+                    Err(std::sync::mpsc::TryRecvError::Disconnected) => return Ok(()),
+                }
+            }
+            self.read_statuses();
+            self.progress_apply();
+            let due = self
+                .last_pass
+                .is_none_or(|t| t.elapsed() + Duration::from_millis(1) >= self.options.tick);
+            if due {
+                self.pass();
+            } else if handled {
+                self.publish();
+            }
+        }
+        Ok(())
+    }
+
+    /// One supervision pass: exits, hangs and restarts, CPU, and a fresh snapshot for plugins.
+    fn pass(&mut self) {
+        let now = Instant::now();
+        if let Some(last) = self.last_pass {
+            let gap = now.duration_since(last).as_millis() as u64;
+            self.supervision.max_gap_ms = self.supervision.max_gap_ms.max(gap);
+        }
+        self.last_pass = Some(now);
+        self.supervision.passes += 1;
+        self.supervise();
+        self.meter();
+        self.publish();
+    }
+
+    /// Hands plugins the DNM's newest state.
+    fn publish(&mut self) {
+        if self.plugins.is_empty() {
+            return;
+        }
+        let snapshot = Arc::new(Snapshot {
+            report: self.report(),
+            netlist: self.netlist_state(),
+        });
+        for p in &mut self.plugins {
+            p.published(&snapshot);
+        }
+    }
+
+    pub(crate) fn answered(&self, key: &CommandKey) -> Option<Outcome> {
+        self.answered
+            .iter()
+            .find(|(k, _)| k == key)
+            .map(|(_, o)| o.clone())
+    }
+
+    pub(crate) fn remember(&mut self, key: CommandKey, outcome: Outcome) {
+        self.answered.push_back((key, outcome));
+        if self.answered.len() > ANSWERED {
+            self.answered.pop_front();
+        }
+    }
+
+    fn handle(&mut self, cmd: Command) {
+        match cmd {
+            Command::Status(reply) => reply.send(self.report()),
+            Command::Netlist(reply) => reply.send(self.netlist_state()),
+            Command::Switch { task, key, reply } => {
+                if let Some(k) = &key {
+                    match self.answered(k) {
+                        Some(Outcome::Switch(r)) => return reply.send(r),
+                        Some(Outcome::Apply(_)) => {
+                            return reply.send(Err(format!(
+                                "command id `{}` of `{}` was already used for an apply",
+                                k.id, k.client
+                            )));
+                        }
+                        None => {}
+                    }
+                }
+                let r = self.switch(&task).map_err(|e| e.to_string());
+                if let Some(k) = key {
+                    self.remember(k, Outcome::Switch(r.clone()));
+                }
+                reply.send(r);
+            }
+            Command::Apply {
+                netlist,
+                key,
+                reply,
+            } => {
+                if let Some(k) = &key {
+                    match self.answered(k) {
+                        Some(Outcome::Apply(r)) => return reply.send(r),
+                        Some(Outcome::Switch(_)) => {
+                            return reply.send(Err(format!(
+                                "command id `{}` of `{}` was already used for a switch",
+                                k.id, k.client
+                            )));
+                        }
+                        None => {}
+                    }
+                }
+                self.begin_apply(*netlist, key, reply);
+            }
+        }
+    }
+}
+
+impl Drop for Dnm {
+    fn drop(&mut self) {
+        if self.modules.values().any(|s| s.child.is_some()) || !self.stopping.is_empty() {
+            self.shutdown();
+        }
+    }
+}

@@ -1,0 +1,521 @@
+//! Module processes: starting them, noticing exits and hangs, restarting them per policy, and
+//! stopping them without ever waiting on the DNM's thread.
+
+use std::path::PathBuf;
+use std::process::Child;
+use std::time::{Duration, Instant};
+
+use dnm_module::protocol::*;
+use dnm_module::{event_service, plan_service_factory, status_service_factory};
+use dnm_netlist::{KindSource, KindSpec, Netlist, RestartMode, Trigger};
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::prelude::*;
+
+use crate::node::{Dnm, Svc, ipc};
+use crate::procfs::CpuMeter;
+use crate::{DnmError, ModuleEvent, ModuleRunState};
+
+/// One module as its DNM holds it: its declaration, its control services and its process.
+pub(crate) struct ModuleSlot {
+    pub(crate) decl: dnm_netlist::Module,
+    pub(crate) spec: KindSpec,
+    pub(crate) source: KindSource,
+    pub(crate) plan_pub: Publisher<Svc, [u8], ()>,
+    pub(crate) wake: Notifier<Svc>,
+    pub(crate) status_sub: Subscriber<Svc, Status, ()>,
+    pub(crate) child: Option<Child>,
+    /// When the current process was started.
+    pub(crate) spawned_at: Instant,
+    pub(crate) state: ModuleRunState,
+    pub(crate) restarts: u32,
+    pub(crate) hangs: u32,
+    /// Set when the DNM killed the process because it hung: its exit is reported as such.
+    pub(crate) killed_hung: Option<String>,
+    /// Start the process at this time (a restart after a back-off, or a replacement once the
+    /// old process is gone).
+    pub(crate) start_at: Option<Instant>,
+    pub(crate) last_exit: Option<String>,
+    pub(crate) status: Status,
+    pub(crate) rate: (Instant, u64, f64),
+    pub(crate) cpu: CpuMeter,
+    pub(crate) memory: Option<crate::proto::Memory>,
+    /// How long it may go without a sign of life.
+    pub(crate) hung_after: Duration,
+}
+
+impl ModuleSlot {
+    pub(crate) fn pid(&self) -> Option<u32> {
+        self.child.as_ref().map(Child::id)
+    }
+
+    /// Opens the module's control services; starts nothing.
+    pub(crate) fn open(
+        node: &Node<Svc>,
+        netlist: &Netlist,
+        name: &str,
+        on_input_hung_after: Duration,
+    ) -> Result<Self, DnmError> {
+        let decl = netlist
+            .module(name)
+            .ok_or_else(|| DnmError::Ipc(format!("module {name} vanished")))?
+            .clone();
+        let entry = netlist
+            .catalog
+            .get(&decl.kind)
+            .ok_or_else(|| DnmError::Ipc(format!("kind {} vanished", decl.kind)))?
+            .clone();
+        let plan_pub = plan_service_factory(node, name)
+            .map_err(|e| DnmError::Ipc(e.to_string()))?
+            .publisher_builder()
+            .initial_max_slice_len(MAX_PLAN_BYTES)
+            .create()
+            .map_err(ipc("plan publisher"))?;
+        let wake = event_service(node, &wake_event(name))
+            .map_err(|e| DnmError::Ipc(e.to_string()))?
+            .notifier_builder()
+            .create()
+            .map_err(ipc("wake notifier"))?;
+        let status_sub = status_service_factory(node, name)
+            .map_err(|e| DnmError::Ipc(e.to_string()))?
+            .subscriber_builder()
+            .create()
+            .map_err(ipc("status subscriber"))?;
+        let hung_after = hung_deadline(&decl, &entry.spec, on_input_hung_after);
+        Ok(ModuleSlot {
+            decl,
+            spec: entry.spec,
+            source: entry.source,
+            plan_pub,
+            wake,
+            status_sub,
+            child: None,
+            spawned_at: Instant::now(),
+            state: ModuleRunState::Starting,
+            restarts: 0,
+            hangs: 0,
+            killed_hung: None,
+            start_at: None,
+            last_exit: None,
+            status: Status::default(),
+            rate: (Instant::now(), 0, 0.0),
+            cpu: CpuMeter::default(),
+            memory: None,
+            hung_after,
+        })
+    }
+
+    /// Takes a new declaration (a replacement): same name, so the same control services.
+    pub(crate) fn redeclare(
+        &mut self,
+        netlist: &Netlist,
+        on_input_hung_after: Duration,
+    ) -> Result<(), DnmError> {
+        let decl = netlist
+            .module(&self.decl.name)
+            .ok_or_else(|| DnmError::Ipc(format!("module {} vanished", self.decl.name)))?
+            .clone();
+        let entry = netlist
+            .catalog
+            .get(&decl.kind)
+            .ok_or_else(|| DnmError::Ipc(format!("kind {} vanished", decl.kind)))?
+            .clone();
+        self.hung_after = hung_deadline(&decl, &entry.spec, on_input_hung_after);
+        self.decl = decl;
+        self.spec = entry.spec;
+        self.source = entry.source;
+        self.restarts = 0;
+        self.status = Status::default();
+        self.rate = (Instant::now(), 0, 0.0);
+        Ok(())
+    }
+
+    /// Posts a plan; the module finds the last two plans as history when it (re)starts.
+    pub(crate) fn post_plan(&self, plan: &Plan) -> Result<(), DnmError> {
+        let bytes = serde_json::to_vec(plan).map_err(|e| DnmError::Ipc(e.to_string()))?;
+        if bytes.len() > MAX_PLAN_BYTES {
+            return Err(DnmError::Ipc(format!(
+                "plan of `{}` is {} bytes, more than {MAX_PLAN_BYTES}",
+                self.decl.name,
+                bytes.len()
+            )));
+        }
+        let sample = self
+            .plan_pub
+            .loan_slice_uninit(bytes.len())
+            .map_err(ipc("loan plan"))?;
+        sample
+            .write_from_slice(&bytes)
+            .send()
+            .map_err(ipc("post plan"))?;
+        self.wake.notify().map_err(ipc("wake module"))?;
+        Ok(())
+    }
+
+    /// The executable that runs this module.
+    pub(crate) fn exec(&self, module_host: &std::path::Path) -> PathBuf {
+        match &self.source {
+            KindSource::BuiltIn => module_host.to_path_buf(),
+            KindSource::Exec { path } => PathBuf::from(path),
+        }
+    }
+}
+
+/// How long a module may go without a sign of life: its own `hung_after`, else five periods of
+/// a periodic module (at least a second), else the DNM's default for on-input modules.
+fn hung_deadline(decl: &dnm_netlist::Module, spec: &KindSpec, on_input: Duration) -> Duration {
+    if let Some(ms) = decl.hung_after_ms {
+        return Duration::from_millis(ms);
+    }
+    match (spec.trigger, decl.rate_hz) {
+        (Trigger::Periodic { .. }, Some(rate_hz)) | (Trigger::Periodic { rate_hz }, None) => {
+            Duration::try_from_secs_f64(5.0 / rate_hz)
+                .unwrap_or(Duration::MAX)
+                .max(Duration::from_secs(1))
+        }
+        (Trigger::OnInput, _) => on_input,
+    }
+}
+
+/// A process on its way out: SIGTERM sent, SIGKILL at `kill_at`, reaped by supervision.
+pub(crate) struct Stopping {
+    pub(crate) module: String,
+    pub(crate) child: Child,
+    pub(crate) kill_at: Instant,
+}
+
+/// The largest back-off between restarts.
+const MAX_BACKOFF: Duration = Duration::from_secs(5);
+
+impl Dnm {
+    /// Starts a module's process with its launch description.
+    pub(crate) fn spawn(&self, slot: &mut ModuleSlot) -> Result<(), DnmError> {
+        let trigger = match (slot.spec.trigger, slot.decl.rate_hz) {
+            (Trigger::Periodic { .. }, Some(rate_hz)) => Trigger::Periodic { rate_hz },
+            (t, _) => t,
+        };
+        let launch = Launch {
+            system: self.system.clone(),
+            dnm: self.name.clone(),
+            prefix: self.prefix.clone(),
+            module: slot.decl.name.clone(),
+            kind: slot.decl.kind.clone(),
+            params: slot.decl.params.clone(),
+            trigger,
+        };
+        let exec = slot.exec(&self.options.module_host);
+        let json = serde_json::to_string(&launch).map_err(|e| DnmError::Ipc(e.to_string()))?;
+        let mut command = std::process::Command::new(&exec);
+        command.arg("run").arg(json);
+        // A module must not outlive its DNM: if the DNM's thread dies (even by SIGKILL of the
+        // whole process), the kernel sends the module SIGTERM.
+        // SAFETY: prctl is async-signal-safe and touches only the child's own state.
+        unsafe {
+            std::os::unix::process::CommandExt::pre_exec(&mut command, || {
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let child = command.spawn().map_err(|e| DnmError::Spawn {
+            module: slot.decl.name.clone(),
+            exec: exec.display().to_string(),
+            why: e.to_string(),
+        })?;
+        tracing::info!(dnm = %self.name, module = %slot.decl.name, pid = child.id(), "module started");
+        slot.child = Some(child);
+        slot.spawned_at = Instant::now();
+        slot.state = ModuleRunState::Starting;
+        slot.status = Status::default();
+        slot.start_at = None;
+        Ok(())
+    }
+
+    /// Asks a process to exit (SIGTERM) and leaves it to supervision, which kills it after the
+    /// grace period and reaps it. Never waits.
+    pub(crate) fn retire_process(&mut self, module: &str, child: Child) {
+        // SAFETY: kill(2) with the pid of a child we have not reaped yet.
+        unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+        self.stopping.push(Stopping {
+            module: module.to_string(),
+            child,
+            kill_at: Instant::now() + self.options.stop_grace,
+        });
+    }
+
+    /// Stops a module's process (asynchronously) and marks it stopped.
+    pub(crate) fn stop_module(&mut self, name: &str) {
+        let Some(slot) = self.modules.get_mut(name) else {
+            return;
+        };
+        slot.state = ModuleRunState::Stopped;
+        slot.start_at = None;
+        if let Some(child) = slot.child.take() {
+            self.retire_process(name, child);
+            tracing::info!(dnm = %self.name, module = name, "module stopping");
+        }
+    }
+
+    /// Takes the modules' heartbeats.
+    pub(crate) fn read_statuses(&mut self) {
+        let slots = self
+            .modules
+            .values_mut()
+            .chain(self.apply.iter_mut().flat_map(|a| a.staged.values_mut()));
+        for slot in slots {
+            while let Ok(Some(s)) = slot.status_sub.receive() {
+                // Heartbeats of a process we already replaced are ignored.
+                if Some(s.pid) == slot.pid() {
+                    slot.status = *s;
+                    if slot.state == ModuleRunState::Starting
+                        && ModuleState::from_u32(s.state) == ModuleState::Running
+                    {
+                        slot.state = ModuleRunState::Running;
+                    }
+                }
+            }
+        }
+    }
+
+    pub(crate) fn event(&mut self, module: &str, what: &str, detail: String) {
+        let event = ModuleEvent {
+            dnm: self.name.clone(),
+            module: module.to_string(),
+            what: what.to_string(),
+            detail,
+            at_ns: monotonic_ns(),
+        };
+        for p in &mut self.plugins {
+            p.module_event(&event);
+        }
+        self.events_log.push_back(event);
+        if self.events_log.len() > 64 {
+            self.events_log.pop_front();
+        }
+    }
+
+    /// One supervision pass: exits, hangs, restarts, processes being stopped. Never blocks.
+    pub(crate) fn supervise(&mut self) {
+        let now = Instant::now();
+        let now_ns = monotonic_ns();
+        let mut any_died = false;
+        let mut events: Vec<(String, &'static str, String)> = Vec::new();
+        let mut to_kill: Vec<u32> = Vec::new();
+        for (name, slot) in self.modules.iter_mut() {
+            let Some(child) = slot.child.as_mut() else {
+                continue;
+            };
+            match child.try_wait() {
+                Ok(Some(exit)) => {
+                    any_died = true;
+                    slot.child = None;
+                    let why = match slot.killed_hung.take() {
+                        Some(h) => format!("{h}; killed ({exit})"),
+                        None => exit.to_string(),
+                    };
+                    slot.last_exit = Some(why.clone());
+                    let restart = match slot.decl.restart.mode {
+                        RestartMode::Always => true,
+                        RestartMode::OnFailure => !exit.success(),
+                        RestartMode::Never => false,
+                    } && slot.restarts < slot.decl.restart.max_restarts;
+                    slot.state = if restart {
+                        ModuleRunState::Failed
+                    } else {
+                        ModuleRunState::Stopped
+                    };
+                    if restart {
+                        // Back off: 100 ms, doubling to at most 5 s.
+                        let backoff =
+                            Duration::from_millis(100 << slot.restarts.min(6)).min(MAX_BACKOFF);
+                        slot.start_at = Some(now + backoff);
+                    }
+                    tracing::warn!(dnm = %self.name, module = %name, exit = %why, restart, "module exited");
+                    events.push((
+                        name.clone(),
+                        if restart { "exited" } else { "gave_up" },
+                        why,
+                    ));
+                    continue;
+                }
+                Ok(None) => {}
+                Err(e) => tracing::warn!(module = %name, "cannot poll module process: {e}"),
+            }
+            // A live process: is it still stepping?
+            let alive_ns = slot.status.heartbeat_ns.max(slot.status.last_step_ns);
+            let silent = match slot.state {
+                ModuleRunState::Running | ModuleRunState::Hung if alive_ns > 0 => {
+                    Duration::from_nanos(now_ns.saturating_sub(alive_ns))
+                }
+                // Never reached its first step: count from the start of the process.
+                ModuleRunState::Starting => now
+                    .duration_since(slot.spawned_at)
+                    .saturating_sub(self.options.prepare_timeout),
+                _ => Duration::ZERO,
+            };
+            let hung = silent > slot.hung_after;
+            match (slot.state, hung) {
+                (ModuleRunState::Running | ModuleRunState::Starting, true) => {
+                    slot.state = ModuleRunState::Hung;
+                    slot.hangs += 1;
+                    let detail = format!(
+                        "no sign of life for {} ms (deadline {} ms)",
+                        silent.as_millis(),
+                        slot.hung_after.as_millis()
+                    );
+                    tracing::warn!(dnm = %self.name, module = %name, "{detail}");
+                    let restart = slot.decl.restart.mode != RestartMode::Never
+                        && slot.restarts < slot.decl.restart.max_restarts;
+                    if restart {
+                        // The exit is noticed on a later pass and restarts it per its policy.
+                        slot.killed_hung = Some(format!("hung: {detail}"));
+                        to_kill.push(child.id());
+                    }
+                    events.push((name.clone(), "hung", detail));
+                }
+                (ModuleRunState::Hung, false) if slot.killed_hung.is_none() => {
+                    slot.state = ModuleRunState::Running;
+                    events.push((name.clone(), "recovered", "stepping again".into()));
+                }
+                _ => {}
+            }
+        }
+        for pid in to_kill {
+            // SAFETY: kill(2) with the pid of a child we have not reaped yet. SIGKILL also ends
+            // a stopped process.
+            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+        }
+        for slot in self.modules.values() {
+            if slot.state == ModuleRunState::Starting && slot.child.is_some() {
+                // A (re)started process finds its plans as history once the publisher updates
+                // its connections; then it needs a wake-up to read them.
+                let _ = slot.plan_pub.update_connections();
+                let _ = slot.wake.notify();
+            }
+        }
+        // Processes on their way out.
+        let mut i = 0;
+        while i < self.stopping.len() {
+            let s = &mut self.stopping[i];
+            match s.child.try_wait() {
+                Ok(Some(_)) | Err(_) => {
+                    any_died = true;
+                    tracing::info!(dnm = %self.name, module = %s.module, "module stopped");
+                    self.stopping.swap_remove(i);
+                    continue;
+                }
+                Ok(None) if now >= s.kill_at => {
+                    let _ = s.child.kill();
+                }
+                Ok(None) => {}
+            }
+            i += 1;
+        }
+        if any_died {
+            let c = self.node.try_cleanup_dead_nodes();
+            self.cleaned += c.cleanups;
+        }
+        // Starts that are due: restarts after their back-off, replacements once the process
+        // they replace is gone.
+        let due: Vec<String> = self
+            .modules
+            .iter()
+            .filter(|(n, s)| {
+                s.child.is_none()
+                    && s.start_at.is_some_and(|t| t <= now)
+                    && !self.stopping.iter().any(|x| x.module == **n)
+            })
+            .map(|(n, _)| n.clone())
+            .collect();
+        for name in due {
+            let Some(mut slot) = self.modules.remove(&name) else {
+                continue;
+            };
+            let restart = slot.state == ModuleRunState::Failed;
+            if restart {
+                slot.restarts += 1;
+            }
+            match self.spawn(&mut slot) {
+                Ok(()) => events.push((
+                    name.clone(),
+                    if restart { "restarting" } else { "started" },
+                    format!("pid {}", slot.pid().unwrap_or_default()),
+                )),
+                Err(e) => {
+                    tracing::error!(module = %name, "start failed: {e}");
+                    slot.last_exit = Some(e.to_string());
+                    let retry = slot.decl.restart.mode != RestartMode::Never
+                        && slot.restarts < slot.decl.restart.max_restarts;
+                    if retry {
+                        slot.state = ModuleRunState::Failed;
+                        slot.start_at = Some(now + MAX_BACKOFF);
+                    } else {
+                        slot.state = ModuleRunState::Stopped;
+                        slot.start_at = None;
+                    }
+                    events.push((name.clone(), "exited", e.to_string()));
+                }
+            }
+            self.modules.insert(name, slot);
+        }
+        for (module, what, detail) in events {
+            self.event(&module, what, detail);
+        }
+    }
+
+    /// CPU and rate readings; memory once a second.
+    pub(crate) fn meter(&mut self) {
+        self.cpu.sample(std::process::id());
+        let read_memory = self.memory_read.elapsed() >= Duration::from_secs(1);
+        if read_memory {
+            self.memory_read = Instant::now();
+            self.memory = crate::procfs::memory(std::process::id());
+        }
+        for slot in self.modules.values_mut() {
+            if let Some(pid) = slot.pid() {
+                slot.cpu.sample(pid);
+                if read_memory {
+                    slot.memory = crate::procfs::memory(pid);
+                }
+            } else {
+                slot.memory = None;
+            }
+            let (t, steps, _) = slot.rate;
+            let dt = t.elapsed().as_secs_f64();
+            if dt >= 1.0 {
+                let rate = slot.status.steps.saturating_sub(steps) as f64 / dt;
+                slot.rate = (Instant::now(), slot.status.steps, rate);
+            }
+        }
+    }
+
+    /// Stops every module and waits for them (SIGTERM, then SIGKILL after the grace period).
+    pub fn shutdown(&mut self) {
+        if let Some(a) = self.apply.take() {
+            self.abort_apply(a, "the DNM is stopping".into());
+        }
+        let names: Vec<String> = self.modules.keys().cloned().collect();
+        for name in names {
+            self.stop_module(&name);
+        }
+        let deadline = Instant::now() + self.options.stop_grace;
+        while !self.stopping.is_empty() {
+            self.stopping
+                .retain_mut(|s| !matches!(s.child.try_wait(), Ok(Some(_)) | Err(_)));
+            if Instant::now() >= deadline {
+                for s in &mut self.stopping {
+                    let _ = s.child.kill();
+                    let _ = s.child.wait();
+                }
+                self.stopping.clear();
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        // Plugins finish (the recorder writes its summary and footer).
+        self.plugins.clear();
+        tracing::info!(dnm = %self.name, "stopped");
+    }
+}

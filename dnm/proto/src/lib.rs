@@ -1,0 +1,336 @@
+//! What the parts of a running system say to each other: the requests an operator's tool sends
+//! a DNM, the replies, the reports a DNM gives of itself and its modules, and the Zenoh key
+//! scheme ([`keys`]). Plain data with serde, so the `dnm` command, the ground station, the
+//! Zenoh bridge and tests share one definition and none of them needs the DNM to read it.
+//!
+//! ```
+//! use dnm_proto::{Request, RemoteCommand, keys};
+//! let cmd = RemoteCommand::new("station-1", "42", Request::Switch { task: "auto".into() });
+//! let json = serde_json::to_string(&cmd).unwrap();
+//! assert_eq!(keys::cmd("beetle", "rover"), "beetle/dnm/rover/cmd");
+//! assert!(json.contains(r#""cmd":"switch""#));
+//! ```
+
+pub mod keys;
+
+use serde::{Deserialize, Serialize};
+
+/// Resident memory of a process, split so shared-memory segments are counted separately.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+pub struct Memory {
+    /// Private anonymous memory (heap, stacks), KiB.
+    pub anon_kib: u64,
+    /// Mapped files (code, libraries), KiB.
+    pub file_kib: u64,
+    /// Shared memory (iceoryx2 segments), KiB.
+    pub shmem_kib: u64,
+}
+
+impl Memory {
+    /// Resident memory not counting shared-memory segments.
+    pub fn private_kib(&self) -> u64 {
+        self.anon_kib + self.file_kib
+    }
+}
+
+/// Lifecycle of a hosted module, as its DNM sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ModuleRunState {
+    Starting,
+    Running,
+    /// Alive but not stepping within its deadline (deadlock, endless loop, stopped); handled
+    /// by its restart policy.
+    Hung,
+    /// Exited, crashed or killed; restarts per its policy.
+    Failed,
+    /// Being stopped (removed, replaced, or the DNM is shutting down).
+    Stopping,
+    /// Stopped on purpose, or failed past its restart budget.
+    Stopped,
+}
+
+/// What a DNM knows about one module.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ModuleReport {
+    pub name: String,
+    pub kind: String,
+    pub state: ModuleRunState,
+    pub pid: Option<u32>,
+    pub restarts: u32,
+    /// Times it was found hung.
+    #[serde(default)]
+    pub hangs: u32,
+    pub last_exit: Option<String>,
+    pub plan_revision: u64,
+    pub steps: u64,
+    pub sent: u64,
+    pub step_errors: u64,
+    /// Steps per second over the last second.
+    pub rate_hz: f64,
+    /// Time since the module's last sign of life (a step or, while idle, a heartbeat), ms.
+    pub last_step_age_ms: Option<u64>,
+    /// How long it may go without a sign of life before it is reported hung, ms.
+    #[serde(default)]
+    pub hung_after_ms: u64,
+    pub cpu_percent: f64,
+    pub memory: Option<Memory>,
+}
+
+/// A task switch, as performed.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SwitchRecord {
+    /// The DNM that switched.
+    #[serde(default)]
+    pub dnm: String,
+    pub revision: u64,
+    pub from: Option<String>,
+    pub to: String,
+    /// Time to perform the switch inside the DNM (lookup and the store), ns.
+    pub duration_ns: u64,
+    /// CLOCK_MONOTONIC time of the switch, ns.
+    pub at_ns: u64,
+}
+
+/// Something that happened to a module: recorded, reported, and kept in the DNM's report.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ModuleEvent {
+    pub dnm: String,
+    pub module: String,
+    /// `started`, `exited`, `hung`, `recovered`, `restarting`, `stopped`, `gave_up`.
+    pub what: String,
+    pub detail: String,
+    /// CLOCK_MONOTONIC time, ns.
+    pub at_ns: u64,
+}
+
+/// How another DNM of the system looks from here.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PeerReport {
+    pub dnm: String,
+    /// `alive`, `lost` (was alive, its liveliness token went away) or `unseen`.
+    pub state: String,
+    /// How long it has been in that state, ms (absent while unseen).
+    pub for_ms: Option<u64>,
+}
+
+/// Traffic of one route between DNMs.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RouteReport {
+    pub key: String,
+    pub messages: u64,
+    pub bytes: u64,
+    /// Samples that could not be forwarded (too large, shared memory full).
+    pub dropped: u64,
+}
+
+/// A DNM's routes to and from other DNMs.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct NetReport {
+    /// Outputs published for other DNMs.
+    pub published: Vec<RouteReport>,
+    /// Remote outputs mirrored into this DNM's shared memory.
+    pub mirrored: Vec<RouteReport>,
+    /// Queries refused because the DNM's query queue was full.
+    #[serde(default)]
+    pub queries_refused: u64,
+    /// Queries answered.
+    #[serde(default)]
+    pub queries_answered: u64,
+}
+
+/// What a DNM's recorder has done.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct RecordReport {
+    pub file: String,
+    pub messages: u64,
+    pub bytes: u64,
+    /// Samples not recorded: queue full, overwritten before the reader got to them, or the
+    /// writer stopped.
+    pub dropped: u64,
+    pub files: u64,
+    /// Why the writer stopped, if it did (disk full, ...): nothing more is written.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// How regularly the DNM's supervision runs.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct SupervisionReport {
+    /// The configured period, ms.
+    pub period_ms: u64,
+    /// Supervision passes so far.
+    pub passes: u64,
+    /// Longest time between two passes since the DNM started, ms.
+    pub max_gap_ms: u64,
+}
+
+/// The state of one DNM, for operators and tools.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct DnmReport {
+    pub system: String,
+    pub dnm: String,
+    pub pid: u32,
+    /// The committed netlist revision.
+    pub revision: u64,
+    pub netlist_digest: String,
+    pub netlist_file: Option<String>,
+    pub active_task: Option<String>,
+    pub tasks: Vec<String>,
+    /// The revision being prepared, while an apply is in progress.
+    #[serde(default)]
+    pub preparing: Option<u64>,
+    pub cpu_percent: f64,
+    pub memory: Option<Memory>,
+    pub modules: Vec<ModuleReport>,
+    pub switches: Vec<SwitchRecord>,
+    /// The last module events (faults, restarts), oldest first.
+    #[serde(default)]
+    pub events: Vec<ModuleEvent>,
+    /// Shared-memory leftovers of dead processes removed so far.
+    pub cleaned_dead_nodes: u64,
+    #[serde(default)]
+    pub supervision: SupervisionReport,
+    /// The other DNMs of the system, as seen over Zenoh (empty without Zenoh).
+    #[serde(default)]
+    pub peers: Vec<PeerReport>,
+    /// Traffic of the routes to and from other DNMs.
+    #[serde(default)]
+    pub routes: NetReport,
+    /// The recorder's progress, when recording.
+    #[serde(default)]
+    pub recording: Option<RecordReport>,
+}
+
+/// The netlist a DNM has committed, as `<system>/dnm/<dnm>/netlist` answers it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct NetlistState {
+    pub system: String,
+    pub dnm: String,
+    pub revision: u64,
+    pub digest: String,
+    pub file: Option<String>,
+    pub active_task: Option<String>,
+    pub text: Option<String>,
+}
+
+/// A request to a running system.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(tag = "cmd", rename_all = "snake_case")]
+pub enum Request {
+    /// Every hosted DNM's report.
+    Status,
+    /// The netlist text in force.
+    Netlist,
+    /// Switch every hosted DNM to `task`.
+    Switch { task: String },
+    /// Validate and apply a new netlist; `file` names it in errors.
+    Apply { file: String, text: String },
+}
+
+/// The answer to a [`Request`].
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct Response {
+    pub ok: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub revision: Option<u64>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub switches: Vec<SwitchRecord>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub dnms: Vec<DnmReport>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub netlist: Option<String>,
+}
+
+impl Response {
+    pub fn error(msg: impl Into<String>) -> Self {
+        Self {
+            ok: false,
+            error: Some(msg.into()),
+            ..Self::default()
+        }
+    }
+}
+
+/// One answer from several DNMs or processes: all must agree to be ok.
+pub fn merge(answers: Vec<Response>) -> Response {
+    let mut out = Response {
+        ok: true,
+        ..Response::default()
+    };
+    let mut errors = Vec::new();
+    for r in answers {
+        if !r.ok {
+            out.ok = false;
+            errors.extend(r.error);
+        }
+        out.revision = out.revision.max(r.revision);
+        out.switches.extend(r.switches);
+        out.dnms.extend(r.dnms);
+        if out.netlist.is_none() {
+            out.netlist = r.netlist;
+        }
+    }
+    if !errors.is_empty() {
+        out.error = Some(errors.join("\n"));
+    }
+    out.dnms.sort_by(|a, b| a.dnm.cmp(&b.dnm));
+    out
+}
+
+/// A command sent over Zenoh to `<system>/dnm/<dnm>/cmd`: a [`Request`], the sending client's
+/// name and the command's id. A DNM applies each (client, id) once and answers a retry with the
+/// first answer; two clients may use the same id without colliding.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RemoteCommand {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
+    #[serde(flatten)]
+    pub request: Request,
+}
+
+impl RemoteCommand {
+    pub fn new(client: impl Into<String>, id: impl Into<String>, request: Request) -> Self {
+        Self {
+            client: Some(client.into()),
+            id: Some(id.into()),
+            request,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn commands_read_with_and_without_client() {
+        let c: RemoteCommand =
+            serde_json::from_str(r#"{"id":"1","cmd":"switch","task":"a"}"#).unwrap();
+        assert_eq!(c.client, None);
+        assert!(matches!(c.request, Request::Switch { ref task } if task == "a"));
+        let back: RemoteCommand =
+            serde_json::from_str(&serde_json::to_string(&RemoteCommand::new("g", "1", Request::Status)).unwrap())
+                .unwrap();
+        assert_eq!(back.client.as_deref(), Some("g"));
+    }
+
+    #[test]
+    fn merge_fails_if_any_fails_and_sorts_dnms() {
+        let m = merge(vec![
+            Response {
+                ok: true,
+                revision: Some(2),
+                ..Response::default()
+            },
+            Response::error("b refused"),
+        ]);
+        assert!(!m.ok);
+        assert_eq!(m.revision, Some(2));
+        assert_eq!(m.error.as_deref(), Some("b refused"));
+    }
+}

@@ -1,0 +1,1157 @@
+//! A DNM on Zenoh: the routes the netlist needs between DNMs, and the DNM's answers to
+//! Zenoh tools. Keys are in [`dnm_proto::keys`].
+//!
+//! - **Egress.** Every output of a local module that some task links to a module on another
+//!   DNM is published on `<system>/port/<dnm>/<module>/<port>` by a thread that waits on the
+//!   port's iceoryx2 event and forwards each new sample. Outputs no remote input needs are not
+//!   published.
+//! - **Ingress.** Every remote output that some task links to a local module is subscribed to
+//!   and mirrored into a same-named port service in this DNM's shared memory, so the local
+//!   module reads it exactly like a local output and a task switch stays a reference change.
+//! - **Transparency.** Queryables answer for the DNM, its netlist, its modules (with the last
+//!   value of every output) and its ports; liveliness tokens announce the DNM and each running
+//!   module; a liveliness subscriber tracks the other DNMs of the system.
+//! - **Commands.** `<system>/dnm/<dnm>/cmd` takes [`dnm_proto::RemoteCommand`]s.
+//!
+//! Nothing here runs on the DNM's thread but the [`Plugin`] calls, which only swap route sets.
+//! Queries are answered by a query thread from the DNM's latest [`Snapshot`] and the bridge's
+//! own last-value readers; commands by a command thread that hands them to the DNM through its
+//! [`Commander`] and replies when the DNM answers. Each thread takes at most a bounded number
+//! of queries at a time; beyond that, queries are dropped (the querier sees no reply from this
+//! DNM) and counted, so a flood of queries costs the DNM's thread nothing.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::mpsc::{self, Receiver, SyncSender};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use dnm_core::worker::{Control, Sets, Worker, dbg, err};
+use dnm_core::{
+    Command, CommandKey, Commander, Context, DnmReport, Plugin, Reply, Snapshot,
+};
+use dnm_module::protocol::{PortHeader, dnm_config, output_event, output_service};
+use dnm_module::{event_service, port_service};
+use dnm_netlist::{MessageType, Netlist};
+use dnm_proto::keys::{self, SampleHeader};
+use dnm_proto::{NetReport, NetlistState, PeerReport, RemoteCommand, Request, Response, RouteReport};
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
+use zenoh::Wait;
+use zenoh::bytes::Encoding;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber as ZSubscriber;
+use zenoh::query::{Query, Queryable};
+use zenoh::sample::{Sample, SampleKind};
+
+type Svc = ipc::Service;
+type TsSvc = ipc_threadsafe::Service;
+
+/// Event service that wakes a DNM's egress thread after its set of routes changed.
+const EGRESS_EVENT: &str = "_dnm/egress";
+/// Queries the query thread holds at most (queued or being answered).
+pub const QUERY_QUEUE: usize = 256;
+/// Commands the command thread holds at most (queued, at the DNM, or being answered).
+pub const COMMAND_QUEUE: usize = 32;
+
+/// Parses and validates a netlist sent in a command (`file` names it in errors).
+pub type ParseNetlist = Arc<dyn Fn(&Path, &str) -> Result<Netlist, String> + Send + Sync>;
+
+/// Zenoh encoding of a port: the message encoding with the schema name as its schema.
+pub fn encoding(message: &MessageType) -> String {
+    format!("{};{}", message.encoding, message.schema_name)
+}
+
+fn to_wire(h: &PortHeader) -> SampleHeader {
+    SampleHeader {
+        stamp_ns: h.stamp_ns,
+        seq: h.seq,
+        task_word: h.task_word,
+    }
+}
+
+fn from_wire(h: SampleHeader) -> PortHeader {
+    PortHeader {
+        stamp_ns: h.stamp_ns,
+        seq: h.seq,
+        task_word: h.task_word,
+    }
+}
+
+/// Which of a DNM's queryables a query reached.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Target {
+    Dnm,
+    Netlist,
+    Module,
+    Port,
+}
+
+/// What the bridge's threads and callbacks share.
+#[derive(Default)]
+struct Shared {
+    snapshot: Mutex<Option<Arc<Snapshot>>>,
+    peers: Mutex<BTreeMap<String, (bool, Instant)>>,
+    /// Local outputs and their types, for last-value readers (set at each commit).
+    outputs: Mutex<Option<Vec<(String, MessageType)>>>,
+    queries_in_flight: AtomicUsize,
+    commands_in_flight: AtomicUsize,
+    refused: AtomicU64,
+    answered: AtomicU64,
+}
+
+impl Shared {
+    fn snapshot(&self) -> Option<Arc<Snapshot>> {
+        self.snapshot.lock().ok().and_then(|s| s.clone())
+    }
+}
+
+/// A DNM's presence on Zenoh, plugged into the DNM (see the module docs).
+pub struct Bridge {
+    session: zenoh::Session,
+    system: String,
+    dnm: String,
+    shared: Arc<Shared>,
+    ts_node: Node<TsSvc>,
+    _token: LivelinessToken,
+    _queryables: Vec<Queryable<()>>,
+    _peer_watch: ZSubscriber<()>,
+    ingress: BTreeMap<String, Ingress>,
+    /// Mirrors made by the apply being prepared.
+    prepared: Vec<String>,
+    egress: Vec<EgressRoute>,
+    egress_worker: Worker<EgressRoute>,
+    declared_dnms: Vec<String>,
+    query_thread: Option<std::thread::JoinHandle<()>>,
+    command_thread: Option<std::thread::JoinHandle<()>>,
+    query_tx: Option<SyncSender<(Target, Query)>>,
+    command_tx: Option<SyncSender<CommandJob>>,
+}
+
+impl std::fmt::Debug for Bridge {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Bridge")
+            .field("system", &self.system)
+            .field("dnm", &self.dnm)
+            .finish_non_exhaustive()
+    }
+}
+
+enum CommandJob {
+    Query(Query),
+    Answer(Query, Response),
+}
+
+impl Bridge {
+    /// Declares the DNM on `session`: its liveliness token, queryables, the watch on the other
+    /// DNMs, and the threads that answer queries and commands. `commander` reaches the DNM;
+    /// `parse` validates netlists sent in `apply` commands.
+    pub fn new(
+        session: zenoh::Session,
+        system: &str,
+        dnm: &str,
+        prefix: &str,
+        commander: Commander,
+        parse: ParseNetlist,
+    ) -> Result<Self, String> {
+        let config = dnm_config(prefix)?;
+        let ts_node = NodeBuilder::new()
+            .config(&config)
+            .create::<TsSvc>()
+            .map_err(dbg("zenoh bridge node"))?;
+        let shared = Arc::new(Shared::default());
+
+        let (query_tx, query_rx) = mpsc::sync_channel::<(Target, Query)>(QUERY_QUEUE);
+        let query_thread = {
+            let shared = shared.clone();
+            let session = session.clone();
+            let (system, dnm, prefix) = (system.to_string(), dnm.to_string(), prefix.to_string());
+            std::thread::Builder::new()
+                .name(format!("zenoh-queries-{dnm}"))
+                .spawn(move || query_loop(&session, &system, &dnm, &prefix, &shared, &query_rx))
+                .map_err(err("spawning the query thread"))?
+        };
+        let (command_tx, command_rx) = mpsc::sync_channel::<CommandJob>(COMMAND_QUEUE * 2);
+        let command_thread = {
+            let shared = shared.clone();
+            let tx = command_tx.clone();
+            let (system, dnm) = (system.to_string(), dnm.to_string());
+            std::thread::Builder::new()
+                .name(format!("zenoh-commands-{dnm}"))
+                .spawn(move || {
+                    command_loop(&system, &dnm, &shared, &commander, &parse, &tx, &command_rx)
+                })
+                .map_err(err("spawning the command thread"))?
+        };
+
+        let mut queryables = Vec::new();
+        for (target, key) in [
+            (Target::Dnm, keys::dnm(system, dnm)),
+            (Target::Netlist, keys::netlist(system, dnm)),
+            (Target::Module, keys::module(system, dnm, "*")),
+            (Target::Port, keys::port(system, dnm, "*", "*")),
+        ] {
+            let tx = query_tx.clone();
+            let shared = shared.clone();
+            let q = session
+                .declare_queryable(key.clone())
+                .callback(move |q| {
+                    if admit(&shared.queries_in_flight, QUERY_QUEUE, &shared.refused)
+                        && tx.try_send((target, q)).is_err()
+                    {
+                        shared.queries_in_flight.fetch_sub(1, Ordering::Relaxed);
+                        shared.refused.fetch_add(1, Ordering::Relaxed);
+                    }
+                })
+                .wait()
+                .map_err(err("declaring queryable"))?;
+            queryables.push(q);
+        }
+        {
+            let tx = command_tx.clone();
+            let shared = shared.clone();
+            let q = session
+                .declare_queryable(keys::cmd(system, dnm))
+                .callback(move |q| {
+                    if admit(&shared.commands_in_flight, COMMAND_QUEUE, &shared.refused)
+                        && tx.try_send(CommandJob::Query(q)).is_err()
+                    {
+                        shared.commands_in_flight.fetch_sub(1, Ordering::Relaxed);
+                        shared.refused.fetch_add(1, Ordering::Relaxed);
+                    }
+                })
+                .wait()
+                .map_err(err("declaring queryable"))?;
+            queryables.push(q);
+        }
+        let token = session
+            .liveliness()
+            .declare_token(keys::dnm(system, dnm))
+            .wait()
+            .map_err(err("declaring liveliness token"))?;
+        let peer_watch = {
+            let system = system.to_string();
+            let me = dnm.to_string();
+            let shared = shared.clone();
+            session
+                .liveliness()
+                .declare_subscriber(keys::all_dnms(&system))
+                .history(true)
+                .callback(move |s| {
+                    let Some(name) = keys::dnm_of(&system, s.key_expr().as_str()) else {
+                        return;
+                    };
+                    if name == me {
+                        return;
+                    }
+                    let alive = s.kind() == SampleKind::Put;
+                    let Ok(mut peers) = shared.peers.lock() else {
+                        return;
+                    };
+                    if peers.get(&name).is_none_or(|(a, _)| *a != alive) {
+                        if alive {
+                            tracing::info!(dnm = %me, peer = %name, "DNM joined");
+                        } else {
+                            tracing::warn!(dnm = %me, peer = %name, "DNM lost");
+                        }
+                        peers.insert(name, (alive, Instant::now()));
+                    }
+                })
+                .wait()
+                .map_err(err("watching DNMs"))?
+        };
+
+        let egress = {
+            let session = session.clone();
+            Worker::spawn(
+                format!("egress-{dnm}"),
+                prefix,
+                EGRESS_EVENT,
+                move |control| egress_loop(&session, &control),
+            )?
+        };
+        Ok(Self {
+            session,
+            system: system.into(),
+            dnm: dnm.into(),
+            shared,
+            ts_node,
+            _token: token,
+            _queryables: queryables,
+            _peer_watch: peer_watch,
+            ingress: BTreeMap::new(),
+            prepared: Vec::new(),
+            egress: Vec::new(),
+            egress_worker: egress,
+            declared_dnms: Vec::new(),
+            query_thread: Some(query_thread),
+            command_thread: Some(command_thread),
+            query_tx: Some(query_tx),
+            command_tx: Some(command_tx),
+        })
+    }
+
+    /// Every other DNM of the netlist and how it looks from here.
+    fn peer_reports(&self) -> Vec<PeerReport> {
+        let peers = self
+            .shared
+            .peers
+            .lock()
+            .map(|p| p.clone())
+            .unwrap_or_default();
+        let mut names: BTreeSet<String> = peers.keys().cloned().collect();
+        names.extend(self.declared_dnms.iter().cloned());
+        names.remove(&self.dnm);
+        names
+            .into_iter()
+            .map(|name| match peers.get(&name) {
+                Some((alive, since)) => PeerReport {
+                    dnm: name,
+                    state: if *alive { "alive" } else { "lost" }.into(),
+                    for_ms: Some(since.elapsed().as_millis() as u64),
+                },
+                None => PeerReport {
+                    dnm: name,
+                    state: "unseen".into(),
+                    for_ms: None,
+                },
+            })
+            .collect()
+    }
+
+    fn mirror(&self, service: &str, key: &str, message: &MessageType) -> Result<Ingress, String> {
+        let port = port_service(&self.ts_node, service, &message.payload)
+            .map_err(err("mirror port service"))?;
+        let publisher = port
+            .publisher_builder()
+            .initial_max_slice_len(message.payload.max_bytes())
+            .create()
+            .map_err(dbg("mirror publisher"))?;
+        let (module, p) = service.split_once('/').unwrap_or((service, ""));
+        let notifier = event_service(&self.ts_node, &output_event(module, p))
+            .map_err(err("mirror event"))?
+            .notifier_builder()
+            .create()
+            .map_err(dbg("mirror notifier"))?;
+        let counters = Arc::new(Counters::default());
+        let mirror = Mutex::new(Mirror {
+            publisher,
+            notifier,
+            max_bytes: message.payload.max_bytes(),
+            counters: counters.clone(),
+            _service: port,
+        });
+        let subscriber = self
+            .session
+            .declare_subscriber(key.to_string())
+            .callback(move |s| {
+                if let Ok(m) = mirror.lock() {
+                    m.forward(&s);
+                }
+            })
+            .wait()
+            .map_err(err("subscribing"))?;
+        tracing::info!(dnm = %self.dnm, key, "mirroring remote output");
+        Ok(Ingress {
+            key: key.to_string(),
+            message: message.clone(),
+            counters,
+            _subscriber: subscriber,
+        })
+    }
+
+    /// (service, key, message type) of every remote output a local module may read.
+    fn wanted_ingress(&self, netlist: &Netlist) -> Vec<(String, String, MessageType)> {
+        let mut out = BTreeMap::new();
+        for (link, from_dnm, to_dnm) in dnm_core::crossing_links(netlist) {
+            let Some(message) = output_message(netlist, &link.from).filter(|_| to_dnm == self.dnm)
+            else {
+                continue;
+            };
+            out.insert(
+                output_service(&link.from.module, &link.from.port),
+                (
+                    keys::port(&self.system, &from_dnm, &link.from.module, &link.from.port),
+                    message,
+                ),
+            );
+        }
+        out.into_iter().map(|(s, (k, m))| (s, k, m)).collect()
+    }
+
+    /// Every local output some task links to a module on another DNM, sorted by key.
+    fn wanted_egress(&self, netlist: &Netlist) -> Vec<EgressRoute> {
+        let mut out: BTreeMap<String, EgressRoute> = BTreeMap::new();
+        for (link, from_dnm, _) in dnm_core::crossing_links(netlist) {
+            let Some(message) =
+                output_message(netlist, &link.from).filter(|_| from_dnm == self.dnm)
+            else {
+                continue;
+            };
+            let key = keys::port(&self.system, &self.dnm, &link.from.module, &link.from.port);
+            out.entry(key.clone()).or_insert(EgressRoute {
+                service: output_service(&link.from.module, &link.from.port),
+                event: output_event(&link.from.module, &link.from.port),
+                key,
+                message,
+                counters: Arc::new(Counters::default()),
+            });
+        }
+        out.into_values().collect()
+    }
+}
+
+impl Plugin for Bridge {
+    fn name(&self) -> &'static str {
+        "zenoh"
+    }
+
+    /// Every remote output any task links to a local module is mirrored into local shared
+    /// memory before plans reference it. Only new mirrors are made here; a mirror whose key or
+    /// type changed, or one replacing an output of a module still running here, is made at the
+    /// commit, when the old revision is gone.
+    fn prepare(&mut self, ctx: &Context<'_>, netlist: &Netlist, _revision: u64) -> Result<(), String> {
+        self.prepared.clear();
+        for (service, key, message) in self.wanted_ingress(netlist) {
+            if self.ingress.contains_key(&service) || ctx.local_outputs.contains(&service) {
+                continue;
+            }
+            match self.mirror(&service, &key, &message) {
+                Ok(ingress) => {
+                    self.ingress.insert(service.clone(), ingress);
+                    self.prepared.push(service);
+                }
+                Err(e) => {
+                    for s in self.prepared.drain(..) {
+                        self.ingress.remove(&s);
+                    }
+                    return Err(e);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn abort(&mut self, _ctx: &Context<'_>, _revision: u64) {
+        for s in self.prepared.drain(..) {
+            self.ingress.remove(&s);
+        }
+    }
+
+    /// Publishes exactly the outputs remote inputs need, drops mirrors no task uses any more,
+    /// and gives the query thread the outputs to keep last values of.
+    fn commit(&mut self, _ctx: &Context<'_>, netlist: &Netlist, _revision: u64) {
+        self.prepared.clear();
+        self.declared_dnms = netlist.dnms.iter().map(|d| d.name.clone()).collect();
+        let wanted = self.wanted_ingress(netlist);
+        let names: BTreeSet<&String> = wanted.iter().map(|(s, _, _)| s).collect();
+        self.ingress.retain(|s, _| names.contains(s));
+        for (service, key, message) in &wanted {
+            let current = self
+                .ingress
+                .get(service)
+                .is_some_and(|i| i.key == *key && i.message == *message);
+            if current {
+                continue;
+            }
+            // Drop the old mirror first: one publisher per mirror port at a time.
+            self.ingress.remove(service);
+            match self.mirror(service, key, message) {
+                Ok(i) => {
+                    self.ingress.insert(service.clone(), i);
+                }
+                Err(e) => tracing::error!(key = %key, "cannot mirror: {e}"),
+            }
+        }
+
+        let egress = self.wanted_egress(netlist);
+        let same = egress.len() == self.egress.len()
+            && egress
+                .iter()
+                .zip(&self.egress)
+                .all(|(a, b)| a.key == b.key && a.message == b.message);
+        if !same {
+            // Keep the counters of routes that stay.
+            let egress: Vec<EgressRoute> = egress
+                .into_iter()
+                .map(|mut r| {
+                    if let Some(old) = self.egress.iter().find(|o| o.key == r.key) {
+                        r.counters = old.counters.clone();
+                    }
+                    r
+                })
+                .collect();
+            self.egress = egress.clone();
+            self.egress_worker.send(egress);
+        }
+
+        let outputs: Vec<(String, MessageType)> = netlist
+            .modules_on(&self.dnm)
+            .filter_map(|m| netlist.kind_of(&m.name).map(|k| (m, k)))
+            .flat_map(|(m, k)| {
+                k.outputs
+                    .iter()
+                    .map(|p| (output_service(&m.name, &p.name), p.message.clone()))
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        if let Ok(mut o) = self.shared.outputs.lock() {
+            *o = Some(outputs);
+        }
+    }
+
+    fn report(&self, report: &mut DnmReport) {
+        report.peers = self.peer_reports();
+        report.routes = NetReport {
+            published: self
+                .egress
+                .iter()
+                .map(|r| r.counters.report(&r.key))
+                .collect(),
+            mirrored: self
+                .ingress
+                .values()
+                .map(|i| i.counters.report(&i.key))
+                .collect(),
+            queries_refused: self.shared.refused.load(Ordering::Relaxed),
+            queries_answered: self.shared.answered.load(Ordering::Relaxed),
+        };
+    }
+
+    fn published(&mut self, snapshot: &Arc<Snapshot>) {
+        if let Ok(mut s) = self.shared.snapshot.lock() {
+            *s = Some(snapshot.clone());
+        }
+    }
+}
+
+impl Drop for Bridge {
+    fn drop(&mut self) {
+        // Queryables first, so nothing new arrives; then the threads end with their channels.
+        self._queryables.clear();
+        self.query_tx.take();
+        self.command_tx.take();
+        if let Some(t) = self.query_thread.take() {
+            let _ = t.join();
+        }
+        if let Some(t) = self.command_thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Takes one slot of a bounded in-flight count; counts a refusal when none is left.
+fn admit(in_flight: &AtomicUsize, limit: usize, refused: &AtomicU64) -> bool {
+    let taken = in_flight
+        .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < limit).then_some(n + 1))
+        .is_ok();
+    if !taken {
+        refused.fetch_add(1, Ordering::Relaxed);
+    }
+    taken
+}
+
+fn reply_json(query: &Query, key: String, body: &impl serde::Serialize) {
+    let bytes = serde_json::to_vec(body).unwrap_or_default();
+    if let Err(e) = query
+        .reply(key, bytes)
+        .encoding(Encoding::APPLICATION_JSON)
+        .wait()
+    {
+        tracing::debug!("zenoh reply: {e}");
+    }
+}
+
+/// A sample's header and a copy of its bytes.
+type LastSample = (PortHeader, Vec<u8>);
+
+/// The last sample of an output, kept for queries.
+struct Monitor {
+    subscriber: Subscriber<Svc, [u8], PortHeader>,
+    message: MessageType,
+    last: Option<LastSample>,
+}
+
+impl Monitor {
+    fn refresh(&mut self) {
+        while let Ok(Some(s)) = self.subscriber.receive() {
+            self.last = Some((*s.user_header(), s.payload().to_vec()));
+        }
+    }
+
+    fn json(&mut self) -> serde_json::Value {
+        self.refresh();
+        match &self.last {
+            None => serde_json::json!({ "schema": self.message.schema_name, "seq": null }),
+            Some((h, bytes)) => serde_json::json!({
+                "schema": self.message.schema_name,
+                "seq": h.seq,
+                "age_ms": dnm_module::protocol::monotonic_ns().saturating_sub(h.stamp_ns) / 1_000_000,
+                "value": dnm_core::values::decode(&self.message, bytes),
+            }),
+        }
+    }
+}
+
+/// Answers the DNM's queries from its snapshot and the last-value readers; keeps the module
+/// liveliness tokens in step with the running modules.
+fn query_loop(
+    session: &zenoh::Session,
+    system: &str,
+    dnm: &str,
+    prefix: &str,
+    shared: &Shared,
+    queries: &Receiver<(Target, Query)>,
+) {
+    let node = match dnm_config(prefix).and_then(|c| {
+        NodeBuilder::new()
+            .config(&c)
+            .create::<Svc>()
+            .map_err(|e| format!("{e:?}"))
+    }) {
+        Ok(n) => n,
+        Err(e) => {
+            tracing::error!(dnm, "query thread has no shared memory: {e}");
+            return;
+        }
+    };
+    let mut monitors: BTreeMap<String, Monitor> = BTreeMap::new();
+    let mut tokens: BTreeMap<String, LivelinessToken> = BTreeMap::new();
+    let mut last_snapshot: Option<Arc<Snapshot>> = None;
+    loop {
+        let job = queries.recv_timeout(Duration::from_millis(100));
+        if matches!(job, Err(mpsc::RecvTimeoutError::Disconnected)) {
+            return;
+        }
+        // Outputs changed at a commit: readers follow.
+        if let Some(outputs) = shared.outputs.lock().ok().and_then(|mut o| o.take()) {
+            let wanted: BTreeMap<String, MessageType> = outputs.into_iter().collect();
+            monitors.retain(|s, m| wanted.get(s).is_some_and(|t| *t == m.message));
+            for (service, message) in wanted {
+                if monitors.contains_key(&service) {
+                    continue;
+                }
+                let sub = port_service(&node, &service, &message.payload)
+                    .map_err(err("port service"))
+                    .and_then(|p| p.subscriber_builder().create().map_err(dbg("monitor")));
+                match sub {
+                    Ok(subscriber) => {
+                        monitors.insert(
+                            service,
+                            Monitor {
+                                subscriber,
+                                message,
+                                last: None,
+                            },
+                        );
+                    }
+                    Err(e) => tracing::warn!(port = %service, "no last-value reader: {e}"),
+                }
+            }
+        }
+        let snapshot = shared.snapshot();
+        if snapshot.as_ref().map(Arc::as_ptr) != last_snapshot.as_ref().map(Arc::as_ptr) {
+            last_snapshot = snapshot.clone();
+            if let Some(s) = &snapshot {
+                sync_tokens(session, system, dnm, &mut tokens, &s.report);
+            }
+        }
+        let Ok((target, query)) = job else { continue };
+        answer(system, dnm, target, &query, snapshot.as_deref(), &mut monitors);
+        drop(query);
+        shared.queries_in_flight.fetch_sub(1, Ordering::Relaxed);
+        shared.answered.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+fn sync_tokens(
+    session: &zenoh::Session,
+    system: &str,
+    dnm: &str,
+    tokens: &mut BTreeMap<String, LivelinessToken>,
+    report: &DnmReport,
+) {
+    let running: BTreeSet<&str> = report
+        .modules
+        .iter()
+        .filter(|m| m.state == dnm_proto::ModuleRunState::Running)
+        .map(|m| m.name.as_str())
+        .collect();
+    tokens.retain(|m, _| running.contains(m.as_str()));
+    for m in running {
+        if tokens.contains_key(m) {
+            continue;
+        }
+        match session
+            .liveliness()
+            .declare_token(keys::module(system, dnm, m))
+            .wait()
+        {
+            Ok(t) => {
+                tokens.insert(m.to_string(), t);
+            }
+            Err(e) => tracing::warn!(module = m, "liveliness token: {e}"),
+        }
+    }
+}
+
+fn answer(
+    system: &str,
+    dnm: &str,
+    target: Target,
+    query: &Query,
+    snapshot: Option<&Snapshot>,
+    monitors: &mut BTreeMap<String, Monitor>,
+) {
+    match target {
+        Target::Dnm => {
+            if let Some(s) = snapshot {
+                reply_json(query, keys::dnm(system, dnm), &s.report);
+            }
+        }
+        Target::Netlist => {
+            if let Some(s) = snapshot {
+                reply_json(query, keys::netlist(system, dnm), &s.netlist);
+            }
+        }
+        Target::Module => {
+            let Some(s) = snapshot else { return };
+            for m in &s.report.modules {
+                let key = keys::module(system, dnm, &m.name);
+                let matches = zenoh::key_expr::KeyExpr::try_from(key.as_str())
+                    .is_ok_and(|k| k.intersects(query.key_expr()));
+                if !matches {
+                    continue;
+                }
+                let mut outputs = serde_json::Map::new();
+                let prefix = format!("{}/", m.name);
+                for (service, monitor) in monitors.range_mut(prefix.clone()..) {
+                    let Some(port) = service.strip_prefix(&prefix) else {
+                        break;
+                    };
+                    outputs.insert(port.to_string(), monitor.json());
+                }
+                let mut v = serde_json::to_value(m).unwrap_or_default();
+                if let Some(o) = v.as_object_mut() {
+                    o.insert("dnm".into(), dnm.into());
+                    o.insert("outputs".into(), serde_json::Value::Object(outputs));
+                }
+                reply_json(query, key, &v);
+            }
+        }
+        Target::Port => {
+            for (service, m) in monitors.iter_mut() {
+                let Some((module, port)) = service.split_once('/') else {
+                    continue;
+                };
+                let key = keys::port(system, dnm, module, port);
+                let matches = zenoh::key_expr::KeyExpr::try_from(key.as_str())
+                    .is_ok_and(|k| k.intersects(query.key_expr()));
+                if !matches {
+                    continue;
+                }
+                m.refresh();
+                let Some((header, bytes)) = &m.last else {
+                    continue;
+                };
+                if let Err(e) = query
+                    .reply(key, bytes.clone())
+                    .encoding(encoding(&m.message))
+                    .attachment(keys::encode_header(&to_wire(header)).to_vec())
+                    .wait()
+                {
+                    tracing::debug!("zenoh reply: {e}");
+                }
+            }
+        }
+    }
+}
+
+/// Takes commands from Zenoh, hands switches and applies to the DNM, and replies when it
+/// answers. Status and netlist requests are answered from the snapshot.
+fn command_loop(
+    system: &str,
+    dnm: &str,
+    shared: &Shared,
+    commander: &Commander,
+    parse: &ParseNetlist,
+    jobs_tx: &SyncSender<CommandJob>,
+    jobs: &Receiver<CommandJob>,
+) {
+    let finish = |query: Query, response: &Response| {
+        let key = keys::cmd(system, dnm);
+        let bytes = serde_json::to_vec(response).unwrap_or_default();
+        let sent = if response.ok {
+            query
+                .reply(key, bytes)
+                .encoding(Encoding::APPLICATION_JSON)
+                .wait()
+        } else {
+            query
+                .reply_err(bytes)
+                .encoding(Encoding::APPLICATION_JSON)
+                .wait()
+        };
+        if let Err(e) = sent {
+            tracing::debug!("zenoh reply: {e}");
+        }
+        shared.commands_in_flight.fetch_sub(1, Ordering::Relaxed);
+        shared.answered.fetch_add(1, Ordering::Relaxed);
+    };
+    while let Ok(job) = jobs.recv() {
+        let query = match job {
+            CommandJob::Answer(query, response) => {
+                finish(query, &response);
+                continue;
+            }
+            CommandJob::Query(q) => q,
+        };
+        let cmd: RemoteCommand = match query.payload().map(|p| p.to_bytes()).as_deref().map(serde_json::from_slice) {
+            Some(Ok(c)) => c,
+            Some(Err(e)) => {
+                finish(query, &Response::error(format!(
+                    "bad command: {e}; send JSON such as {{\"client\":\"me\",\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}}"
+                )));
+                continue;
+            }
+            None => {
+                finish(query, &Response::error(
+                    "empty command; send JSON such as {\"client\":\"me\",\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}",
+                ));
+                continue;
+            }
+        };
+        let key = cmd.id.map(|id| CommandKey {
+            client: cmd.client.unwrap_or_default(),
+            id,
+        });
+        let snapshot = shared.snapshot();
+        let dnm_name = dnm.to_string();
+        match cmd.request {
+            Request::Status => {
+                let r = match snapshot {
+                    Some(s) => Response {
+                        ok: true,
+                        dnms: vec![s.report.clone()],
+                        ..Response::default()
+                    },
+                    None => Response::error(format!("DNM `{dnm}` is starting")),
+                };
+                finish(query, &r);
+            }
+            Request::Netlist => {
+                let r = match snapshot {
+                    Some(s) => Response {
+                        ok: true,
+                        revision: Some(s.netlist.revision),
+                        netlist: s.netlist.text.clone(),
+                        ..Response::default()
+                    },
+                    None => Response::error(format!("DNM `{dnm}` is starting")),
+                };
+                finish(query, &r);
+            }
+            Request::Switch { task } => {
+                let tx = jobs_tx.clone();
+                let (reply, slot) = answer_slot(tx, query, move |r: Result<dnm_proto::SwitchRecord, String>| match r {
+                    Ok(s) => Response {
+                        ok: true,
+                        revision: Some(s.revision),
+                        switches: vec![s],
+                        ..Response::default()
+                    },
+                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
+                });
+                if let Err(e) = commander.send(Command::Switch { task, key, reply }) {
+                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
+                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
+                    }
+                }
+            }
+            Request::Apply { file, text } => {
+                let netlist = match parse(Path::new(&file), &text) {
+                    Err(e) => {
+                        finish(query, &Response::error(format!("netlist refused, nothing changed:\n{e}")));
+                        continue;
+                    }
+                    Ok(n) if n.system != system => {
+                        finish(query, &Response::error(format!(
+                            "netlist is for system `{}`, this is `{system}`; nothing changed",
+                            n.system
+                        )));
+                        continue;
+                    }
+                    Ok(n) => n,
+                };
+                let tx = jobs_tx.clone();
+                let (reply, slot) = answer_slot(tx, query, move |r: Result<u64, String>| match r {
+                    Ok(revision) => Response {
+                        ok: true,
+                        revision: Some(revision),
+                        ..Response::default()
+                    },
+                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
+                });
+                if let Err(e) = commander.send(Command::Apply {
+                    netlist: Box::new(netlist),
+                    key,
+                    reply,
+                }) {
+                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
+                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A reply for the DNM that hands the query back to the command thread with the response. The
+/// query waits in a slot, so it can be answered here if the DNM never takes the command.
+#[allow(clippy::type_complexity)]
+fn answer_slot<T: Send + 'static>(
+    tx: SyncSender<CommandJob>,
+    query: Query,
+    to_response: impl FnOnce(T) -> Response + Send + 'static,
+) -> (Reply<T>, Arc<Mutex<Option<Query>>>) {
+    let slot = Arc::new(Mutex::new(Some(query)));
+    let held = slot.clone();
+    let reply = Reply::new(move |v: T| {
+        if let Some(q) = held.lock().ok().and_then(|mut s| s.take()) {
+            // Never full: the channel has room for twice the commands admitted.
+            let _ = tx.try_send(CommandJob::Answer(q, to_response(v)));
+        }
+    });
+    (reply, slot)
+}
+
+#[derive(Debug, Default)]
+struct Counters {
+    messages: AtomicU64,
+    bytes: AtomicU64,
+    dropped: AtomicU64,
+}
+
+impl Counters {
+    fn count(&self, bytes: usize) {
+        self.messages.fetch_add(1, Ordering::Relaxed);
+        self.bytes.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    fn report(&self, key: &str) -> RouteReport {
+        RouteReport {
+            key: key.to_string(),
+            messages: self.messages.load(Ordering::Relaxed),
+            bytes: self.bytes.load(Ordering::Relaxed),
+            dropped: self.dropped.load(Ordering::Relaxed),
+        }
+    }
+}
+
+/// An output this DNM publishes for other DNMs.
+#[derive(Debug, Clone)]
+struct EgressRoute {
+    service: String,
+    event: String,
+    key: String,
+    message: MessageType,
+    counters: Arc<Counters>,
+}
+
+/// A remote output mirrored into local shared memory.
+struct Ingress {
+    key: String,
+    message: MessageType,
+    counters: Arc<Counters>,
+    _subscriber: ZSubscriber<()>,
+}
+
+struct Mirror {
+    publisher: Publisher<TsSvc, [u8], PortHeader>,
+    notifier: Notifier<TsSvc>,
+    max_bytes: usize,
+    counters: Arc<Counters>,
+    _service: PubSubFactory<TsSvc, [u8], PortHeader>,
+}
+
+impl Mirror {
+    fn forward(&self, sample: &Sample) {
+        let payload = sample.payload().to_bytes();
+        if payload.len() > self.max_bytes {
+            self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        let header = sample
+            .attachment()
+            .and_then(|a| keys::decode_header(&a.to_bytes()))
+            .map(from_wire)
+            .unwrap_or_default();
+        let sent = self
+            .publisher
+            .loan_slice_uninit(payload.len())
+            .map_err(|e| format!("{e:?}"))
+            .and_then(|s| {
+                let mut s = s.write_from_slice(&payload);
+                *s.user_header_mut() = header;
+                s.send().map_err(|e| format!("{e:?}"))
+            });
+        match sent {
+            Ok(_) => {
+                self.counters.count(payload.len());
+                let _ = self.notifier.notify();
+            }
+            Err(e) => {
+                self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+                tracing::debug!("mirror send failed: {e}");
+            }
+        }
+    }
+}
+
+/// The message type of an output port.
+fn output_message(netlist: &Netlist, port: &dnm_netlist::PortRef) -> Option<MessageType> {
+    netlist
+        .kind_of(&port.module)
+        .and_then(|k| k.outputs.iter().find(|p| p.name == port.port))
+        .map(|p| p.message.clone())
+}
+
+/// An egress route with its ports open.
+struct OpenRoute {
+    subscriber: Subscriber<Svc, [u8], PortHeader>,
+    listener: Listener<Svc>,
+    publisher: zenoh::pubsub::Publisher<'static>,
+    counters: Arc<Counters>,
+}
+
+impl OpenRoute {
+    fn open(node: &Node<Svc>, session: &zenoh::Session, r: &EgressRoute) -> Result<Self, String> {
+        let subscriber = port_service(node, &r.service, &r.message.payload)
+            .map_err(err("port service"))?
+            .subscriber_builder()
+            .create()
+            .map_err(dbg("egress subscriber"))?;
+        let listener = event_service(node, &r.event)
+            .map_err(err("port event"))?
+            .listener_builder()
+            .create()
+            .map_err(dbg("egress listener"))?;
+        let publisher = session
+            .declare_publisher(r.key.clone())
+            .encoding(encoding(&r.message))
+            .express(true)
+            .wait()
+            .map_err(err("declaring publisher"))?;
+        // What is already there was published before (or predates the route): skip it.
+        while let Ok(Some(_)) = subscriber.receive() {}
+        Ok(Self {
+            subscriber,
+            listener,
+            publisher,
+            counters: r.counters.clone(),
+        })
+    }
+
+    fn forward(&self) {
+        let _ = self.listener.try_wait(|_| ());
+        while let Ok(Some(s)) = self.subscriber.receive() {
+            let payload = s.payload();
+            let header = keys::encode_header(&to_wire(s.user_header()));
+            match self
+                .publisher
+                .put(payload.to_vec())
+                .attachment(header.to_vec())
+                .wait()
+            {
+                Ok(()) => self.counters.count(payload.len()),
+                Err(e) => {
+                    self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!("publish failed: {e}");
+                }
+            }
+        }
+    }
+}
+
+/// Forwards local samples of the routed outputs to Zenoh as they are sent. Reopens its ports
+/// when the DNM sends a new route set; returns when the DNM drops its sender.
+fn egress_loop(session: &zenoh::Session, control: &Control<EgressRoute>) -> Result<(), String> {
+    let mut wanted: Vec<EgressRoute> = Vec::new();
+    loop {
+        let open: Vec<OpenRoute> = wanted
+            .iter()
+            .filter_map(|r| match OpenRoute::open(&control.node, session, r) {
+                Ok(o) => Some(o),
+                Err(e) => {
+                    tracing::error!(key = %r.key, "cannot publish: {e}");
+                    None
+                }
+            })
+            .collect();
+        // Termination signals are the DNM thread's to take (iceoryx2 hands each to one waiter).
+        let waitset = WaitSetBuilder::new()
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<Svc>()
+            .map_err(dbg("egress waitset"))?;
+        let _control_guard = waitset
+            .attach_notification(&control.listener)
+            .map_err(dbg("attach"))?;
+        let mut guards = Vec::new();
+        for o in &open {
+            guards.push(
+                waitset
+                    .attach_notification(&o.listener)
+                    .map_err(dbg("attach"))?,
+            );
+        }
+        // Sets sent before the waitset was attached count too.
+        loop {
+            match control.newest() {
+                Sets::Closed => return Ok(()),
+                Sets::New(set) => {
+                    wanted = set;
+                    break;
+                }
+                Sets::Same => {}
+            }
+            waitset
+                .wait_and_process_once(|_| CallbackProgression::Continue)
+                .map_err(dbg("egress wait"))?;
+            for o in &open {
+                o.forward();
+            }
+        }
+    }
+}
+
+/// The newest netlist the running DNMs of `system` hold, if any answers within `timeout`.
+/// A DNM that (re)starts into a running system continues from it.
+pub(crate) fn newest_netlist_impl(
+    session: &zenoh::Session,
+    system: &str,
+    timeout: std::time::Duration,
+) -> Option<NetlistState> {
+    let replies = session
+        .get(keys::netlist(system, "*"))
+        .target(zenoh::query::QueryTarget::All)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(timeout)
+        .wait()
+        .ok()?;
+    let mut best: Option<NetlistState> = None;
+    while let Ok(reply) = replies.recv() {
+        let Ok(sample) = reply.result() else { continue };
+        let Ok(state) = serde_json::from_slice::<NetlistState>(&sample.payload().to_bytes()) else {
+            continue;
+        };
+        if state.text.is_some() && best.as_ref().is_none_or(|b| state.revision > b.revision) {
+            best = Some(state);
+        }
+    }
+    best
+}
