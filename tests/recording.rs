@@ -244,7 +244,7 @@ fn replaying_a_recording_reproduces_downstream_outputs() {
     assert!(sources.len() > 50 && relayed.len() > 50);
 
     // The same modules, with the source silenced, fed by the recording.
-    let (fresh, fresh_dir, fresh_system) = start_chain("fresh", "0.001", 99);
+    let (fresh, fresh_dir, fresh_system) = start_chain("fresh", "0.01", 99);
     let replayed_file = recording(&fresh_dir);
     std::thread::sleep(Duration::from_millis(500));
     let out = Command::new(env!("CARGO_BIN_EXE_dnm"))

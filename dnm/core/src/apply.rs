@@ -304,6 +304,8 @@ impl Dnm {
         if let Some(k) = key {
             self.remember(k, Outcome::Apply(Err(why.clone())));
         }
+        // Tools asking right after the answer see the state it reports.
+        self.publish();
         for r in replies {
             r.send(Err(why.clone()));
         }
@@ -419,6 +421,8 @@ impl Dnm {
         if let Some(k) = p.key.take() {
             self.remember(k, Outcome::Apply(Ok(revision)));
         }
+        // Tools asking right after the answer see the state it reports.
+        self.publish();
         for r in std::mem::take(&mut p.replies) {
             r.send(Ok(revision));
         }

@@ -465,13 +465,9 @@ impl Dnm {
                 break;
             }
             events.try_wait(|_| ()).map_err(ipc("events"))?;
-            let mut handled = false;
             loop {
                 match self.commands.try_recv() {
-                    Ok(cmd) => {
-                        self.handle(cmd);
-                        handled = true;
-                    }
+                    Ok(cmd) => self.handle(cmd),
                     Err(std::sync::mpsc::TryRecvError::Empty) => break,
                     Err(std::sync::mpsc::TryRecvError::Disconnected) => return Ok(()),
                 }
@@ -483,8 +479,6 @@ impl Dnm {
                 .is_none_or(|t| t.elapsed() + Duration::from_millis(1) >= self.options.tick);
             if due {
                 self.pass();
-            } else if handled {
-                self.publish();
             }
         }
         Ok(())
@@ -505,7 +499,7 @@ impl Dnm {
     }
 
     /// Hands plugins the DNM's newest state.
-    fn publish(&mut self) {
+    pub(crate) fn publish(&mut self) {
         if self.plugins.is_empty() {
             return;
         }
@@ -553,6 +547,8 @@ impl Dnm {
                 if let Some(k) = key {
                     self.remember(k, Outcome::Switch(r.clone()));
                 }
+                // Tools asking right after the answer see the state it reports.
+                self.publish();
                 reply.send(r);
             }
             Command::Apply {

@@ -103,6 +103,8 @@ struct Shared {
     commands_in_flight: AtomicUsize,
     refused: AtomicU64,
     answered: AtomicU64,
+    /// Set when the bridge is dropped: its threads end.
+    stop: std::sync::atomic::AtomicBool,
 }
 
 impl Shared {
@@ -532,8 +534,9 @@ impl Plugin for Bridge {
 
 impl Drop for Bridge {
     fn drop(&mut self) {
-        // Queryables first, so nothing new arrives; then the threads end with their channels.
+        // Queryables first, so nothing new arrives; then the threads end.
         self._queryables.clear();
+        self.shared.stop.store(true, Ordering::Relaxed);
         self.query_tx.take();
         self.command_tx.take();
         if let Some(t) = self.query_thread.take() {
@@ -625,7 +628,9 @@ fn query_loop(
     let mut last_snapshot: Option<Arc<Snapshot>> = None;
     loop {
         let job = queries.recv_timeout(Duration::from_millis(100));
-        if matches!(job, Err(mpsc::RecvTimeoutError::Disconnected)) {
+        if matches!(job, Err(mpsc::RecvTimeoutError::Disconnected))
+            || shared.stop.load(Ordering::Relaxed)
+        {
             return;
         }
         // Outputs changed at a commit: readers follow.
@@ -803,7 +808,14 @@ fn command_loop(
         shared.commands_in_flight.fetch_sub(1, Ordering::Relaxed);
         shared.answered.fetch_add(1, Ordering::Relaxed);
     };
-    while let Ok(job) = jobs.recv() {
+    loop {
+        let job = match jobs.recv_timeout(Duration::from_millis(100)) {
+            Ok(job) => job,
+            Err(mpsc::RecvTimeoutError::Timeout) if !shared.stop.load(Ordering::Relaxed) => {
+                continue;
+            }
+            Err(_) => return,
+        };
         let query = match job {
             CommandJob::Answer(query, response) => {
                 finish(query, &response);
