@@ -4,23 +4,15 @@
 #![allow(clippy::unwrap_used)] // test helpers: failing loudly is right
 
 use std::collections::BTreeSet;
-use std::path::PathBuf;
-use std::process::{Child, Command, Stdio};
-use std::sync::atomic::{AtomicU32, Ordering};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
-use dnm::admin::{Request, Response, request};
+use dnm::admin::Request;
 use dnm_module::msg::{PairReading, Tick};
-use dnm_module::port_service;
-use dnm_module::protocol::{PortHeader, dnm_config, dnm_prefix, output_service};
-use dnm_netlist::Payload;
-use iceoryx2::port::subscriber::Subscriber;
-use iceoryx2::prelude::*;
 
-/// Waits for conditions in tests; generous so a loaded machine does not fail them.
-const PATIENCE: Duration = Duration::from_secs(30);
+mod support;
 
-static NEXT: AtomicU32 = AtomicU32::new(0);
+use support::system::{System, collect, drain};
 
 const PIPELINE: &str = r#"
 [system]
@@ -57,129 +49,6 @@ links = ["src_a.out -> relay.in", "src_a.out -> pair.a", "src_b.out -> pair.b"]
 [task.b]
 links = ["src_b.out -> relay.in", "src_b.out -> pair.a", "src_a.out -> pair.b"]
 "#;
-
-/// A running `dnm up` with a unique system name; stopped with SIGTERM when dropped.
-struct System {
-    name: String,
-    dir: PathBuf,
-    child: Child,
-    node: Node<ipc::Service>,
-}
-
-impl System {
-    fn start(template: &str) -> Self {
-        let name = format!(
-            "t{}x{}",
-            std::process::id(),
-            NEXT.fetch_add(1, Ordering::Relaxed)
-        );
-        let dir = std::env::temp_dir().join(format!("dnm-test-{name}"));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("netlist.toml");
-        std::fs::write(&path, template.replace("SYSTEM", &name)).unwrap();
-        let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
-            .arg("up")
-            .arg(&path)
-            .env("DNM_MODULE_HOST", std::path::Path::new(env!("CARGO_BIN_EXE_dnm")).with_file_name("dnm-module-host"))
-            .env("DNM_RECORD_DIR", &dir)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .spawn()
-            .unwrap();
-        let config = dnm_config(&dnm_prefix(&name, "main")).unwrap();
-        let node = NodeBuilder::new()
-            .config(&config)
-            .create::<ipc::Service>()
-            .unwrap();
-        let sys = System {
-            name,
-            dir,
-            child,
-            node,
-        };
-        sys.wait_for("all modules running", |r| {
-            r.dnms.iter().all(|d| {
-                d.modules
-                    .iter()
-                    .all(|m| m.state == dnm::ModuleRunState::Running)
-            })
-        });
-        sys
-    }
-
-    fn ask(&self, req: &Request) -> Response {
-        request(&self.name, req).unwrap()
-    }
-
-    fn status(&self) -> dnm::DnmReport {
-        self.ask(&Request::Status).dnms.remove(0)
-    }
-
-    fn wait_for(&self, what: &str, ok: impl Fn(&Response) -> bool) -> Response {
-        let deadline = Instant::now() + PATIENCE;
-        loop {
-            if let Ok(r) = request(&self.name, &Request::Status)
-                && ok(&r)
-            {
-                return r;
-            }
-            assert!(Instant::now() < deadline, "gave up waiting for {what}");
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-
-    fn subscribe<M>(&self, module: &str, port: &str) -> Subscriber<ipc::Service, [u8], PortHeader> {
-        let payload = Payload::Fixed {
-            size_bytes: size_of::<M>(),
-        };
-        port_service(&self.node, &output_service(module, port), &payload)
-            .unwrap()
-            .subscriber_builder()
-            .create()
-            .unwrap()
-    }
-
-    fn dnm(&self, args: &[&str]) -> std::process::Output {
-        Command::new(env!("CARGO_BIN_EXE_dnm"))
-            .args(args)
-            .output()
-            .unwrap()
-    }
-}
-
-impl Drop for System {
-    fn drop(&mut self) {
-        // SAFETY: kill(2) on our own child.
-        unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) };
-        let _ = self.child.wait();
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
-}
-
-/// Collects values from a subscriber until `enough` says so (or patience runs out).
-fn collect<M: bytemuck::Pod>(
-    sub: &Subscriber<ipc::Service, [u8], PortHeader>,
-    mut enough: impl FnMut(&[M]) -> bool,
-) -> Vec<M> {
-    let mut got = Vec::new();
-    let deadline = Instant::now() + PATIENCE;
-    while !enough(&got) {
-        assert!(
-            Instant::now() < deadline,
-            "gave up collecting samples ({} so far)",
-            got.len()
-        );
-        while let Some(s) = sub.receive().unwrap() {
-            got.push(bytemuck::pod_read_unaligned::<M>(s.payload()));
-        }
-        std::thread::sleep(Duration::from_millis(5));
-    }
-    got
-}
-
-fn drain(sub: &Subscriber<ipc::Service, [u8], PortHeader>) {
-    while sub.receive().unwrap().is_some() {}
-}
 
 /// Readings after the last one taken under another slot than `slot`.
 fn settled(readings: &[PairReading], slot: u64) -> usize {

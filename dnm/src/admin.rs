@@ -345,28 +345,64 @@ fn adopt(
     }
 }
 
+/// Connections the admin socket serves at once; more are refused as busy.
+const ADMIN_CONNECTIONS: usize = 16;
+
+/// Serves each connection on its own thread, so a long apply never holds up a switch.
 fn serve(listener: &UnixListener, system: &str, dnms: &[Commander]) {
+    let busy = Arc::new(std::sync::atomic::AtomicUsize::new(0));
     for stream in listener.incoming() {
         let Ok(stream) = stream else { continue };
-        let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
-        let mut reader = BufReader::new(&stream);
-        let mut line = String::new();
-        if reader.read_line(&mut line).is_err() {
+        let taken = busy
+            .fetch_update(
+                std::sync::atomic::Ordering::AcqRel,
+                std::sync::atomic::Ordering::Acquire,
+                |n| (n < ADMIN_CONNECTIONS).then_some(n + 1),
+            )
+            .is_ok();
+        if !taken {
+            let refused = Response::error(format!(
+                "the admin socket is serving {ADMIN_CONNECTIONS} requests; try again"
+            ));
+            answer(&stream, &refused);
             continue;
         }
-        let response = match serde_json::from_str::<Request>(&line) {
-            Ok(req) => dispatch(req, system, dnms),
-            Err(e) => Response::error(format!(
-                "bad request `{}`: {e}; send e.g. {{\"cmd\":\"status\"}}",
-                line.trim()
-            )),
-        };
-        let mut out = serde_json::to_string(&response).unwrap_or_else(|e| {
-            format!("{{\"ok\":false,\"error\":\"cannot encode response: {e}\"}}")
-        });
-        out.push('\n');
-        let _ = (&stream).write_all(out.as_bytes());
+        let (system, dnms, busy) = (system.to_string(), dnms.to_vec(), busy.clone());
+        let spawned = std::thread::Builder::new()
+            .name("dnm-admin-conn".into())
+            .spawn(move || {
+                serve_one(&stream, &system, &dnms);
+                busy.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
+            });
+        if let Err(e) = spawned {
+            tracing::warn!("admin connection dropped: {e}");
+        }
     }
+}
+
+fn serve_one(stream: &UnixStream, system: &str, dnms: &[Commander]) {
+    let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
+    let mut reader = BufReader::new(stream);
+    let mut line = String::new();
+    if reader.read_line(&mut line).is_err() {
+        return;
+    }
+    let response = match serde_json::from_str::<Request>(&line) {
+        Ok(req) => dispatch(req, system, dnms),
+        Err(e) => Response::error(format!(
+            "bad request `{}`: {e}; send e.g. {{\"cmd\":\"status\"}}",
+            line.trim()
+        )),
+    };
+    answer(stream, &response);
+}
+
+fn answer(mut stream: &UnixStream, response: &Response) {
+    let mut out = serde_json::to_string(response).unwrap_or_else(|e| {
+        format!("{{\"ok\":false,\"error\":\"cannot encode response: {e}\"}}")
+    });
+    out.push('\n');
+    let _ = stream.write_all(out.as_bytes());
 }
 
 /// Sends a command to every hosted DNM and collects the answers.

@@ -2,6 +2,8 @@
 
 #![allow(dead_code)] // each test file uses its own subset
 
+pub mod system;
+
 use std::net::TcpListener;
 use std::time::{Duration, Instant};
 

@@ -453,13 +453,15 @@ impl Dnm {
             let result = waitset
                 .wait_and_process_once(|_| CallbackProgression::Continue)
                 .map_err(ipc("wait"))?;
-            if matches!(
-                result,
-                WaitSetRunResult::Interrupt | WaitSetRunResult::TerminationRequest
-            ) {
+            if result == WaitSetRunResult::TerminationRequest {
                 // iceoryx2 hands a signal to one waiter: tell the other DNMs of this process.
                 request_stop();
                 break;
+            }
+            // Any signal interrupts the wait; SIGINT and SIGTERM come back as a termination
+            // request from the next wait.
+            if result == WaitSetRunResult::Interrupt {
+                continue;
             }
             if STOP.load(Ordering::Relaxed) {
                 break;

@@ -385,3 +385,44 @@ fn pins_need_a_dnm_and_are_kept() {
         "{e}"
     );
 }
+
+#[test]
+fn rates_and_hang_deadlines_out_of_range_are_located() {
+    // A tiny positive rate has no usable period (it used to panic the module).
+    for rate in ["1e-300", "0.001", "20000.0", "0", "-5"] {
+        let text = good_with("rate_hz = 50", &format!("rate_hz = {rate}"));
+        let e = error_of(&text);
+        let line = line_of(&text, "rate_hz");
+        assert!(
+            e.contains(&format!("configs/test.toml:{line}:")),
+            "{rate}: {e}"
+        );
+        assert!(e.contains("module[2].rate_hz"), "{rate}: {e}");
+        assert!(e.contains("0.01 to 10000"), "{rate}: {e}");
+    }
+    let ok = parse(&good_with("rate_hz = 50", "rate_hz = 0.01\nhung_after = \"1.5s\"")).unwrap();
+    assert_eq!(ok.module("drive").unwrap().hung_after_ms, Some(1500));
+    for (value, says) in [
+        ("\"10ms\"", "outside 100 ms"),
+        ("\"2 days\"", "not a duration"),
+        ("\"-1s\"", "not a duration"),
+    ] {
+        let text = good_with("rate_hz = 50", &format!("hung_after = {value}"));
+        let e = error_of(&text);
+        let line = line_of(&text, "hung_after");
+        assert!(e.contains(&format!("configs/test.toml:{line}:")), "{e}");
+        assert!(e.contains("module[2].hung_after") && e.contains(says), "{value}: {e}");
+    }
+}
+
+#[test]
+fn durations_read_with_their_units() {
+    use dnm_netlist::parse_duration_ms;
+    assert_eq!(parse_duration_ms("500ms"), Some(500));
+    assert_eq!(parse_duration_ms("2s"), Some(2000));
+    assert_eq!(parse_duration_ms("1.5s"), Some(1500));
+    assert_eq!(parse_duration_ms("1m"), Some(60_000));
+    assert_eq!(parse_duration_ms("5"), None);
+    assert_eq!(parse_duration_ms("-1s"), None);
+    assert_eq!(parse_duration_ms("1e300s"), None);
+}

@@ -10,8 +10,10 @@
 //! | `<system>/port/<dnm>/<module>/<port>` | pub/sub, queryable   | samples of outputs that cross DNMs; last value of any output |
 //!
 //! Port samples carry the message bytes as the module wrote them (the encoding names the schema,
-//! e.g. `dnm-pod;dnm_msgs/Tick`) and a 24-byte attachment: send time (CLOCK_MONOTONIC ns of the
-//! producing machine), sequence number and task word, little-endian `u64`s.
+//! e.g. `dnm-pod;dnm_msgs/Tick`) and a 32-byte attachment: send time (CLOCK_MONOTONIC ns of the
+//! producing machine), sequence number, task word and send time as wall-clock (Unix) ns,
+//! little-endian `u64`s. A DNM mirroring a sample from another machine stamps it with its own
+//! monotonic clock from the wall-clock time, so ages are comparable wherever wall clocks agree.
 //!
 //! The netlist validates system, DNM and module names (a letter, then letters, digits, `_`,
 //! `-`), so each is one key chunk. Port names come from the kinds: the built-in ones follow the
@@ -64,10 +66,16 @@ pub struct SampleHeader {
     pub seq: u64,
     /// The task word the producer ran under.
     pub task_word: u64,
+    /// Wall-clock (Unix) time of the send, ns; 0 if unknown. A receiving machine turns it into
+    /// its own monotonic clock, so a sample's age means the same on every machine whose wall
+    /// clocks agree (NTP, PTP).
+    pub unix_ns: u64,
 }
 
 /// Bytes of a port sample's attachment.
-pub const ATTACHMENT_BYTES: usize = 24;
+pub const ATTACHMENT_BYTES: usize = 32;
+/// Bytes of the attachment without the wall-clock time (still read).
+pub const SHORT_ATTACHMENT_BYTES: usize = 24;
 
 /// The attachment of a port sample: send time, sequence number, task word.
 pub fn encode_header(h: &SampleHeader) -> [u8; ATTACHMENT_BYTES] {
@@ -75,12 +83,13 @@ pub fn encode_header(h: &SampleHeader) -> [u8; ATTACHMENT_BYTES] {
     out[0..8].copy_from_slice(&h.stamp_ns.to_le_bytes());
     out[8..16].copy_from_slice(&h.seq.to_le_bytes());
     out[16..24].copy_from_slice(&h.task_word.to_le_bytes());
+    out[24..32].copy_from_slice(&h.unix_ns.to_le_bytes());
     out
 }
 
 /// Reads a port sample's attachment; `None` if it is not one.
 pub fn decode_header(bytes: &[u8]) -> Option<SampleHeader> {
-    if bytes.len() != ATTACHMENT_BYTES {
+    if bytes.len() != ATTACHMENT_BYTES && bytes.len() != SHORT_ATTACHMENT_BYTES {
         return None;
     }
     let word = |i: usize| {
@@ -92,6 +101,7 @@ pub fn decode_header(bytes: &[u8]) -> Option<SampleHeader> {
         stamp_ns: word(0),
         seq: word(1),
         task_word: word(2),
+        unix_ns: if bytes.len() == ATTACHMENT_BYTES { word(3) } else { 0 },
     })
 }
 
@@ -117,12 +127,14 @@ mod tests {
             stamp_ns: 1,
             seq: u64::MAX,
             task_word: 7 << 16,
+            unix_ns: 5,
         };
         let back = decode_header(&encode_header(&h)).unwrap();
         assert_eq!(
-            (back.stamp_ns, back.seq, back.task_word),
-            (1, u64::MAX, 7 << 16)
+            (back.stamp_ns, back.seq, back.task_word, back.unix_ns),
+            (1, u64::MAX, 7 << 16, 5)
         );
+        assert_eq!(decode_header(&encode_header(&h)[..24]).unwrap().unix_ns, 0);
         assert!(decode_header(&[0; 3]).is_none());
     }
 }

@@ -780,19 +780,42 @@ mod tests {
     use super::*;
     use dnm_module::msg::{Message, Tick};
 
-    #[test]
-    fn files_rotate_by_size_and_each_one_reads_whole() {
-        let dir = std::env::temp_dir().join(format!("dnm-rotate-{}", std::process::id()));
+    /// Writes `n` ticks (origin from `origin(seq)`) with rotation at `rotate_bytes`; returns the
+    /// files, each checked to read whole, and every sequence number found.
+    fn write_ticks(
+        name: &str,
+        n: u64,
+        rotate_bytes: u64,
+        origin: impl Fn(u64) -> u64,
+    ) -> (Vec<PathBuf>, Vec<u32>) {
+        write_samples(name, n, rotate_bytes, Tick::message_type(), |seq| {
+            bytemuck::bytes_of(&Tick {
+                origin: origin(seq),
+                seq,
+            })
+            .to_vec()
+        })
+    }
+
+    /// Writes `n` samples of `message` made by `payload(seq)`, rotating at `rotate_bytes`.
+    fn write_samples(
+        name: &str,
+        n: u64,
+        rotate_bytes: u64,
+        message: MessageType,
+        payload: impl Fn(u64) -> Vec<u8>,
+    ) -> (Vec<PathBuf>, Vec<u32>) {
+        let dir = std::env::temp_dir().join(format!("dnm-rotate-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         let options = RecordOptions {
             dir: dir.clone(),
             stem: "t".into(),
             only: Vec::new(),
-            rotate_bytes: 2000,
+            rotate_bytes,
             rotate_after: Duration::from_secs(3600),
         };
-        let (tx, rx) = mpsc::sync_channel(1000);
+        let (tx, rx) = mpsc::sync_channel(n as usize + 2);
         tx.send(Item::Netlist {
             revision: 1,
             file: "t.toml".into(),
@@ -802,11 +825,10 @@ mod tests {
         tx.send(Item::Ports(vec![RecPort {
             module: "m".into(),
             port: "out".into(),
-            message: Tick::message_type(),
+            message,
         }]))
         .unwrap();
-        for seq in 0..300u64 {
-            let tick = Tick { origin: 1, seq };
+        for seq in 0..n {
             tx.send(Item::Sample {
                 port: 0,
                 header: PortHeader {
@@ -814,19 +836,19 @@ mod tests {
                     seq,
                     task_word: 0,
                 },
-                bytes: bytemuck::bytes_of(&tick).to_vec(),
+                bytes: payload(seq),
             })
             .unwrap();
         }
         drop(tx);
         let counters = Counters::default();
         write_loop("d", &options, &rx, &counters).unwrap();
-        // 300 × 20 stored bytes in files of about 2000: at least three files.
-        let files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        assert_eq!(counters.messages.load(Ordering::Relaxed), n);
+        let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
             .unwrap()
             .map(|e| e.unwrap().path())
             .collect();
-        assert!(files.len() >= 3, "{files:?}");
+        files.sort();
         let mut seqs = Vec::new();
         for f in &files {
             let bytes = std::fs::read(f).unwrap();
@@ -842,8 +864,47 @@ mod tests {
             }
         }
         seqs.sort_unstable();
-        assert_eq!(seqs, (0..300).collect::<Vec<u32>>());
-        assert_eq!(counters.messages.load(Ordering::Relaxed), 300);
         let _ = std::fs::remove_dir_all(&dir);
+        (files, seqs)
+    }
+
+    #[test]
+    fn rotation_counts_the_bytes_on_disk_not_the_uncompressed_ones() {
+        // 40 frames of 64 KiB of one colour are 2.5 MiB before compression and a few KiB on
+        // disk: with rotation at 1 MiB they fit one file.
+        struct Frame;
+        impl dnm_module::msg::BytesMessage for Frame {
+            const SCHEMA_NAME: &'static str = "test/Frame";
+            const ENCODING: &'static str = "application/octet-stream";
+            const SCHEMA: &'static str = "uint8[] data";
+        }
+        use dnm_module::msg::BytesMessage;
+        let (files, seqs) = write_samples(
+            "compressible",
+            40,
+            1 << 20,
+            Frame::message_type(64 << 10),
+            |_| vec![0x5a; 64 << 10],
+        );
+        assert_eq!(files.len(), 1, "{files:?}");
+        assert_eq!(seqs, (0..40).collect::<Vec<u32>>());
+    }
+
+    #[test]
+    fn files_rotate_by_size_and_each_one_reads_whole() {
+        // Random origins do not compress: 300,000 ticks are several MiB on disk.
+        let mut x = 0x9e37_79b9_7f4a_7c15_u64;
+        let random = move |_| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        let random = std::sync::Mutex::new(random);
+        let (files, seqs) = write_ticks("random", 300_000, 1 << 20, |s| {
+            random.lock().unwrap()(s)
+        });
+        assert!(files.len() >= 2, "{files:?}");
+        assert_eq!(seqs, (0..300_000).collect::<Vec<u32>>());
     }
 }

@@ -67,17 +67,36 @@ pub fn encoding(message: &MessageType) -> String {
     format!("{};{}", message.encoding, message.schema_name)
 }
 
+/// Wall-clock time now, ns since the Unix epoch.
+fn unix_now_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// The header as it leaves this machine: its send time also in wall-clock time.
 fn to_wire(h: &PortHeader) -> SampleHeader {
+    let age = dnm_module::protocol::monotonic_ns().saturating_sub(h.stamp_ns);
     SampleHeader {
         stamp_ns: h.stamp_ns,
         seq: h.seq,
         task_word: h.task_word,
+        unix_ns: unix_now_ns().saturating_sub(age),
     }
 }
 
+/// The header as it enters this machine: the send time on this machine's monotonic clock, so
+/// modules judge the sample's age as they judge local ones (assumes synchronised wall clocks;
+/// a send time ahead of this machine's clock counts as now).
 fn from_wire(h: SampleHeader) -> PortHeader {
+    let now = dnm_module::protocol::monotonic_ns();
+    let stamp_ns = if h.unix_ns == 0 {
+        h.stamp_ns
+    } else {
+        now.saturating_sub(unix_now_ns().saturating_sub(h.unix_ns))
+    };
     PortHeader {
-        stamp_ns: h.stamp_ns,
+        stamp_ns,
         seq: h.seq,
         task_word: h.task_word,
     }

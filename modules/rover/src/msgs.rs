@@ -179,7 +179,7 @@ pub struct WatchdogState {
     pub tripped: u64,
     /// Times it tripped since start.
     pub trips: u64,
-    /// CLOCK_MONOTONIC ns when the last command arrived (0: none yet).
+    /// CLOCK_MONOTONIC ns when the newest command was sent (0: none yet).
     pub last_command_ns: u64,
     /// CLOCK_MONOTONIC ns of the last trip.
     pub tripped_at_ns: u64,

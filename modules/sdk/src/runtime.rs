@@ -648,13 +648,15 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                         publish_status(&status)?;
                     }
                 }
-                if matches!(
-                    result,
-                    WaitSetRunResult::TerminationRequest | WaitSetRunResult::Interrupt
-                ) {
+                if result == WaitSetRunResult::TerminationRequest {
                     status.state = ModuleState::Stopping as u32;
                     publish_status(&status)?;
                     return Ok(());
+                }
+                // Any signal interrupts the wait (SIGCONT after a stop, for one). SIGINT and
+                // SIGTERM are reported as a termination request by the next wait.
+                if result == WaitSetRunResult::Interrupt {
+                    continue;
                 }
                 if woken {
                     let mut control = false;

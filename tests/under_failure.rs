@@ -1,0 +1,437 @@
+//! The connection layer when things go wrong, with real processes and real shared memory: a
+//! failed apply, a source that went quiet, a hung module, a slow apply beside an emergency
+//! switch, a removed module, a recorder that lost its disk.
+
+#![allow(clippy::unwrap_used)] // test helpers: failing loudly is right
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use dnm::admin::Request;
+use dnm::{DnmReport, ModuleRunState};
+use dnm_module::msg::Tick;
+
+mod support;
+
+use support::system::{System, collect, drain, module_host};
+
+const CHAIN: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "a"
+
+[[dnm]]
+name = "main"
+
+[[module]]
+name = "src_a"
+kind = "ticker"
+rate_hz = 100
+params = { origin = 1 }
+
+[[module]]
+name = "src_b"
+kind = "ticker"
+rate_hz = 100
+restart = "never"
+hung_after = "60s"
+params = { origin = 2 }
+
+[[module]]
+name = "relay"
+kind = "relay"
+restart = "always"
+
+[task.a]
+links = ["src_a.out -> relay.in"]
+
+[task.b]
+links = ["src_b.out -> relay.in"]
+"#;
+
+fn module<'a>(r: &'a DnmReport, name: &str) -> &'a dnm::ModuleReport {
+    r.modules
+        .iter()
+        .find(|m| m.name == name)
+        .unwrap_or_else(|| panic!("no module {name} in {:?}", r.modules))
+}
+
+fn signal(pid: u32, sig: i32) {
+    // SAFETY: kill(2) on a module process of our test system.
+    assert_eq!(unsafe { libc::kill(pid as i32, sig) }, 0);
+}
+
+/// Processes of `system` running module `name` (read from /proc, so nothing the DNM says).
+fn processes_of(system: &str, name: &str) -> Vec<u32> {
+    let needle = format!("\"module\":\"{name}\"");
+    let system = format!("\"system\":\"{system}\"");
+    std::fs::read_dir("/proc")
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .filter(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline")).is_ok_and(|c| {
+                let c = String::from_utf8_lossy(&c);
+                c.contains(&needle) && c.contains(&system)
+            })
+        })
+        .collect()
+}
+
+/// A module executable for tests: describes itself as a ticker of kind `kind`; runs as the
+/// built-in ticker once `fixed` exists in its folder, after sleeping `delay_s`; until then
+/// it exits with status 3 as soon as it starts.
+fn fake_ticker(dir: &Path, kind: &str, delay_s: u32) -> PathBuf {
+    let out = Command::new(module_host()).arg("describe").output().unwrap();
+    let mut kinds: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap();
+    let mut ticker = kinds
+        .drain(..)
+        .find(|k| k["name"] == "ticker")
+        .unwrap();
+    ticker["name"] = kind.into();
+    let spec = dir.join(format!("{kind}.json"));
+    std::fs::write(&spec, serde_json::to_vec(&ticker).unwrap()).unwrap();
+    let exe = dir.join(kind);
+    std::fs::write(
+        &exe,
+        format!(
+            "#!/bin/sh\n\
+             if [ \"$1\" = describe ]; then cat '{spec}'; exit 0; fi\n\
+             [ -e '{fixed}' ] || exit 3\n\
+             sleep {delay_s}\n\
+             exec '{host}' run \"$(echo \"$2\" | sed 's/\"kind\":\"{kind}\"/\"kind\":\"ticker\"/')\"\n",
+            spec = spec.display(),
+            fixed = dir.join("fixed").display(),
+            host = module_host().display(),
+        ),
+    )
+    .unwrap();
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::set_permissions(&exe, std::fs::Permissions::from_mode(0o755)).unwrap();
+    exe
+}
+
+fn apply(sys: &System, text: &str, file: &str) -> std::process::Output {
+    let path = sys.dir.join(file);
+    std::fs::write(&path, text.replace("SYSTEM", &sys.name)).unwrap();
+    sys.dnm(&["apply", "--system", &sys.name, path.to_str().unwrap()])
+}
+
+#[test]
+fn a_failed_apply_leaves_the_dnm_as_it_was_and_a_retry_succeeds() {
+    let sys = System::start(CHAIN);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    collect::<Tick>(&relay, |t| t.len() >= 5);
+    let before = sys.status();
+    assert_eq!(before.revision, 1);
+
+    // A new source and a module whose process exits as soon as it starts.
+    let broken = fake_ticker(&sys.dir, "broken", 0);
+    let grown = format!(
+        "{CHAIN}\n[[module]]\nname = \"src_c\"\nkind = \"ticker\"\nparams = {{ origin = 3 }}\n\n\
+         [[module]]\nname = \"bad\"\nkind = \"broken\"\n\n\
+         [task.c]\nlinks = [\"src_c.out -> relay.in\"]\n\n\
+         [kind.broken]\nexec = \"{}\"\n",
+        broken.display()
+    );
+    let out = apply(&sys, &grown, "grown.toml");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("`bad` exited while preparing"), "{err}");
+
+    // Exactly as it was: revision, tasks, modules and their processes; the module started for
+    // the failed revision is gone.
+    let after = sys.status();
+    assert_eq!(after.revision, before.revision);
+    assert_eq!(after.tasks, before.tasks);
+    assert_eq!(after.active_task, before.active_task);
+    assert_eq!(after.preparing, None);
+    let names = |r: &DnmReport| r.modules.iter().map(|m| (m.name.clone(), m.pid)).collect::<Vec<_>>();
+    assert_eq!(names(&after), names(&before));
+    support::eventually("src_c's process to be gone", || {
+        processes_of(&sys.name, "src_c").is_empty().then_some(())
+    });
+
+    // A module restarted now serves the committed revision: its input stays connected.
+    let victim = module(&after, "relay").pid.unwrap();
+    signal(victim, libc::SIGKILL);
+    sys.wait_for("relay restarted", |r| {
+        let m = module(&r.dnms[0], "relay");
+        m.restarts >= 1 && m.state == ModuleRunState::Running
+    });
+    drain(&relay);
+    let ticks = collect::<Tick>(&relay, |t| t.len() >= 10);
+    assert!(ticks.iter().all(|t| t.origin == 1), "{ticks:?}");
+
+    // The same netlist again, now that the module starts: it applies, under a revision
+    // number never used before.
+    std::fs::write(sys.dir.join("fixed"), "").unwrap();
+    let out = apply(&sys, &grown, "grown.toml");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let now = sys.wait_for("the grown system running", |r| {
+        r.dnms[0].modules.len() == 5
+            && r.dnms[0]
+                .modules
+                .iter()
+                .all(|m| m.state == ModuleRunState::Running)
+    });
+    assert!(now.dnms[0].revision > 2, "revision 2 was burned by the failure");
+    let r = sys.ask(&Request::Switch { task: "c".into() });
+    assert!(r.ok, "{r:?}");
+    drain(&relay);
+    let ticks = collect::<Tick>(&relay, |t| t.iter().filter(|x| x.origin == 3).count() >= 5);
+    assert!(ticks.iter().rev().take(5).all(|t| t.origin == 3), "{ticks:?}");
+}
+
+#[test]
+fn a_replacement_that_cannot_start_still_commits_routes_and_recording() {
+    let sys = System::start(CHAIN);
+    let before = sys.status();
+    let files_before = before.recording.as_ref().unwrap().files;
+    // src_b becomes a module whose process exits at once (it is not restarted: "never").
+    let broken = fake_ticker(&sys.dir, "broken", 0);
+    let replaced = CHAIN.replace(
+        "name = \"src_b\"\nkind = \"ticker\"",
+        "name = \"src_b\"\nkind = \"broken\"",
+    ) + &format!("\n[kind.broken]\nexec = \"{}\"\n", broken.display());
+    let out = apply(&sys, &replaced, "replaced.toml");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let r = sys.wait_for("src_b replaced and given up", |r| {
+        let m = module(&r.dnms[0], "src_b");
+        m.kind == "broken" && m.state == ModuleRunState::Stopped
+    });
+    let d = &r.dnms[0];
+    assert_eq!(d.revision, before.revision + 1);
+    // The recorder followed the new revision: a new file with its netlist.
+    assert!(d.recording.as_ref().unwrap().files > files_before, "{:?}", d.recording);
+    assert!(d.events.iter().any(|e| e.module == "src_b" && e.what == "gave_up"));
+}
+
+#[test]
+fn switching_back_to_a_quiet_source_delivers_nothing_old() {
+    let sys = System::start(CHAIN);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    // b, then a: src_b's samples queue up in the relay while a is active.
+    assert!(sys.ask(&Request::Switch { task: "b".into() }).ok);
+    drain(&relay);
+    collect::<Tick>(&relay, |t| t.iter().filter(|x| x.origin == 2).count() >= 5);
+    assert!(sys.ask(&Request::Switch { task: "a".into() }).ok);
+    drain(&relay);
+    collect::<Tick>(&relay, |t| t.iter().filter(|x| x.origin == 1).count() >= 5);
+    // src_b goes quiet (stopped), after having sent into the relay's queue.
+    let quiet = module(&sys.status(), "src_b").pid.unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    signal(quiet, libc::SIGSTOP);
+    std::thread::sleep(Duration::from_millis(300));
+
+    // Back to b: nothing src_b sent before the switch may come through.
+    assert!(sys.ask(&Request::Switch { task: "b".into() }).ok);
+    let mut stale = Vec::new();
+    let until = Instant::now() + Duration::from_secs(1);
+    while Instant::now() < until {
+        while let Some(s) = relay.receive().unwrap() {
+            let t: Tick = bytemuck::pod_read_unaligned(s.payload());
+            if t.origin == 2 {
+                stale.push(t);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert!(stale.is_empty(), "old samples delivered after the switch: {stale:?}");
+
+    // When it speaks again, its new samples flow.
+    signal(quiet, libc::SIGCONT);
+    let ticks = collect::<Tick>(&relay, |t| t.iter().filter(|x| x.origin == 2).count() >= 5);
+    assert!(ticks.iter().any(|t| t.origin == 2));
+}
+
+#[test]
+fn a_stopped_module_is_reported_hung_and_handled_by_its_restart_policy() {
+    // src_a: restarted on failure, hung after 3 s without stepping; src_b: never restarted,
+    // hung after 1 s; the relay waits for input and must not look hung while idle.
+    let netlist = CHAIN
+        .replace(
+            "params = { origin = 1 }",
+            "hung_after = \"3s\"\nparams = { origin = 1 }",
+        )
+        .replace("hung_after = \"60s\"", "hung_after = \"1s\"");
+    let sys = System::start(&netlist);
+    let before = sys.status();
+    let a_pid = module(&before, "src_a").pid.unwrap();
+    let b_pid = module(&before, "src_b").pid.unwrap();
+    signal(a_pid, libc::SIGSTOP);
+    signal(b_pid, libc::SIGSTOP);
+
+    // src_b: reported hung, left alone (its policy is never), running again when it steps.
+    let r = sys.wait_for("src_b hung", |r| {
+        module(&r.dnms[0], "src_b").state == ModuleRunState::Hung
+    });
+    assert_eq!(module(&r.dnms[0], "src_b").pid, Some(b_pid));
+    signal(b_pid, libc::SIGCONT);
+    sys.wait_for("src_b recovered", |r| {
+        module(&r.dnms[0], "src_b").state == ModuleRunState::Running
+    });
+
+    // src_a: hung, killed, restarted; the relay idled meanwhile without being taken for hung.
+    let r = sys.wait_for("src_a restarted after hanging", |r| {
+        let m = module(&r.dnms[0], "src_a");
+        m.hangs >= 1 && m.restarts >= 1 && m.state == ModuleRunState::Running
+    });
+    let d = &r.dnms[0];
+    let a = module(d, "src_a");
+    assert_ne!(a.pid, Some(a_pid));
+    assert!(a.last_exit.as_deref().unwrap_or("").contains("hung"), "{a:?}");
+    assert_eq!(module(d, "relay").hangs, 0, "an idle module was taken for hung");
+    assert_eq!(module(d, "relay").restarts, 0);
+    let what: Vec<(&str, &str)> = d
+        .events
+        .iter()
+        .map(|e| (e.module.as_str(), e.what.as_str()))
+        .collect();
+    for expected in [
+        ("src_b", "hung"),
+        ("src_b", "recovered"),
+        ("src_a", "hung"),
+        ("src_a", "restarting"),
+    ] {
+        assert!(what.contains(&expected), "{expected:?} not in {what:?}");
+    }
+
+    // The hang is in the recording.
+    let recorded = support::eventually("the hang recorded", || {
+        let events = mcap_json(&sys.dir, "/main/_events");
+        events
+            .iter()
+            .any(|e| e["module"] == "src_a" && e["what"] == "hung")
+            .then_some(events)
+    });
+    assert!(recorded.iter().any(|e| e["module"] == "src_b" && e["what"] == "recovered"));
+}
+
+/// The JSON messages of `topic` in every recording in `dir` (open files included).
+fn mcap_json(dir: &Path, topic: &str) -> Vec<serde_json::Value> {
+    let mut out = Vec::new();
+    for f in std::fs::read_dir(dir).unwrap().filter_map(|e| e.ok()) {
+        if f.path().extension().is_none_or(|e| e != "mcap") {
+            continue;
+        }
+        let bytes = std::fs::read(f.path()).unwrap();
+        let options = enumset::enum_set!(mcap::read::Options::IgnoreEndMagic);
+        let Ok(stream) = mcap::MessageStream::new_with_options(&bytes, options) else {
+            continue;
+        };
+        for m in stream {
+            let Ok(m) = m else { break };
+            if m.channel.topic == topic {
+                out.extend(serde_json::from_slice(&m.data).ok());
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn a_switch_never_waits_for_an_apply_in_progress() {
+    let sys = System::start(CHAIN);
+    // A new module that takes 3 s to start: the apply is pending that long.
+    let slow = fake_ticker(&sys.dir, "slow", 3);
+    std::fs::write(sys.dir.join("fixed"), "").unwrap();
+    let grown = format!(
+        "{CHAIN}\n[[module]]\nname = \"late\"\nkind = \"slow\"\nparams = {{ origin = 4 }}\n\n\
+         [kind.slow]\nexec = \"{}\"\n",
+        slow.display()
+    );
+    let path = sys.dir.join("grown.toml");
+    std::fs::write(&path, grown.replace("SYSTEM", &sys.name)).unwrap();
+    let mut applying = Command::new(env!("CARGO_BIN_EXE_dnm"))
+        .args(["apply", "--system", &sys.name, path.to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let pending = sys.wait_for("the apply pending", |r| r.dnms[0].preparing.is_some());
+    let preparing = pending.dnms[0].preparing;
+
+    // Switches are served meanwhile, under the committed revision.
+    for task in ["b", "a", "b"] {
+        let r = sys.ask(&Request::Switch { task: task.into() });
+        assert!(r.ok, "{r:?}");
+        assert_eq!(r.switches[0].revision, 1);
+    }
+    let during = sys.status();
+    assert_eq!(
+        during.preparing, preparing,
+        "the switches waited for the apply to finish"
+    );
+    assert_eq!(during.active_task.as_deref(), Some("b"));
+
+    // The apply commits afterwards, keeping the task the operator chose.
+    assert!(applying.wait().unwrap().success());
+    let after = sys.status();
+    assert_eq!(after.revision, 2);
+    assert_eq!(after.active_task.as_deref(), Some("b"));
+    assert!(after.modules.iter().any(|m| m.name == "late"));
+}
+
+#[test]
+fn a_removed_module_releases_its_port_services() {
+    let sys = System::start(CHAIN);
+    let exists = || {
+        let config = dnm_module::protocol::dnm_config(&dnm_module::protocol::dnm_prefix(
+            &sys.name, "main",
+        ))
+        .unwrap();
+        let name: iceoryx2::prelude::ServiceName = "src_b/out".try_into().unwrap();
+        <iceoryx2::prelude::ipc::Service as iceoryx2::service::Service>::does_exist(
+            &name,
+            &config,
+            iceoryx2::prelude::MessagingPattern::PublishSubscribe,
+        )
+        .unwrap()
+    };
+    assert!(exists());
+    let out = sys.dnm(&["module", "remove", "--system", &sys.name, "--name", "src_b"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    support::eventually("src_b/out released", || (!exists()).then_some(()));
+    assert!(sys.status().modules.iter().all(|m| m.name != "src_b"));
+}
+
+#[test]
+fn a_recorder_that_lost_its_disk_counts_what_it_drops() {
+    let sys = System::start(CHAIN);
+    let before = sys.status();
+    assert!(before.recording.as_ref().unwrap().error.is_none());
+    // The recordings folder goes away; the next revision needs a new file.
+    let netlists = std::env::temp_dir().join(format!("{}-netlists", sys.name));
+    std::fs::create_dir_all(&netlists).unwrap();
+    let recordings = sys.dir.clone();
+    let path = netlists.join("next.toml");
+    std::fs::write(
+        &path,
+        CHAIN
+            .replace("SYSTEM", &sys.name)
+            .replace("origin = 1", "origin = 5"),
+    )
+    .unwrap();
+    // The system folder holds the recordings: make it unusable for new files.
+    let kept = recordings.with_extension("kept");
+    std::fs::rename(&recordings, &kept).unwrap();
+    std::fs::write(&recordings, "not a folder").unwrap();
+    let out = sys.dnm(&["apply", "--system", &sys.name, path.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let r = sys.wait_for("the recorder's failure reported with drops", |r| {
+        let rec = r.dnms[0].recording.as_ref().unwrap();
+        rec.error.is_some() && rec.dropped > 100
+    });
+    let rec = r.dnms[0].recording.clone().unwrap();
+    // The running system is untouched.
+    assert_eq!(r.dnms[0].revision, before.revision + 1);
+    assert!(r.dnms[0]
+        .modules
+        .iter()
+        .all(|m| m.state == ModuleRunState::Running));
+    std::fs::remove_file(&recordings).unwrap();
+    std::fs::rename(&kept, &recordings).unwrap();
+    let _ = std::fs::remove_dir_all(&netlists);
+    let error = rec.error.unwrap();
+    assert!(error.contains(&sys.name), "the error names the file: {error}");
+}
