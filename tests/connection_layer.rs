@@ -5,7 +5,6 @@
 
 use std::collections::BTreeSet;
 use std::process::Command;
-use std::time::Duration;
 
 use dnm::admin::Request;
 use dnm_module::msg::{PairReading, Tick};

@@ -82,12 +82,12 @@ fn processes_of(system: &str, name: &str) -> Vec<u32> {
 /// built-in ticker once `fixed` exists in its folder, after sleeping `delay_s`; until then
 /// it exits with status 3 as soon as it starts.
 fn fake_ticker(dir: &Path, kind: &str, delay_s: u32) -> PathBuf {
-    let out = Command::new(module_host()).arg("describe").output().unwrap();
-    let mut kinds: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap();
-    let mut ticker = kinds
-        .drain(..)
-        .find(|k| k["name"] == "ticker")
+    let out = Command::new(module_host())
+        .arg("describe")
+        .output()
         .unwrap();
+    let mut kinds: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap();
+    let mut ticker = kinds.drain(..).find(|k| k["name"] == "ticker").unwrap();
     ticker["name"] = kind.into();
     let spec = dir.join(format!("{kind}.json"));
     std::fs::write(&spec, serde_json::to_vec(&ticker).unwrap()).unwrap();
@@ -146,7 +146,12 @@ fn a_failed_apply_leaves_the_dnm_as_it_was_and_a_retry_succeeds() {
     assert_eq!(after.tasks, before.tasks);
     assert_eq!(after.active_task, before.active_task);
     assert_eq!(after.preparing, None);
-    let names = |r: &DnmReport| r.modules.iter().map(|m| (m.name.clone(), m.pid)).collect::<Vec<_>>();
+    let names = |r: &DnmReport| {
+        r.modules
+            .iter()
+            .map(|m| (m.name.clone(), m.pid))
+            .collect::<Vec<_>>()
+    };
     assert_eq!(names(&after), names(&before));
     support::eventually("src_c's process to be gone", || {
         processes_of(&sys.name, "src_c").is_empty().then_some(())
@@ -167,7 +172,11 @@ fn a_failed_apply_leaves_the_dnm_as_it_was_and_a_retry_succeeds() {
     // number never used before.
     std::fs::write(sys.dir.join("fixed"), "").unwrap();
     let out = apply(&sys, &grown, "grown.toml");
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let now = sys.wait_for("the grown system running", |r| {
         r.dnms[0].modules.len() == 5
             && r.dnms[0]
@@ -175,12 +184,18 @@ fn a_failed_apply_leaves_the_dnm_as_it_was_and_a_retry_succeeds() {
                 .iter()
                 .all(|m| m.state == ModuleRunState::Running)
     });
-    assert!(now.dnms[0].revision > 2, "revision 2 was burned by the failure");
+    assert!(
+        now.dnms[0].revision > 2,
+        "revision 2 was burned by the failure"
+    );
     let r = sys.ask(&Request::Switch { task: "c".into() });
     assert!(r.ok, "{r:?}");
     drain(&relay);
     let ticks = collect::<Tick>(&relay, |t| t.iter().filter(|x| x.origin == 3).count() >= 5);
-    assert!(ticks.iter().rev().take(5).all(|t| t.origin == 3), "{ticks:?}");
+    assert!(
+        ticks.iter().rev().take(5).all(|t| t.origin == 3),
+        "{ticks:?}"
+    );
 }
 
 #[test]
@@ -195,7 +210,11 @@ fn a_replacement_that_cannot_start_still_commits_routes_and_recording() {
         "name = \"src_b\"\nkind = \"broken\"",
     ) + &format!("\n[kind.broken]\nexec = \"{}\"\n", broken.display());
     let out = apply(&sys, &replaced, "replaced.toml");
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let r = sys.wait_for("src_b replaced and given up", |r| {
         let m = module(&r.dnms[0], "src_b");
         m.kind == "broken" && m.state == ModuleRunState::Stopped
@@ -203,8 +222,16 @@ fn a_replacement_that_cannot_start_still_commits_routes_and_recording() {
     let d = &r.dnms[0];
     assert_eq!(d.revision, before.revision + 1);
     // The recorder followed the new revision: a new file with its netlist.
-    assert!(d.recording.as_ref().unwrap().files > files_before, "{:?}", d.recording);
-    assert!(d.events.iter().any(|e| e.module == "src_b" && e.what == "gave_up"));
+    assert!(
+        d.recording.as_ref().unwrap().files > files_before,
+        "{:?}",
+        d.recording
+    );
+    assert!(
+        d.events
+            .iter()
+            .any(|e| e.module == "src_b" && e.what == "gave_up")
+    );
 }
 
 #[test]
@@ -237,7 +264,10 @@ fn switching_back_to_a_quiet_source_delivers_nothing_old() {
         }
         std::thread::sleep(Duration::from_millis(10));
     }
-    assert!(stale.is_empty(), "old samples delivered after the switch: {stale:?}");
+    assert!(
+        stale.is_empty(),
+        "old samples delivered after the switch: {stale:?}"
+    );
 
     // When it speaks again, its new samples flow.
     signal(quiet, libc::SIGCONT);
@@ -280,8 +310,15 @@ fn a_stopped_module_is_reported_hung_and_handled_by_its_restart_policy() {
     let d = &r.dnms[0];
     let a = module(d, "src_a");
     assert_ne!(a.pid, Some(a_pid));
-    assert!(a.last_exit.as_deref().unwrap_or("").contains("hung"), "{a:?}");
-    assert_eq!(module(d, "relay").hangs, 0, "an idle module was taken for hung");
+    assert!(
+        a.last_exit.as_deref().unwrap_or("").contains("hung"),
+        "{a:?}"
+    );
+    assert_eq!(
+        module(d, "relay").hangs,
+        0,
+        "an idle module was taken for hung"
+    );
     assert_eq!(module(d, "relay").restarts, 0);
     let what: Vec<(&str, &str)> = d
         .events
@@ -305,7 +342,11 @@ fn a_stopped_module_is_reported_hung_and_handled_by_its_restart_policy() {
             .any(|e| e["module"] == "src_a" && e["what"] == "hung")
             .then_some(events)
     });
-    assert!(recorded.iter().any(|e| e["module"] == "src_b" && e["what"] == "recovered"));
+    assert!(
+        recorded
+            .iter()
+            .any(|e| e["module"] == "src_b" && e["what"] == "recovered")
+    );
 }
 
 /// The JSON messages of `topic` in every recording in `dir` (open files included).
@@ -376,10 +417,9 @@ fn a_switch_never_waits_for_an_apply_in_progress() {
 fn a_removed_module_releases_its_port_services() {
     let sys = System::start(CHAIN);
     let exists = || {
-        let config = dnm_module::protocol::dnm_config(&dnm_module::protocol::dnm_prefix(
-            &sys.name, "main",
-        ))
-        .unwrap();
+        let config =
+            dnm_module::protocol::dnm_config(&dnm_module::protocol::dnm_prefix(&sys.name, "main"))
+                .unwrap();
         let name: iceoryx2::prelude::ServiceName = "src_b/out".try_into().unwrap();
         <iceoryx2::prelude::ipc::Service as iceoryx2::service::Service>::does_exist(
             &name,
@@ -390,7 +430,11 @@ fn a_removed_module_releases_its_port_services() {
     };
     assert!(exists());
     let out = sys.dnm(&["module", "remove", "--system", &sys.name, "--name", "src_b"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     support::eventually("src_b/out released", || (!exists()).then_some(()));
     assert!(sys.status().modules.iter().all(|m| m.name != "src_b"));
 }
@@ -417,7 +461,11 @@ fn a_recorder_that_lost_its_disk_counts_what_it_drops() {
     std::fs::rename(&recordings, &kept).unwrap();
     std::fs::write(&recordings, "not a folder").unwrap();
     let out = sys.dnm(&["apply", "--system", &sys.name, path.to_str().unwrap()]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let r = sys.wait_for("the recorder's failure reported with drops", |r| {
         let rec = r.dnms[0].recording.as_ref().unwrap();
         rec.error.is_some() && rec.dropped > 100
@@ -425,13 +473,193 @@ fn a_recorder_that_lost_its_disk_counts_what_it_drops() {
     let rec = r.dnms[0].recording.clone().unwrap();
     // The running system is untouched.
     assert_eq!(r.dnms[0].revision, before.revision + 1);
-    assert!(r.dnms[0]
-        .modules
-        .iter()
-        .all(|m| m.state == ModuleRunState::Running));
+    assert!(
+        r.dnms[0]
+            .modules
+            .iter()
+            .all(|m| m.state == ModuleRunState::Running)
+    );
     std::fs::remove_file(&recordings).unwrap();
     std::fs::rename(&kept, &recordings).unwrap();
     let _ = std::fs::remove_dir_all(&netlists);
     let error = rec.error.unwrap();
-    assert!(error.contains(&sys.name), "the error names the file: {error}");
+    assert!(
+        error.contains(&sys.name),
+        "the error names the file: {error}"
+    );
+}
+
+/// Sends one command over Zenoh as `client` and returns the DNM's answer.
+fn zenoh_command(
+    session: &zenoh::Session,
+    system: &str,
+    body: serde_json::Value,
+) -> Result<dnm::proto::Response, String> {
+    use zenoh::Wait;
+    let replies = session
+        .get(dnm::keys::cmd(system, "main"))
+        .payload(serde_json::to_vec(&body).unwrap())
+        .timeout(Duration::from_secs(10))
+        .wait()
+        .map_err(|e| e.to_string())?;
+    let reply = replies.recv().map_err(|e| e.to_string())?;
+    let bytes = match reply.result() {
+        Ok(s) => s.payload().to_bytes().into_owned(),
+        Err(e) => e.payload().to_bytes().into_owned(),
+    };
+    serde_json::from_slice(&bytes).map_err(|e| format!("{e}: {}", String::from_utf8_lossy(&bytes)))
+}
+
+/// Resident memory of a process, KiB.
+fn rss_kib(pid: u32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap()
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next()?.parse().ok())
+        .unwrap()
+}
+
+#[test]
+fn a_flood_of_queries_delays_neither_switches_nor_supervision() {
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    use zenoh::Wait;
+    let port = support::free_port();
+    let endpoint = support::endpoint(port);
+    let sys = System::start_with(CHAIN, &["--no-multicast", "--listen", &endpoint]);
+    let session = support::zenoh_client(port);
+    let system = sys.name.clone();
+    support::eventually("the DNM on Zenoh", || {
+        zenoh_command(&session, &system, serde_json::json!({"cmd": "status"}))
+            .ok()
+            .filter(|r| r.ok)
+    });
+    let rss_before = rss_kib(sys.child.id());
+
+    // 100,000 queries paced at 10,000 a second (10 every millisecond) over every queryable of
+    // the DNM: reports, modules with their last values, ports, the netlist.
+    const QUERIES: u64 = 100_000;
+    let done = Arc::new(AtomicBool::new(false));
+    let sent = Arc::new(AtomicU64::new(0));
+    let replies = Arc::new(AtomicU64::new(0));
+    let flood = {
+        let (session, done, sent, replies) =
+            (session.clone(), done.clone(), sent.clone(), replies.clone());
+        let keys = [
+            dnm::keys::dnm(&system, "main"),
+            dnm::keys::module(&system, "main", "*"),
+            dnm::keys::port(&system, "main", "*", "*"),
+            dnm::keys::netlist(&system, "main"),
+        ];
+        std::thread::spawn(move || {
+            let start = Instant::now();
+            let mut n = 0u64;
+            while n < QUERIES {
+                for _ in 0..10 {
+                    let replies = replies.clone();
+                    let _ = session
+                        .get(&keys[(n % 4) as usize])
+                        .callback(move |_| {
+                            replies.fetch_add(1, Ordering::Relaxed);
+                        })
+                        .timeout(Duration::from_secs(1))
+                        .wait();
+                    n += 1;
+                }
+                sent.store(n, Ordering::Relaxed);
+                let next = start + Duration::from_micros(n * 100);
+                if let Some(wait) = next.checked_duration_since(Instant::now()) {
+                    std::thread::sleep(wait);
+                }
+            }
+            done.store(true, Ordering::Relaxed);
+            start.elapsed()
+        })
+    };
+
+    // A switch every 100 ms while the flood lasts: every one is served.
+    let mut switches = 0u32;
+    let start = Instant::now();
+    while !done.load(Ordering::Relaxed) {
+        let task = if switches % 2 == 0 { "b" } else { "a" };
+        let r = zenoh_command(
+            &session,
+            &system,
+            serde_json::json!({"client": "flood-test", "id": format!("s{switches}"), "cmd": "switch", "task": task}),
+        )
+        .unwrap_or_else(|e| panic!("switch {switches} not served during the flood: {e}"));
+        assert!(r.ok, "switch {switches}: {r:?}");
+        assert_eq!(r.switches[0].to, task);
+        switches += 1;
+        let next = start + Duration::from_millis(100 * u64::from(switches));
+        if let Some(wait) = next.checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+    }
+    let took = flood.join().unwrap();
+    let after = sys.status();
+    let rss_after = rss_kib(sys.child.id());
+    eprintln!(
+        "flood: {} queries in {:.1} s ({:.0}/s), {} replies; {switches} switches; DNM answered {}, \
+         refused {}; supervision: {} passes, longest gap {} ms (period {} ms); RSS {} -> {} KiB",
+        sent.load(Ordering::Relaxed),
+        took.as_secs_f64(),
+        QUERIES as f64 / took.as_secs_f64(),
+        replies.load(Ordering::Relaxed),
+        after.routes.queries_answered,
+        after.routes.queries_refused,
+        after.supervision.passes,
+        after.supervision.max_gap_ms,
+        after.supervision.period_ms,
+        rss_before,
+        rss_after,
+    );
+    assert!(switches >= 10, "the flood ended before it began");
+    // Supervision was never starved: no pass came more than ten periods after the last one.
+    assert!(
+        after.supervision.max_gap_ms <= 10 * after.supervision.period_ms,
+        "{:?}",
+        after.supervision
+    );
+    // Memory stays bounded: the queries did not pile up in the DNM.
+    assert!(
+        rss_after < rss_before + 64 * 1024,
+        "RSS grew from {rss_before} to {rss_after} KiB"
+    );
+    assert!(
+        after
+            .modules
+            .iter()
+            .all(|m| m.state == ModuleRunState::Running)
+    );
+}
+
+#[test]
+fn command_ids_belong_to_their_client() {
+    let port = support::free_port();
+    let endpoint = support::endpoint(port);
+    let sys = System::start_with(CHAIN, &["--no-multicast", "--listen", &endpoint]);
+    let session = support::zenoh_client(port);
+    let system = sys.name.clone();
+    let send = |client: &str, task: &str| {
+        support::eventually("a command answered", || {
+            zenoh_command(
+                &session,
+                &system,
+                serde_json::json!({"client": client, "id": "1", "cmd": "switch", "task": task}),
+            )
+            .ok()
+        })
+    };
+    // Two clients, one id: both commands are applied.
+    let x = send("station-x", "b");
+    assert!(x.ok && x.switches[0].to == "b", "{x:?}");
+    let y = send("station-y", "a");
+    assert!(y.ok && y.switches[0].to == "a", "{y:?}");
+    assert_eq!(sys.status().active_task.as_deref(), Some("a"));
+    // A retry of x's command gets x's first answer and changes nothing.
+    let again = send("station-x", "b");
+    assert_eq!(again.switches[0].at_ns, x.switches[0].at_ns);
+    assert_eq!(sys.status().active_task.as_deref(), Some("a"));
 }

@@ -321,7 +321,7 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
     sys.relay_c_fed_by(1);
 
     // 2. A raw Zenoh subscriber sees samples of a crossing port, with the documented
-    //    attachment (send time, sequence, task word).
+    //    attachment (send time, sequence, task word, wall-clock send time).
     let (tx, rx) = std::sync::mpsc::channel();
     let _sub = sys
         .client
@@ -338,7 +338,7 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
         .unwrap();
     let (payload, attachment, encoding) = rx.recv_timeout(Duration::from_secs(30)).unwrap();
     assert_eq!(u64::from_le_bytes(payload[0..8].try_into().unwrap()), 1);
-    assert_eq!(attachment, Some(24));
+    assert_eq!(attachment, Some(32));
     assert!(encoding.contains("dnm_msgs/Tick"), "encoding {encoding}");
 
     // 3. Module state for tools: every module, its state and the decoded last value.

@@ -398,9 +398,8 @@ fn serve_one(stream: &UnixStream, system: &str, dnms: &[Commander]) {
 }
 
 fn answer(mut stream: &UnixStream, response: &Response) {
-    let mut out = serde_json::to_string(response).unwrap_or_else(|e| {
-        format!("{{\"ok\":false,\"error\":\"cannot encode response: {e}\"}}")
-    });
+    let mut out = serde_json::to_string(response)
+        .unwrap_or_else(|e| format!("{{\"ok\":false,\"error\":\"cannot encode response: {e}\"}}"));
     out.push('\n');
     let _ = stream.write_all(out.as_bytes());
 }

@@ -425,8 +425,14 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             } else {
                 dnm::replay::Pace::Rate(rate)
             };
-            let r = dnm::replay::replay(&bytes, system.as_deref(), &only, pace, &dnm::parse_netlist_text)
-                .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+            let r = dnm::replay::replay(
+                &bytes,
+                system.as_deref(),
+                &only,
+                pace,
+                &dnm::parse_netlist_text,
+            )
+            .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {

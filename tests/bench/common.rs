@@ -91,7 +91,10 @@ pub fn up_recording(
         cmd.args(["--dnm", d]);
     }
     let child = cmd
-        .env("DNM_MODULE_HOST", std::path::Path::new(env!("CARGO_BIN_EXE_dnm")).with_file_name("dnm-module-host"))
+        .env(
+            "DNM_MODULE_HOST",
+            std::path::Path::new(env!("CARGO_BIN_EXE_dnm")).with_file_name("dnm-module-host"),
+        )
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
         .spawn()

@@ -32,6 +32,11 @@ pub struct System {
 
 impl System {
     pub fn start(template: &str) -> Self {
+        Self::start_with(template, &[])
+    }
+
+    /// Starts `dnm [global] up NETLIST`, e.g. with `--listen` to reach it over Zenoh.
+    pub fn start_with(template: &str, global: &[&str]) -> Self {
         let name = format!(
             "t{}x{}",
             std::process::id(),
@@ -42,6 +47,7 @@ impl System {
         let path = dir.join("netlist.toml");
         std::fs::write(&path, template.replace("SYSTEM", &name)).unwrap();
         let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
+            .args(global)
             .arg("up")
             .arg(&path)
             .env("DNM_MODULE_HOST", module_host())
@@ -92,7 +98,11 @@ impl System {
         }
     }
 
-    pub fn subscribe<M>(&self, module: &str, port: &str) -> Subscriber<ipc::Service, [u8], PortHeader> {
+    pub fn subscribe<M>(
+        &self,
+        module: &str,
+        port: &str,
+    ) -> Subscriber<ipc::Service, [u8], PortHeader> {
         let payload = Payload::Fixed {
             size_bytes: size_of::<M>(),
         };
@@ -144,4 +154,3 @@ pub fn collect<M: bytemuck::Pod>(
 pub fn drain(sub: &Subscriber<ipc::Service, [u8], PortHeader>) {
     while sub.receive().unwrap().is_some() {}
 }
-

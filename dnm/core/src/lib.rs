@@ -169,7 +169,12 @@ pub trait Plugin {
     fn name(&self) -> &'static str;
     /// Before modules get the plans of `revision`: make what they will reference (for example
     /// mirrors of remote outputs). An error aborts the apply.
-    fn prepare(&mut self, ctx: &Context<'_>, netlist: &Netlist, revision: u64) -> Result<(), String> {
+    fn prepare(
+        &mut self,
+        ctx: &Context<'_>,
+        netlist: &Netlist,
+        revision: u64,
+    ) -> Result<(), String> {
         let _ = (ctx, netlist, revision);
         Ok(())
     }

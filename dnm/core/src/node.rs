@@ -62,6 +62,9 @@ pub(crate) enum Outcome {
     Apply(Result<u64, String>),
 }
 
+/// An apply waiting for the one in progress: the netlist, its command key, its reply.
+pub(crate) type QueuedApply = (Netlist, Option<CommandKey>, Reply<Result<u64, String>>);
+
 /// Hands commands to a DNM's thread from any other thread and wakes it. Cheap to clone.
 #[derive(Clone)]
 pub struct Commander {
@@ -135,7 +138,7 @@ pub struct Dnm {
     pub(crate) plugins: Vec<Box<dyn Plugin>>,
     answered: VecDeque<(CommandKey, Outcome)>,
     pub(crate) apply: Option<PendingApply>,
-    pub(crate) queued_applies: VecDeque<(Netlist, Option<CommandKey>, Reply<Result<u64, String>>)>,
+    pub(crate) queued_applies: VecDeque<QueuedApply>,
     pub(crate) stopping: Vec<Stopping>,
     pub(crate) events_log: VecDeque<ModuleEvent>,
     commands: Receiver<Command>,
@@ -443,7 +446,9 @@ impl Dnm {
         let waitset = WaitSetBuilder::new()
             .create::<Svc>()
             .map_err(ipc("waitset"))?;
-        let _events_guard = waitset.attach_notification(&*events).map_err(ipc("attach"))?;
+        let _events_guard = waitset
+            .attach_notification(&*events)
+            .map_err(ipc("attach"))?;
         let _tick_guard = waitset
             .attach_interval(self.options.tick)
             .map_err(ipc("attach"))?;

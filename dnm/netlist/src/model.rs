@@ -549,8 +549,7 @@ fn validate(
             );
         }
         if let Some(rate) = &m.rate_hz
-            && !(rate.get_ref().is_finite()
-                && (MIN_RATE_HZ..=MAX_RATE_HZ).contains(rate.get_ref()))
+            && !(rate.get_ref().is_finite() && (MIN_RATE_HZ..=MAX_RATE_HZ).contains(rate.get_ref()))
         {
             r.error(
                 span_of(rate),
@@ -866,28 +865,6 @@ fn toml_to_param(v: &toml::Value) -> Option<ParamValue> {
     })
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn parses_links() {
-        let l = parse_link(" a.out ->b.in ").unwrap();
-        assert_eq!(l.to_string(), "a.out -> b.in");
-        assert!(parse_link("a.out b.in").is_err());
-        assert!(parse_link("a -> b.in").is_err());
-        assert!(parse_link("a.x.y -> b.in").is_err());
-    }
-
-    #[test]
-    fn names_are_plain() {
-        assert!(valid_name("wheel_left-2").is_ok());
-        assert!(valid_name("2wheel").is_err());
-        assert!(valid_name("a/b").is_err());
-        assert!(valid_name("").is_err());
-    }
-}
-
 /// Lowest `rate_hz` a module may run at.
 pub const MIN_RATE_HZ: f64 = 0.01;
 /// Highest `rate_hz` a module may run at.
@@ -911,4 +888,26 @@ pub fn parse_duration_ms(text: &str) -> Option<u64> {
     };
     let v: f64 = number.trim().parse().ok()?;
     (v.is_finite() && v >= 0.0 && v * scale < 1e15).then(|| (v * scale).round() as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_links() {
+        let l = parse_link(" a.out ->b.in ").unwrap();
+        assert_eq!(l.to_string(), "a.out -> b.in");
+        assert!(parse_link("a.out b.in").is_err());
+        assert!(parse_link("a -> b.in").is_err());
+        assert!(parse_link("a.x.y -> b.in").is_err());
+    }
+
+    #[test]
+    fn names_are_plain() {
+        assert!(valid_name("wheel_left-2").is_ok());
+        assert!(valid_name("2wheel").is_err());
+        assert!(valid_name("a/b").is_err());
+        assert!(valid_name("").is_err());
+    }
 }

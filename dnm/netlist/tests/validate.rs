@@ -400,7 +400,11 @@ fn rates_and_hang_deadlines_out_of_range_are_located() {
         assert!(e.contains("module[2].rate_hz"), "{rate}: {e}");
         assert!(e.contains("0.01 to 10000"), "{rate}: {e}");
     }
-    let ok = parse(&good_with("rate_hz = 50", "rate_hz = 0.01\nhung_after = \"1.5s\"")).unwrap();
+    let ok = parse(&good_with(
+        "rate_hz = 50",
+        "rate_hz = 0.01\nhung_after = \"1.5s\"",
+    ))
+    .unwrap();
     assert_eq!(ok.module("drive").unwrap().hung_after_ms, Some(1500));
     for (value, says) in [
         ("\"10ms\"", "outside 100 ms"),
@@ -411,7 +415,10 @@ fn rates_and_hang_deadlines_out_of_range_are_located() {
         let e = error_of(&text);
         let line = line_of(&text, "hung_after");
         assert!(e.contains(&format!("configs/test.toml:{line}:")), "{e}");
-        assert!(e.contains("module[2].hung_after") && e.contains(says), "{value}: {e}");
+        assert!(
+            e.contains("module[2].hung_after") && e.contains(says),
+            "{value}: {e}"
+        );
     }
 }
 

@@ -101,7 +101,11 @@ pub fn decode_header(bytes: &[u8]) -> Option<SampleHeader> {
         stamp_ns: word(0),
         seq: word(1),
         task_word: word(2),
-        unix_ns: if bytes.len() == ATTACHMENT_BYTES { word(3) } else { 0 },
+        unix_ns: if bytes.len() == ATTACHMENT_BYTES {
+            word(3)
+        } else {
+            0
+        },
     })
 }
 

@@ -313,9 +313,10 @@ mod tests {
             serde_json::from_str(r#"{"id":"1","cmd":"switch","task":"a"}"#).unwrap();
         assert_eq!(c.client, None);
         assert!(matches!(c.request, Request::Switch { ref task } if task == "a"));
-        let back: RemoteCommand =
-            serde_json::from_str(&serde_json::to_string(&RemoteCommand::new("g", "1", Request::Status)).unwrap())
-                .unwrap();
+        let back: RemoteCommand = serde_json::from_str(
+            &serde_json::to_string(&RemoteCommand::new("g", "1", Request::Status)).unwrap(),
+        )
+        .unwrap();
         assert_eq!(back.client.as_deref(), Some("g"));
     }
 

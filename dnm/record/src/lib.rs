@@ -16,4 +16,5 @@ pub mod replay;
 pub mod stats;
 
 /// Parses and validates a netlist stored in a recording (`file` names it in errors).
-pub type ParseNetlist<'a> = dyn Fn(&std::path::Path, &str) -> Result<dnm_netlist::Netlist, String> + 'a;
+pub type ParseNetlist<'a> =
+    dyn Fn(&std::path::Path, &str) -> Result<dnm_netlist::Netlist, String> + 'a;

@@ -30,7 +30,6 @@ use dnm_netlist::{MessageType, Netlist};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
-
 use dnm_core::worker::{Control, Sets, Worker, dbg};
 use dnm_core::{Context, DnmReport, ModuleEvent, Plugin, SwitchRecord};
 pub use dnm_proto::RecordReport;
@@ -597,7 +596,12 @@ fn open_file(
         )
         .map_err(|e| e.to_string())?;
     let events = writer
-        .add_channel(schema_id, &format!("/{dnm}/_events"), "json", &BTreeMap::new())
+        .add_channel(
+            schema_id,
+            &format!("/{dnm}/_events"),
+            "json",
+            &BTreeMap::new(),
+        )
         .map_err(|e| e.to_string())?;
     let mut f = OpenFile {
         writer,
@@ -901,9 +905,7 @@ mod tests {
             x
         };
         let random = std::sync::Mutex::new(random);
-        let (files, seqs) = write_ticks("random", 300_000, 1 << 20, |s| {
-            random.lock().unwrap()(s)
-        });
+        let (files, seqs) = write_ticks("random", 300_000, 1 << 20, |s| random.lock().unwrap()(s));
         assert!(files.len() >= 2, "{files:?}");
         assert_eq!(seqs, (0..300_000).collect::<Vec<u32>>());
     }

@@ -78,8 +78,7 @@ pub fn replay(
         .filter_map(|m| m.metadata.get("text").cloned())
         .next_back()
         .ok_or("the recording holds no netlist")?;
-    let netlist =
-        parse(Path::new("recorded.toml"), &text)?;
+    let netlist = parse(Path::new("recorded.toml"), &text)?;
     let system = system.unwrap_or(&netlist.system).to_string();
 
     let mut nodes: BTreeMap<String, Node<Svc>> = BTreeMap::new();

@@ -28,14 +28,14 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use dnm_core::worker::{Control, Sets, Worker, dbg, err};
-use dnm_core::{
-    Command, CommandKey, Commander, Context, DnmReport, Plugin, Reply, Snapshot,
-};
+use dnm_core::{Command, CommandKey, Commander, Context, DnmReport, Plugin, Reply, Snapshot};
 use dnm_module::protocol::{PortHeader, dnm_config, output_event, output_service};
 use dnm_module::{event_service, port_service};
 use dnm_netlist::{MessageType, Netlist};
 use dnm_proto::keys::{self, SampleHeader};
-use dnm_proto::{NetReport, NetlistState, PeerReport, RemoteCommand, Request, Response, RouteReport};
+use dnm_proto::{
+    NetReport, NetlistState, PeerReport, RemoteCommand, Request, Response, RouteReport,
+};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -436,7 +436,12 @@ impl Plugin for Bridge {
     /// memory before plans reference it. Only new mirrors are made here; a mirror whose key or
     /// type changed, or one replacing an output of a module still running here, is made at the
     /// commit, when the old revision is gone.
-    fn prepare(&mut self, ctx: &Context<'_>, netlist: &Netlist, _revision: u64) -> Result<(), String> {
+    fn prepare(
+        &mut self,
+        ctx: &Context<'_>,
+        netlist: &Netlist,
+        _revision: u64,
+    ) -> Result<(), String> {
         self.prepared.clear();
         for (service, key, message) in self.wanted_ingress(netlist) {
             if self.ingress.contains_key(&service) || ctx.local_outputs.contains(&service) {
@@ -570,7 +575,9 @@ impl Drop for Bridge {
 /// Takes one slot of a bounded in-flight count; counts a refusal when none is left.
 fn admit(in_flight: &AtomicUsize, limit: usize, refused: &AtomicU64) -> bool {
     let taken = in_flight
-        .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < limit).then_some(n + 1))
+        .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+            (n < limit).then_some(n + 1)
+        })
         .is_ok();
     if !taken {
         refused.fetch_add(1, Ordering::Relaxed);
@@ -686,7 +693,14 @@ fn query_loop(
             }
         }
         let Ok((target, query)) = job else { continue };
-        answer(system, dnm, target, &query, snapshot.as_deref(), &mut monitors);
+        answer(
+            system,
+            dnm,
+            target,
+            &query,
+            snapshot.as_deref(),
+            &mut monitors,
+        );
         drop(query);
         shared.queries_in_flight.fetch_sub(1, Ordering::Relaxed);
         shared.answered.fetch_add(1, Ordering::Relaxed);
@@ -842,18 +856,29 @@ fn command_loop(
             }
             CommandJob::Query(q) => q,
         };
-        let cmd: RemoteCommand = match query.payload().map(|p| p.to_bytes()).as_deref().map(serde_json::from_slice) {
+        let cmd: RemoteCommand = match query
+            .payload()
+            .map(|p| p.to_bytes())
+            .as_deref()
+            .map(serde_json::from_slice)
+        {
             Some(Ok(c)) => c,
             Some(Err(e)) => {
-                finish(query, &Response::error(format!(
-                    "bad command: {e}; send JSON such as {{\"client\":\"me\",\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}}"
-                )));
+                finish(
+                    query,
+                    &Response::error(format!(
+                        "bad command: {e}; send JSON such as {{\"client\":\"me\",\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}}"
+                    )),
+                );
                 continue;
             }
             None => {
-                finish(query, &Response::error(
-                    "empty command; send JSON such as {\"client\":\"me\",\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}",
-                ));
+                finish(
+                    query,
+                    &Response::error(
+                        "empty command; send JSON such as {\"client\":\"me\",\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}",
+                    ),
+                );
                 continue;
             }
         };
@@ -889,15 +914,19 @@ fn command_loop(
             }
             Request::Switch { task } => {
                 let tx = jobs_tx.clone();
-                let (reply, slot) = answer_slot(tx, query, move |r: Result<dnm_proto::SwitchRecord, String>| match r {
-                    Ok(s) => Response {
-                        ok: true,
-                        revision: Some(s.revision),
-                        switches: vec![s],
-                        ..Response::default()
+                let (reply, slot) = answer_slot(
+                    tx,
+                    query,
+                    move |r: Result<dnm_proto::SwitchRecord, String>| match r {
+                        Ok(s) => Response {
+                            ok: true,
+                            revision: Some(s.revision),
+                            switches: vec![s],
+                            ..Response::default()
+                        },
+                        Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
                     },
-                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-                });
+                );
                 if let Err(e) = commander.send(Command::Switch { task, key, reply }) {
                     if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
                         finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
@@ -907,14 +936,20 @@ fn command_loop(
             Request::Apply { file, text } => {
                 let netlist = match parse(Path::new(&file), &text) {
                     Err(e) => {
-                        finish(query, &Response::error(format!("netlist refused, nothing changed:\n{e}")));
+                        finish(
+                            query,
+                            &Response::error(format!("netlist refused, nothing changed:\n{e}")),
+                        );
                         continue;
                     }
                     Ok(n) if n.system != system => {
-                        finish(query, &Response::error(format!(
-                            "netlist is for system `{}`, this is `{system}`; nothing changed",
-                            n.system
-                        )));
+                        finish(
+                            query,
+                            &Response::error(format!(
+                                "netlist is for system `{}`, this is `{system}`; nothing changed",
+                                n.system
+                            )),
+                        );
                         continue;
                     }
                     Ok(n) => n,

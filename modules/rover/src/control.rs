@@ -475,7 +475,9 @@ impl Module for Watchdog {
         if io.read(&self.twist_in).is_some() {
             // A command is as old as the time it was sent, not the time it arrived: one that sat
             // in a queue (a radio fade, a source switched back to) is already stale.
-            let sent = io.header(&self.twist_in).map_or(now, |h| h.stamp_ns.min(now));
+            let sent = io
+                .header(&self.twist_in)
+                .map_or(now, |h| h.stamp_ns.min(now));
             self.state.last_command_ns = self.state.last_command_ns.max(sent);
         }
         let fresh = self.state.last_command_ns != 0

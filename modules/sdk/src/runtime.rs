@@ -632,7 +632,10 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                     .wait_and_process_once(|id| {
                         if tick_guard.as_ref().is_some_and(|g| id.has_event_from(g)) {
                             ticked = true;
-                        } else if heartbeat_guard.as_ref().is_some_and(|g| id.has_event_from(g)) {
+                        } else if heartbeat_guard
+                            .as_ref()
+                            .is_some_and(|g| id.has_event_from(g))
+                        {
                             beat = true;
                         } else {
                             woken = true;
@@ -642,7 +645,8 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                     .map_err(ipc("wait"))?;
                 if beat {
                     let now_ns = monotonic_ns();
-                    if now_ns.saturating_sub(status.heartbeat_ns) >= HEARTBEAT.as_nanos() as u64 / 2 {
+                    if now_ns.saturating_sub(status.heartbeat_ns) >= HEARTBEAT.as_nanos() as u64 / 2
+                    {
                         status.heartbeat_ns = now_ns;
                         last_status_ns = now_ns;
                         publish_status(&status)?;
@@ -742,14 +746,26 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
         }
         if let Some(i) = retire_before {
             plans.drain(..i);
-            retire(&mut conns, &mut listeners, &mut plans, &mut seen, &mut was_active);
+            retire(
+                &mut conns,
+                &mut listeners,
+                &mut plans,
+                &mut seen,
+                &mut was_active,
+            );
         }
         if !pending.is_empty() {
             for plan in pending {
                 prepare(&node, &spec, plan, &mut conns, &mut listeners, &mut plans)?;
             }
             // A plan that replaced a failed one may leave sources nothing uses.
-            retire(&mut conns, &mut listeners, &mut plans, &mut seen, &mut was_active);
+            retire(
+                &mut conns,
+                &mut listeners,
+                &mut plans,
+                &mut seen,
+                &mut was_active,
+            );
             status.plan_revision = plans.last().map_or(0, |p| p.revision);
             status.state = ModuleState::Running as u32;
             publish_status(&status)?;
