@@ -62,6 +62,23 @@ impl Up {
     }
 }
 
+/// The `dnm` executable the benchmarks start: this tree's, or another build's (a baseline) after
+/// [`use_dnm`].
+static DNM_EXE: std::sync::Mutex<Option<std::path::PathBuf>> = std::sync::Mutex::new(None);
+
+/// Makes [`up`] start `exe` (and the `dnm-module-host` beside it); `None`: this tree's.
+pub fn use_dnm(exe: Option<std::path::PathBuf>) {
+    *DNM_EXE.lock().unwrap() = exe;
+}
+
+fn dnm_exe() -> std::path::PathBuf {
+    DNM_EXE
+        .lock()
+        .unwrap()
+        .clone()
+        .unwrap_or_else(|| env!("CARGO_BIN_EXE_dnm").into())
+}
+
 /// Runs `dnm [zenoh args] up NETLIST [--dnm D] --no-record` and waits until `dnms` DNMs of the
 /// system on this machine report every module running.
 pub fn up(system: &str, netlist: &str, args: &[String], dnm: Option<&str>, dnms: usize) -> Up {
@@ -81,7 +98,8 @@ pub fn up_recording(
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("netlist.toml");
     std::fs::write(&path, netlist).unwrap();
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_dnm"));
+    let exe = dnm_exe();
+    let mut cmd = Command::new(&exe);
     cmd.args(args).arg("up").arg(&path);
     match record_dir {
         Some(d) => cmd.arg("--record-dir").arg(d),
@@ -91,10 +109,7 @@ pub fn up_recording(
         cmd.args(["--dnm", d]);
     }
     let child = cmd
-        .env(
-            "DNM_MODULE_HOST",
-            std::path::Path::new(env!("CARGO_BIN_EXE_dnm")).with_file_name("dnm-module-host"),
-        )
+        .env("DNM_MODULE_HOST", exe.with_file_name("dnm-module-host"))
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
         .spawn()

@@ -7,6 +7,9 @@
 //! 3. resident memory of a DNM hosting 15 modules and of its module processes.
 //!
 //! Run: `cargo bench -p dnm --bench connection` (results go to stdout as a Markdown table).
+//! With `DNM_BASELINE=/path/to/other/dnm` (another build's `dnm`, with its `dnm-module-host`
+//! beside it), every DNM measurement is also taken with that build, interleaved in the same run,
+//! so a change is compared against what it replaces on the same machine at the same time.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
 
@@ -15,7 +18,7 @@ mod common;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{human, latencies, percentiles, raw_node, unique, up};
+use common::{human, latencies, percentiles, raw_node, unique, up, use_dnm};
 
 use dnm::admin::{Request, request};
 use dnm_module::event_service;
@@ -37,27 +40,38 @@ fn main() {
         Some("raw-sub") => return raw_sub(&args[2], args[3].parse().unwrap()),
         _ => {}
     }
+    let mut builds: Vec<(&str, Option<std::path::PathBuf>)> = vec![("this tree", None)];
+    if let Some(b) = std::env::var_os("DNM_BASELINE") {
+        builds.push(("baseline", Some(b.into())));
+    }
     println!("# connection-layer benchmark ({SAMPLES} samples per size at {RATE_HZ} Hz)\n");
     println!(
-        "| payload | raw iceoryx2 p50 / p99 (µs) | through DNM p50 / p99 (µs) | ratio p50 | ratio p99 |"
+        "| payload | DNM build | raw iceoryx2 p50 / p99 (µs) | through DNM p50 / p99 (µs) | ratio p50 | ratio p99 |"
     );
-    println!("|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|");
     for size in SIZES {
-        let raw = raw_latency(size);
-        let dnm = dnm_latency(size);
-        println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.2} | {:.2} |",
-            human(size),
-            raw.0,
-            raw.1,
-            dnm.0,
-            dnm.1,
-            dnm.0 / raw.0,
-            dnm.1 / raw.1
-        );
+        for (label, exe) in &builds {
+            let raw = raw_latency(size);
+            use_dnm(exe.clone());
+            let dnm = dnm_latency(size);
+            println!(
+                "| {} | {label} | {:.1} / {:.1} | {:.1} / {:.1} | {:.2} | {:.2} |",
+                human(size),
+                raw.0,
+                raw.1,
+                dnm.0,
+                dnm.1,
+                dnm.0 / raw.0,
+                dnm.1 / raw.1
+            );
+        }
     }
     println!();
-    switch_and_memory();
+    for (label, exe) in &builds {
+        println!("## {label}\n");
+        use_dnm(exe.clone());
+        switch_and_memory();
+    }
 }
 
 // ------------------------------------------------------------------------------------------
