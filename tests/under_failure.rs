@@ -35,7 +35,6 @@ name = "src_b"
 kind = "ticker"
 rate_hz = 100
 restart = "never"
-hung_after = "60s"
 params = { origin = 2 }
 
 [[module]]
@@ -199,6 +198,38 @@ fn a_failed_apply_leaves_the_dnm_as_it_was_and_a_retry_succeeds() {
 }
 
 #[test]
+fn a_replacement_whose_executable_cannot_run_is_refused_before_the_commit() {
+    let sys = System::start(CHAIN);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    let before = sys.status();
+    // An executable that describes itself (the DNM checks the netlist) and then loses its
+    // execute permission, so starting it fails.
+    let broken = fake_ticker(&sys.dir, "vanishing", 0);
+    let script =
+        std::fs::read_to_string(&broken)
+            .unwrap()
+            .replacen("cat '", "chmod -x \"$0\"; cat '", 1);
+    std::fs::write(&broken, script).unwrap();
+    let replaced = CHAIN.replace(
+        "name = \"src_a\"\nkind = \"ticker\"",
+        "name = \"src_a\"\nkind = \"vanishing\"",
+    ) + &format!("\n[kind.vanishing]\nexec = \"{}\"\n", broken.display());
+    let out = apply(&sys, &replaced, "replaced.toml");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cannot start module `src_a`"), "{err}");
+    // Nothing changed: the revision, the module and its process, the data it feeds.
+    let after = sys.status();
+    assert_eq!(after.revision, before.revision);
+    let (a0, a1) = (module(&before, "src_a"), module(&after, "src_a"));
+    assert_eq!((a1.kind.as_str(), a1.pid), (a0.kind.as_str(), a0.pid));
+    assert_eq!(a1.state, ModuleRunState::Running);
+    drain(&relay);
+    let ticks = collect::<Tick>(&relay, |t| t.len() >= 10);
+    assert!(ticks.iter().all(|t| t.origin == 1));
+}
+
+#[test]
 fn a_replacement_that_cannot_start_still_commits_routes_and_recording() {
     let sys = System::start(CHAIN);
     let before = sys.status();
@@ -284,7 +315,10 @@ fn a_stopped_module_is_reported_hung_and_handled_by_its_restart_policy() {
             "params = { origin = 1 }",
             "hung_after = \"3s\"\nparams = { origin = 1 }",
         )
-        .replace("hung_after = \"60s\"", "hung_after = \"1s\"");
+        .replace(
+            "restart = \"never\"\n",
+            "restart = \"never\"\nhung_after = \"1s\"\n",
+        );
     let sys = System::start(&netlist);
     let before = sys.status();
     let a_pid = module(&before, "src_a").pid.unwrap();
@@ -389,8 +423,10 @@ fn a_switch_never_waits_for_an_apply_in_progress() {
         .stdout(std::process::Stdio::null())
         .spawn()
         .unwrap();
-    let pending = sys.wait_for("the apply pending", |r| r.dnms[0].preparing.is_some());
-    let preparing = pending.dnms[0].preparing;
+    // The apply is under way once the new module's process runs (it sleeps before starting).
+    support::eventually("the new module starting", || {
+        (!processes_of(&sys.name, "late").is_empty()).then_some(())
+    });
 
     // Switches are served meanwhile, under the committed revision.
     for task in ["b", "a", "b"] {
@@ -398,11 +434,12 @@ fn a_switch_never_waits_for_an_apply_in_progress() {
         assert!(r.ok, "{r:?}");
         assert_eq!(r.switches[0].revision, 1);
     }
-    let during = sys.status();
-    assert_eq!(
-        during.preparing, preparing,
+    assert!(
+        applying.try_wait().unwrap().is_none(),
         "the switches waited for the apply to finish"
     );
+    let during = sys.status();
+    assert!(during.preparing.is_some(), "{during:?}");
     assert_eq!(during.active_task.as_deref(), Some("b"));
 
     // The apply commits afterwards, keeping the task the operator chose.
