@@ -700,3 +700,45 @@ fn command_ids_belong_to_their_client() {
     assert_eq!(again.switches[0].at_ns, x.switches[0].at_ns);
     assert_eq!(sys.status().active_task.as_deref(), Some("a"));
 }
+
+#[test]
+fn a_plan_a_module_cannot_prepare_is_refused_and_the_module_keeps_running() {
+    // One output read by more inputs than its port admits subscribers: the modules that come
+    // last cannot open their subscription.
+    let sys = System::start(CHAIN);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    collect::<Tick>(&relay, |t| t.len() >= 5);
+    let before = sys.status();
+    let mut crowded = CHAIN.to_string();
+    let mut links = Vec::new();
+    for i in 0..dnm_module::protocol::MAX_PORT_SUBSCRIBERS {
+        crowded += &format!("\n[[module]]\nname = \"fan{i}\"\nkind = \"relay\"\n");
+        links.push(format!("\"src_a.out -> fan{i}.in\""));
+    }
+    crowded = crowded.replace(
+        "links = [\"src_a.out -> relay.in\"]",
+        &format!("links = [\"src_a.out -> relay.in\", {}]", links.join(", ")),
+    );
+    let out = apply(&sys, &crowded, "crowded.toml");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("could not prepare revision"), "{err}");
+    let after = sys.status();
+    assert_eq!(after.revision, before.revision);
+    assert_eq!(after.modules.len(), before.modules.len());
+    for m in &after.modules {
+        let was = module(&before, &m.name);
+        assert_eq!(
+            (m.pid, m.restarts, m.state),
+            (was.pid, was.restarts, ModuleRunState::Running)
+        );
+    }
+    support::eventually("the fan modules gone", || {
+        (0..dnm_module::protocol::MAX_PORT_SUBSCRIBERS)
+            .all(|i| processes_of(&sys.name, &format!("fan{i}")).is_empty())
+            .then_some(())
+    });
+    drain(&relay);
+    let ticks = collect::<Tick>(&relay, |t| t.len() >= 10);
+    assert!(ticks.iter().all(|t| t.origin == 1));
+}

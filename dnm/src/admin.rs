@@ -227,6 +227,8 @@ fn start(
         let commander = match ready_rx.recv() {
             Ok(Ok(c)) => c,
             Ok(Err(e)) => {
+                // The DNMs already started end their loops (their bridges hold commanders too).
+                dnm_core::request_stop();
                 for h in handles {
                     let h: DnmHandle = h;
                     drop(h.commander);

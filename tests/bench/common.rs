@@ -99,6 +99,11 @@ pub fn up_recording(
     let path = dir.join("netlist.toml");
     std::fs::write(&path, netlist).unwrap();
     let exe = dnm_exe();
+    assert!(
+        exe.with_file_name("dnm-module-host").exists(),
+        "no dnm-module-host beside {}: build it with `cargo build --release --workspace`",
+        exe.display()
+    );
     let mut cmd = Command::new(&exe);
     cmd.args(args).arg("up").arg(&path);
     match record_dir {

@@ -19,7 +19,13 @@ static NEXT: AtomicU32 = AtomicU32::new(0);
 
 /// The module host built beside the `dnm` executable.
 pub fn module_host() -> PathBuf {
-    std::path::Path::new(env!("CARGO_BIN_EXE_dnm")).with_file_name("dnm-module-host")
+    let host = std::path::Path::new(env!("CARGO_BIN_EXE_dnm")).with_file_name("dnm-module-host");
+    assert!(
+        host.exists(),
+        "no {}: run the tests with `cargo test --workspace`, which builds it",
+        host.display()
+    );
+    host
 }
 
 /// A running `dnm up` with a unique system name; stopped with SIGTERM when dropped.

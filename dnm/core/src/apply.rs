@@ -16,27 +16,15 @@ use dnm_module::protocol::*;
 use dnm_netlist::Netlist;
 use iceoryx2::port::update_connections::UpdateConnections;
 
-use crate::node::{Dnm, Outcome, PortServices};
-use crate::plan::{module_plan, task_slots};
-use crate::supervise::ModuleSlot;
-use crate::{CommandKey, Context, DnmError, ModuleRunState, Reply};
+use dnm_proto::ModuleRunState;
 
-/// An apply in progress.
-pub(crate) struct PendingApply {
-    pub(crate) netlist: Netlist,
-    pub(crate) revision: u64,
-    removed: Vec<String>,
-    replaced: Vec<String>,
-    /// New modules, started but not part of the DNM until the commit.
-    pub(crate) staged: BTreeMap<String, ModuleSlot>,
-    /// Port services this apply created (released if it fails).
-    new_ports: Vec<String>,
-    /// Plugins that prepared (aborted in reverse if the apply fails).
-    prepared_plugins: usize,
-    deadline: Instant,
-    pub(crate) key: Option<CommandKey>,
-    pub(crate) replies: Vec<Reply<Result<u64, String>>>,
-}
+use crate::command::{CommandKey, Reply};
+use crate::error::DnmError;
+use crate::node::{COMMAND_QUEUE, Dnm};
+use crate::pending::{Outcome, PendingApply};
+use crate::plan::{module_plan, task_slots};
+use crate::plugin::Context;
+use crate::slot::{ModuleSlot, PortServices};
 
 impl Dnm {
     /// Starts applying `netlist`: the answer goes to `reply` when the revision is committed or
@@ -53,8 +41,12 @@ impl Dnm {
                 return;
             }
         }
+        if self.stopping_all {
+            reply.send(Err(DnmError::Stopped.to_string()));
+            return;
+        }
         if self.apply.is_some() || !self.queued_applies.is_empty() {
-            if self.queued_applies.len() >= crate::node::COMMAND_QUEUE {
+            if self.queued_applies.len() >= COMMAND_QUEUE {
                 reply.send(Err(DnmError::Busy(self.queued_applies.len()).to_string()));
                 return;
             }
@@ -257,6 +249,18 @@ impl Dnm {
         let Some(p) = self.apply.as_ref() else {
             return;
         };
+        // A module that could not prepare the revision fails the apply.
+        let refused = self
+            .modules
+            .iter()
+            .filter(|(n, _)| !p.removed.contains(n) && !p.replaced.contains(n))
+            .chain(p.staged.iter())
+            .find(|(_, s)| s.status.prepare_failed == revision)
+            .map(|(n, _)| n.clone());
+        if let Some(module) = refused {
+            self.fail_apply(DnmError::PrepareFailed { module, revision });
+            return;
+        }
         let waiting: Vec<String> = self
             .modules
             .iter()
@@ -337,8 +341,12 @@ impl Dnm {
         }
         if let Some(committed) = &self.netlist {
             for (name, slot) in &self.modules {
-                if let Err(e) = slot.post_plan(&module_plan(committed, name, self.revision)) {
-                    tracing::error!(module = %name, "cannot restore the committed plan: {e}");
+                // Twice, so the failed plan leaves the history a restarting module reads.
+                let plan = module_plan(committed, name, self.revision);
+                for _ in 0..PLAN_HISTORY {
+                    if let Err(e) = slot.post_plan(&plan) {
+                        tracing::error!(module = %name, "cannot restore the committed plan: {e}");
+                    }
                 }
             }
         }
@@ -359,7 +367,7 @@ impl Dnm {
             .as_ref()
             .and_then(|t| tasks.iter().position(|x| x == t))
             .map_or(NO_TASK, |s| s as u16);
-        self.word.update_with_copy(task_word(revision, slot));
+        self.store_word(task_word(revision, slot));
         self.revision = revision;
         self.tasks = tasks;
         self.active = task;
@@ -431,7 +439,7 @@ impl Dnm {
 
     /// Starts the next queued apply, if any.
     fn next_apply(&mut self) {
-        if self.apply.is_some() {
+        if self.apply.is_some() || self.stopping_all {
             return;
         }
         if let Some((netlist, key, reply)) = self.queued_applies.pop_front() {

@@ -16,24 +16,21 @@ use iceoryx2::port::writer::{EntryHandleMut, Writer};
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::blackboard::PortFactory as BlackboardFactory;
 use iceoryx2::service::port_factory::event::PortFactory as EventFactory;
-use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use iceoryx2::waitset::WaitSetRunResult;
 
-use crate::apply::PendingApply;
-use crate::procfs::CpuMeter;
-use crate::proto::{Memory, SupervisionReport};
-use crate::supervise::{ModuleSlot, Stopping};
-use crate::{
-    Command, CommandKey, DnmError, DnmOptions, DnmReport, ModuleEvent, ModuleReport, NetlistState,
-    Plugin, Reply, Snapshot, SwitchRecord,
+use dnm_proto::{
+    DnmReport, Memory, ModuleEvent, ModuleReport, NetlistState, SupervisionReport, SwitchRecord,
 };
 
-pub(crate) type Svc = ipc::Service;
-type TsSvc = ipc_threadsafe::Service;
+use crate::command::{Command, CommandKey, Reply};
+use crate::error::{DnmError, ipc};
+use crate::options::DnmOptions;
+use crate::pending::{Outcome, PendingApply, QueuedApply};
+use crate::plugin::{Plugin, Snapshot};
+use crate::procfs::CpuMeter;
+use crate::slot::{ModuleSlot, PortServices, Stopping, Svc};
 
-pub(crate) fn ipc<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> DnmError {
-    move |e| DnmError::Ipc(format!("{what}: {e:?}"))
-}
+type TsSvc = ipc_threadsafe::Service;
 
 /// Commands queued for a DNM's thread at most; more are refused as busy.
 pub(crate) const COMMAND_QUEUE: usize = 64;
@@ -47,23 +44,6 @@ static STOP: AtomicBool = AtomicBool::new(false);
 pub fn request_stop() {
     STOP.store(true, Ordering::Relaxed);
 }
-
-/// Keeps an output port's services alive while the DNM runs, so they outlive module restarts.
-#[allow(dead_code)]
-pub(crate) struct PortServices {
-    pub(crate) data: PubSubFactory<Svc, [u8], PortHeader>,
-    pub(crate) event: EventFactory<Svc>,
-}
-
-/// The remembered answer of a command, by its key.
-#[derive(Debug, Clone)]
-pub(crate) enum Outcome {
-    Switch(Result<SwitchRecord, String>),
-    Apply(Result<u64, String>),
-}
-
-/// An apply waiting for the one in progress: the netlist, its command key, its reply.
-pub(crate) type QueuedApply = (Netlist, Option<CommandKey>, Reply<Result<u64, String>>);
 
 /// Hands commands to a DNM's thread from any other thread and wakes it. Cheap to clone.
 #[derive(Clone)]
@@ -118,7 +98,10 @@ pub struct Dnm {
     pub(crate) node: Node<Svc>,
     _board: BlackboardFactory<Svc, u64>,
     _writer: Writer<Svc, u64>,
-    pub(crate) word: EntryHandleMut<Svc, u64, u64>,
+    word: EntryHandleMut<Svc, u64, u64>,
+    switched_at: EntryHandleMut<Svc, u64, u64>,
+    /// Set once the DNM is shutting down: no apply starts any more.
+    pub(crate) stopping_all: bool,
     _dnm_event: EventFactory<Svc>,
     events: Rc<Listener<Svc>>,
     pub(crate) ports: BTreeMap<String, PortServices>,
@@ -185,7 +168,8 @@ impl Dnm {
             .blackboard_creator::<u64>()
             .max_readers(MAX_MODULES)
             .max_nodes(MAX_MODULES)
-            .add::<u64>(0, task_word(0, NO_TASK))
+            .add::<u64>(TASK_WORD_KEY, task_word(0, NO_TASK))
+            .add::<u64>(SWITCHED_AT_KEY, 0)
             .create()
             .map_err(|e| {
                 tracing::debug!("blackboard create: {e:?}");
@@ -198,7 +182,12 @@ impl Dnm {
             .writer_builder()
             .create()
             .map_err(ipc("task writer"))?;
-        let word = writer.entry::<u64>(&0).map_err(ipc("task entry"))?;
+        let word = writer
+            .entry::<u64>(&TASK_WORD_KEY)
+            .map_err(ipc("task entry"))?;
+        let switched_at = writer
+            .entry::<u64>(&SWITCHED_AT_KEY)
+            .map_err(ipc("switch time entry"))?;
         let dnm_event =
             event_service(&node, DNM_EVENT).map_err(|e| DnmError::Ipc(e.to_string()))?;
         let events = dnm_event
@@ -215,6 +204,8 @@ impl Dnm {
             _board: board,
             _writer: writer,
             word,
+            switched_at,
+            stopping_all: false,
             _dnm_event: dnm_event,
             events: Rc::new(events),
             ports: BTreeMap::new(),
@@ -330,8 +321,7 @@ impl Dnm {
                     task: task.into(),
                     known: self.tasks.join(", "),
                 })?;
-        self.word
-            .update_with_copy(task_word(self.revision, slot as u16));
+        self.store_word(task_word(self.revision, slot as u16));
         let duration_ns = start.elapsed().as_nanos() as u64;
         let record = SwitchRecord {
             dnm: self.name.clone(),
@@ -354,6 +344,13 @@ impl Dnm {
         }
         tracing::info!(dnm = %self.name, task, duration_ns, "task switched");
         Ok(record)
+    }
+
+    /// Stores the task word, stamped: the time first, so a module that sees the new word reads
+    /// a time no older than it.
+    pub(crate) fn store_word(&mut self, word: u64) {
+        self.switched_at.update_with_copy(monotonic_ns());
+        self.word.update_with_copy(word);
     }
 
     /// The DNM's view of itself and its modules.
@@ -481,6 +478,9 @@ impl Dnm {
             }
             self.read_statuses();
             self.progress_apply();
+            // Exits are noticed at once (their shared memory is cleaned up by this DNM);
+            // readings and snapshots follow the tick.
+            self.supervise();
             let due = self
                 .last_pass
                 .is_none_or(|t| t.elapsed() + Duration::from_millis(1) >= self.options.tick);
@@ -491,7 +491,8 @@ impl Dnm {
         Ok(())
     }
 
-    /// One supervision pass: exits, hangs and restarts, CPU, and a fresh snapshot for plugins.
+    /// The periodic part of supervision: CPU and memory readings and a fresh snapshot for plugins
+    /// (exits, hangs and restarts are checked on every wake).
     fn pass(&mut self) {
         let now = Instant::now();
         if let Some(last) = self.last_pass {
@@ -500,7 +501,6 @@ impl Dnm {
         }
         self.last_pass = Some(now);
         self.supervision.passes += 1;
-        self.supervise();
         self.meter();
         self.publish();
     }
@@ -583,7 +583,10 @@ impl Dnm {
 
 impl Drop for Dnm {
     fn drop(&mut self) {
-        if self.modules.values().any(|s| s.child.is_some()) || !self.stopping.is_empty() {
+        if self.modules.values().any(|s| s.child.is_some())
+            || !self.stopping.is_empty()
+            || self.apply.is_some()
+        {
             self.shutdown();
         }
     }

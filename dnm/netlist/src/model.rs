@@ -869,8 +869,9 @@ fn toml_to_param(v: &toml::Value) -> Option<ParamValue> {
 pub const MIN_RATE_HZ: f64 = 0.01;
 /// Highest `rate_hz` a module may run at.
 pub const MAX_RATE_HZ: f64 = 10_000.0;
-/// Shortest `hung_after`: below it, scheduling jitter would read as a hang.
-pub const MIN_HUNG_AFTER_MS: u64 = 100;
+/// Shortest `hung_after`: below it, scheduling jitter and idle heartbeats (every 250 ms) would
+/// read as a hang. A DNM also never uses less than two periods of a periodic module.
+pub const MIN_HUNG_AFTER_MS: u64 = 500;
 /// Longest `hung_after`.
 pub const MAX_HUNG_AFTER_MS: u64 = 3_600_000;
 

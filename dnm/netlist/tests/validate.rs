@@ -407,7 +407,7 @@ fn rates_and_hang_deadlines_out_of_range_are_located() {
     .unwrap();
     assert_eq!(ok.module("drive").unwrap().hung_after_ms, Some(1500));
     for (value, says) in [
-        ("\"10ms\"", "outside 100 ms"),
+        ("\"100ms\"", "outside 500 ms"),
         ("\"2 days\"", "not a duration"),
         ("\"-1s\"", "not a duration"),
     ] {

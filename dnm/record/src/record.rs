@@ -200,11 +200,16 @@ impl Recorder {
                     .collect::<Vec<_>>()
             })
             .collect();
-        let _ = self.queue.send(Item::Netlist {
+        // Never blocks the DNM: a writer that cannot keep up loses the netlist record of this
+        // revision (its samples are counted as dropped anyway).
+        let item = Item::Netlist {
             revision,
             file: netlist.file.display().to_string(),
             text: netlist.text.clone(),
-        });
+        };
+        if let Err(TrySendError::Full(_)) = self.queue.try_send(item) {
+            tracing::warn!(dnm, revision, "recorder queue full: netlist not recorded");
+        }
         // The reader announces the new port set to the writer itself, in queue order, so no
         // sample read under the old set is written to a channel of the new one.
         if let Some(reader) = &self.reader {

@@ -58,6 +58,8 @@ const EGRESS_EVENT: &str = "_dnm/egress";
 pub const QUERY_QUEUE: usize = 256;
 /// Commands the command thread holds at most (queued, at the DNM, or being answered).
 pub const COMMAND_QUEUE: usize = 32;
+/// Applies among them at most: applies take seconds, and must leave room for switches.
+pub const APPLIES_IN_FLIGHT: usize = 4;
 
 /// Parses and validates a netlist sent in a command (`file` names it in errors).
 pub type ParseNetlist = Arc<dyn Fn(&Path, &str) -> Result<Netlist, String> + Send + Sync>;
@@ -120,6 +122,7 @@ struct Shared {
     outputs: Mutex<Option<Vec<(String, MessageType)>>>,
     queries_in_flight: AtomicUsize,
     commands_in_flight: AtomicUsize,
+    applies_in_flight: Arc<AtomicUsize>,
     refused: AtomicU64,
     answered: AtomicU64,
     /// Set when the bridge is dropped: its threads end.
@@ -934,8 +937,25 @@ fn command_loop(
                 }
             }
             Request::Apply { file, text } => {
+                let applies = shared.applies_in_flight.clone();
+                if !admit(&applies, APPLIES_IN_FLIGHT, &shared.refused) {
+                    finish(
+                        query,
+                        &Response::error(format!(
+                            "DNM `{dnm}` is busy with {APPLIES_IN_FLIGHT} applies; send it again later (same id)"
+                        )),
+                    );
+                    continue;
+                }
+                let release = {
+                    let applies = applies.clone();
+                    move || {
+                        applies.fetch_sub(1, Ordering::AcqRel);
+                    }
+                };
                 let netlist = match parse(Path::new(&file), &text) {
                     Err(e) => {
+                        release();
                         finish(
                             query,
                             &Response::error(format!("netlist refused, nothing changed:\n{e}")),
@@ -943,6 +963,7 @@ fn command_loop(
                         continue;
                     }
                     Ok(n) if n.system != system => {
+                        release();
                         finish(
                             query,
                             &Response::error(format!(
@@ -955,19 +976,24 @@ fn command_loop(
                     Ok(n) => n,
                 };
                 let tx = jobs_tx.clone();
-                let (reply, slot) = answer_slot(tx, query, move |r: Result<u64, String>| match r {
-                    Ok(revision) => Response {
-                        ok: true,
-                        revision: Some(revision),
-                        ..Response::default()
-                    },
-                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
+                let (reply, slot) = answer_slot(tx, query, move |r: Result<u64, String>| {
+                    release();
+                    match r {
+                        Ok(revision) => Response {
+                            ok: true,
+                            revision: Some(revision),
+                            ..Response::default()
+                        },
+                        Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
+                    }
                 });
                 if let Err(e) = commander.send(Command::Apply {
                     netlist: Box::new(netlist),
                     key,
                     reply,
                 }) {
+                    // The command (with its reply) came back unsent: free its apply slot here.
+                    applies.fetch_sub(1, Ordering::AcqRel);
                     if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
                         finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
                     }

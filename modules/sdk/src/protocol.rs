@@ -7,7 +7,7 @@
 //! |-------------------------|------------|------------|-------------------------------------------|
 //! | `<module>/<port>`       | pub/sub    | module     | the output port's samples (zero-copy)     |
 //! | `<module>/<port>/ev`    | event      | module     | "new sample" after every send             |
-//! | `_dnm/task`             | blackboard | DNM        | the active (revision, task slot) word     |
+//! | `_dnm/task`             | blackboard | DNM        | the (revision, task slot) word, its time  |
 //! | `_dnm/plan/<module>`    | pub/sub    | DNM        | the module's [`Plan`]s (JSON, history 2)  |
 //! | `_dnm/wake/<module>`    | event      | DNM        | "a new plan is posted" / "stop"           |
 //! | `_dnm/status/<module>`  | pub/sub    | module     | [`Status`] heartbeats and plan acks       |
@@ -99,6 +99,11 @@ pub fn output_event(module: &str, port: &str) -> String {
 }
 
 pub const TASK_SERVICE: &str = "_dnm/task";
+/// Key of the task word in the [`TASK_SERVICE`] blackboard.
+pub const TASK_WORD_KEY: u64 = 0;
+/// Key of the time (CLOCK_MONOTONIC ns) the task word was last stored: an input switched to
+/// another source shows only samples sent since.
+pub const SWITCHED_AT_KEY: u64 = 1;
 pub const DNM_EVENT: &str = "_dnm/ev";
 
 pub fn plan_service(module: &str) -> String {
@@ -210,6 +215,9 @@ pub struct Status {
     /// CLOCK_MONOTONIC time of the last heartbeat, ns: a module waiting for input posts one
     /// every [`HEARTBEAT`], so its DNM tells an idle module from a hung one.
     pub heartbeat_ns: u64,
+    /// The newest plan revision this process could not prepare (0: none); the DNM refuses
+    /// that revision.
+    pub prepare_failed: u64,
 }
 
 /// How often a module posts its status at least, stepping or idle.

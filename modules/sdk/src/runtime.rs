@@ -237,15 +237,12 @@ struct SourceConn {
 /// Stands for "no step yet" where a task word is remembered.
 const UNSET_WORD: u64 = u64::MAX;
 
-impl SourceConn {
-    /// Drops everything queued and the newest sample taken: they predate the moment this
-    /// source became active for some input.
-    fn discard(&mut self) -> Result<(), ModuleError> {
-        while self.subscriber.receive().map_err(ipc("receive"))?.is_some() {}
-        self.latest = None;
-        Ok(())
-    }
+/// Whether a sample was sent at or after `fresh_after_ns` (CLOCK_MONOTONIC).
+fn sent_since(sample: &PortSample, fresh_after_ns: u64) -> bool {
+    sample.user_header().stamp_ns >= fresh_after_ns
+}
 
+impl SourceConn {
     /// Takes everything queued, keeping only the newest sample.
     fn drain(&mut self) -> Result<bool, ModuleError> {
         let mut any = false;
@@ -284,6 +281,9 @@ pub struct Io<'a> {
     active: &'a [Option<usize>],
     /// Per input: the generation of its source last returned by `read`.
     seen: &'a mut [Option<(usize, u64)>],
+    /// Per input: samples sent before this time are not shown (the input was switched to its
+    /// source then).
+    fresh_after: &'a [u64],
     routes: Option<&'a Routes>,
     word: u64,
     now_ns: u64,
@@ -320,18 +320,24 @@ impl Io<'_> {
 
     fn sample(&self, input: usize) -> Option<&PortSample> {
         let conn = (*self.active.get(input)?)?;
-        self.conns[conn].latest.as_ref()
+        let after = self.fresh_after.get(input).copied().unwrap_or(0);
+        self.conns[conn]
+            .latest
+            .as_ref()
+            .filter(|s| sent_since(s, after))
     }
 
     fn take_new(&mut self, input: usize) -> Option<&PortSample> {
         let conn = (*self.active.get(input)?)?;
         let c = &self.conns[conn];
         let mark = Some((conn, c.generation));
-        if c.latest.is_none() || self.seen[input] == mark {
+        if self.seen[input] == mark {
             return None;
         }
+        let after = self.fresh_after.get(input).copied().unwrap_or(0);
+        let sample = c.latest.as_ref().filter(|s| sent_since(s, after))?;
         self.seen[input] = mark;
-        c.latest.as_ref()
+        Some(sample)
     }
 
     /// The newest value on `input` if it arrived since this input last read it, from the source
@@ -491,6 +497,9 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
         .create()
         .map_err(ipc("blackboard reader"))?;
     let word_entry = reader.entry::<u64>(&0).map_err(ipc("blackboard entry"))?;
+    let switched_entry = reader
+        .entry::<u64>(&SWITCHED_AT_KEY)
+        .map_err(ipc("blackboard entry"))?;
     let plan_sub = plan_service_factory(&node, &launch.module)?
         .subscriber_builder()
         .create()
@@ -572,9 +581,11 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
         Trigger::OnInput => None,
     };
     let mut last_status_ns = 0u64;
-    // The task word of the previous step, and the connections active under it.
+    // The task word of the previous step, each input's source under it, and the time from
+    // which each input shows samples.
     let mut last_word = UNSET_WORD;
-    let mut was_active: Vec<usize> = Vec::new();
+    let mut last_sources: Vec<Option<Source>> = vec![None; spec.inputs.len()];
+    let mut fresh_after: Vec<u64> = vec![0; spec.inputs.len()];
 
     loop {
         // Work that changes the set of subscriptions waits until the WaitSet is gone.
@@ -687,19 +698,18 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                     *a = routes.and_then(|r| r.source(input, slot));
                 }
                 if word != last_word {
-                    // A source that no input read under the previous word: what it queued
-                    // meanwhile is old (it may have gone quiet long ago). Only what it sends
-                    // from now on counts.
-                    if last_word != UNSET_WORD {
-                        for c in active.iter().flatten() {
-                            if !was_active.contains(c) {
-                                conns[*c].discard()?;
-                            }
+                    // An input switched to another source shows only what that source sends
+                    // from the switch on: what it queued before (it may have gone quiet long
+                    // ago) is old. The DNM stamps each store of the word.
+                    let switched_at = *switched_entry.get();
+                    for (input, a) in active.iter().enumerate() {
+                        let source = a.map(|c| conns[c].source.clone());
+                        if last_word != UNSET_WORD && source != last_sources[input] {
+                            fresh_after[input] = switched_at;
                         }
+                        last_sources[input] = source;
                     }
                     last_word = word;
-                    was_active.clear();
-                    was_active.extend(active.iter().flatten().copied());
                 }
                 let mut fresh = false;
                 for c in active.iter().flatten() {
@@ -712,7 +722,11 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                             || active.iter().enumerate().any(|(input, c)| {
                                 c.is_some_and(|c| {
                                     let g = conns[c].generation;
-                                    conns[c].latest.is_some() && seen[input] != Some((c, g))
+                                    conns[c]
+                                        .latest
+                                        .as_ref()
+                                        .is_some_and(|s| sent_since(s, fresh_after[input]))
+                                        && seen[input] != Some((c, g))
                                 })
                             })
                     }
@@ -726,6 +740,7 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                     conns: &conns,
                     active: &active,
                     seen: &mut seen,
+                    fresh_after: &fresh_after,
                     routes,
                     word,
                     now_ns,
@@ -746,26 +761,21 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
         }
         if let Some(i) = retire_before {
             plans.drain(..i);
-            retire(
-                &mut conns,
-                &mut listeners,
-                &mut plans,
-                &mut seen,
-                &mut was_active,
-            );
+            retire(&mut conns, &mut listeners, &mut plans, &mut seen);
         }
         if !pending.is_empty() {
             for plan in pending {
-                prepare(&node, &spec, plan, &mut conns, &mut listeners, &mut plans)?;
+                let revision = plan.revision;
+                // A plan this process cannot prepare is reported, not fatal: the DNM refuses
+                // the revision and the module goes on serving the one in force.
+                if let Err(e) = prepare(&node, &spec, plan, &mut conns, &mut listeners, &mut plans)
+                {
+                    tracing::error!(module = %launch.module, revision, "cannot prepare: {e}");
+                    status.prepare_failed = revision;
+                }
             }
             // A plan that replaced a failed one may leave sources nothing uses.
-            retire(
-                &mut conns,
-                &mut listeners,
-                &mut plans,
-                &mut seen,
-                &mut was_active,
-            );
+            retire(&mut conns, &mut listeners, &mut plans, &mut seen);
             status.plan_revision = plans.last().map_or(0, |p| p.revision);
             status.state = ModuleState::Running as u32;
             publish_status(&status)?;
@@ -897,7 +907,6 @@ fn retire(
     listeners: &mut Vec<Listener<Svc>>,
     plans: &mut [Routes],
     seen: &mut [Option<(usize, u64)>],
-    was_active: &mut Vec<usize>,
 ) {
     let used: Vec<bool> = (0..conns.len())
         .map(|c| {
@@ -931,5 +940,4 @@ fn retire(
     for s in seen.iter_mut() {
         *s = s.and_then(|(c, g)| remap[c].map(|c| (c, g)));
     }
-    *was_active = was_active.iter().filter_map(|c| remap[*c]).collect();
 }
