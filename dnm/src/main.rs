@@ -584,19 +584,31 @@ fn print_dnm(d: &DnmReport) {
         d.cpu_percent,
         d.memory.map_or(0, |m| m.private_kib())
     );
+    if let Some(p) = d.preparing {
+        println!("  preparing revision {p}");
+    }
     for m in &d.modules {
         println!(
-            "  {:<14} {:<12} {:<8} pid {:>7} restarts {:>2} steps {:>8} {:>7.1} Hz cpu {:>5.1}% rss {:>6} KiB",
+            "  {:<14} {:<12} {:<8} pid {:>7} restarts {:>2} hangs {:>2} steps {:>8} {:>7.1} Hz cpu {:>5.1}% rss {:>6} KiB",
             m.name,
             m.kind,
             format!("{:?}", m.state).to_lowercase(),
             m.pid.map(|p| p.to_string()).unwrap_or_else(|| "-".into()),
             m.restarts,
+            m.hangs,
             m.steps,
             m.rate_hz,
             m.cpu_percent,
             m.memory.map_or(0, |m| m.private_kib())
         );
+        if m.state != dnm::ModuleRunState::Running
+            && let Some(why) = &m.last_exit
+        {
+            println!("  {:<14} last exit: {why}", "");
+        }
+    }
+    for e in d.events.iter().rev().take(5).rev() {
+        println!("  event: {} {}: {}", e.module, e.what, e.detail);
     }
     if !d.peers.is_empty() {
         let peers: Vec<String> = d
@@ -614,6 +626,9 @@ fn print_dnm(d: &DnmReport) {
             "  recording {}: {} messages, {} bytes, {} dropped, {} files",
             r.file, r.messages, r.bytes, r.dropped, r.files
         );
+        if let Some(e) = &r.error {
+            println!("  recording STOPPED: {e}");
+        }
     }
     for (dir, routes) in [
         ("publishes", &d.routes.published),

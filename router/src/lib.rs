@@ -3,6 +3,17 @@
 //! `configs/zenoh/`) or Zenoh's defaults (peer mode, multicast scouting), with endpoints and mode
 //! given on the command line on top. [`run_router`] runs a Zenoh router: the process that joins
 //! the rover's network and the ground's.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! let options = dnm_router::ZenohOptions {
+//!     listen: vec!["tcp/0.0.0.0:7447".into()],
+//!     no_multicast: true,
+//!     ..Default::default()
+//! };
+//! let session = options.open()?;
+//! # Ok(()) }
+//! ```
 
 use std::path::PathBuf;
 

@@ -6,6 +6,23 @@
 //! over the l connections (K_char cancels in the normalisation). [`Weighting::Plain`] gives
 //! every connection weight 1. Rates come from the netlist: a periodic module's rate; an
 //! on-input module runs as fast as its fastest source.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! # let netlist: dnm_netlist::Netlist = unimplemented!();
+//! use dnm_place::{PlaceOptions, Weighting, place};
+//! let options = PlaceOptions {
+//!     weighting: Weighting::Weighted,
+//!     refine: true,
+//!     capacity: None,
+//!     max_dnms: None,
+//!     ignore_pins: false,
+//!     measured: None,
+//! };
+//! let placement = place(&netlist, &options)?;
+//! println!("modularity {:.3}: {:?}", placement.modularity, placement.clusters);
+//! # Ok(()) }
+//! ```
 
 pub mod cluster;
 

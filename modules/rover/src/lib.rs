@@ -11,6 +11,11 @@
 //!
 //! `configs/beetle.toml` wires them on four DNMs (`rover`, `drive`, `vision`, `ground`) with the
 //! tasks `teleop` and `auto`.
+//!
+//! ```
+//! let registry = dnm_rover::register(dnm_module::Registry::new());
+//! assert!(registry.find("watchdog").is_some());
+//! ```
 
 pub mod control;
 pub mod devices;

@@ -1,5 +1,10 @@
 //! The standard module kinds, grouped by role: `sources` produce data, `tasks` transform it,
 //! `sinks` consume it. [`registry`] lists them all; the `dnm-module-host` executable runs them.
+//!
+//! ```
+//! let kinds = dnm_modules::registry().specs();
+//! assert!(kinds.iter().any(|k| k.name == "relay"));
+//! ```
 
 use dnm_module::Registry;
 use dnm_netlist::{Catalog, KindSource};
