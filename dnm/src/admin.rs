@@ -237,7 +237,10 @@ fn start(
                 let _ = thread.join();
                 anyhow::bail!("DNM `{name}` did not start: {e}");
             }
-            Err(_) => anyhow::bail!("DNM `{name}` stopped while starting"),
+            Err(_) => {
+                dnm_core::request_stop();
+                anyhow::bail!("DNM `{name}` stopped while starting")
+            }
         };
         handles.push(DnmHandle { commander, thread });
     }
@@ -369,14 +372,15 @@ fn serve(listener: &UnixListener, system: &str, dnms: &[Commander]) {
             answer(&stream, &refused);
             continue;
         }
-        let (system, dnms, busy) = (system.to_string(), dnms.to_vec(), busy.clone());
+        let (system, dnms, slot) = (system.to_string(), dnms.to_vec(), busy.clone());
         let spawned = std::thread::Builder::new()
             .name("dnm-admin-conn".into())
             .spawn(move || {
                 serve_one(&stream, &system, &dnms);
-                busy.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
+                slot.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
             });
         if let Err(e) = spawned {
+            busy.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
             tracing::warn!("admin connection dropped: {e}");
         }
     }

@@ -367,7 +367,7 @@ impl Dnm {
             .as_ref()
             .and_then(|t| tasks.iter().position(|x| x == t))
             .map_or(NO_TASK, |s| s as u16);
-        self.store_word(task_word(revision, slot));
+        self.store_word(task_word(revision, slot), monotonic_ns());
         self.revision = revision;
         self.tasks = tasks;
         self.active = task;

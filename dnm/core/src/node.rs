@@ -36,6 +36,8 @@ type TsSvc = ipc_threadsafe::Service;
 pub(crate) const COMMAND_QUEUE: usize = 64;
 /// Command answers remembered for retries.
 const ANSWERED: usize = 1024;
+/// Shortest time between two checks of the modules' processes.
+const SUPERVISE_EVERY: Duration = Duration::from_millis(10);
 
 /// Set when this process was asked to terminate; every DNM loop of the process stops.
 static STOP: AtomicBool = AtomicBool::new(false);
@@ -128,6 +130,7 @@ pub struct Dnm {
     command_tx: Option<SyncSender<Command>>,
     supervision: SupervisionReport,
     last_pass: Option<Instant>,
+    last_supervise: Instant,
 }
 
 impl std::fmt::Debug for Dnm {
@@ -230,6 +233,7 @@ impl Dnm {
             command_tx: Some(command_tx),
             supervision: SupervisionReport::default(),
             last_pass: None,
+            last_supervise: Instant::now(),
         })
     }
 
@@ -312,6 +316,9 @@ impl Dnm {
     /// Switches the active task: one store of the task word. Everything the task needs was
     /// prepared when the netlist was applied. Never waits for an apply in progress.
     pub fn switch(&mut self, task: &str) -> Result<SwitchRecord, DnmError> {
+        // The time of the switch, for its record and for inputs to tell older samples from
+        // newer: read before the switch itself, which is the lookup and the two stores.
+        let at_ns = monotonic_ns();
         let start = Instant::now();
         let slot =
             self.tasks
@@ -321,7 +328,7 @@ impl Dnm {
                     task: task.into(),
                     known: self.tasks.join(", "),
                 })?;
-        self.store_word(task_word(self.revision, slot as u16));
+        self.store_word(task_word(self.revision, slot as u16), at_ns);
         let duration_ns = start.elapsed().as_nanos() as u64;
         let record = SwitchRecord {
             dnm: self.name.clone(),
@@ -329,7 +336,7 @@ impl Dnm {
             from: self.active.replace(task.to_string()),
             to: task.to_string(),
             duration_ns,
-            at_ns: monotonic_ns(),
+            at_ns,
         };
         for slot in self.modules.values() {
             // Wake modules that wait for input so they re-read their sources now.
@@ -346,10 +353,10 @@ impl Dnm {
         Ok(record)
     }
 
-    /// Stores the task word, stamped: the time first, so a module that sees the new word reads
-    /// a time no older than it.
-    pub(crate) fn store_word(&mut self, word: u64) {
-        self.switched_at.update_with_copy(monotonic_ns());
+    /// Stores the task word, stamped with `at_ns` (CLOCK_MONOTONIC, taken just before): the
+    /// time first, so a module that sees the new word reads a time no older than it.
+    pub(crate) fn store_word(&mut self, word: u64, at_ns: u64) {
+        self.switched_at.update_with_copy(at_ns);
         self.word.update_with_copy(word);
     }
 
@@ -478,9 +485,12 @@ impl Dnm {
             }
             self.read_statuses();
             self.progress_apply();
-            // Exits are noticed at once (their shared memory is cleaned up by this DNM);
-            // readings and snapshots follow the tick.
-            self.supervise();
+            // Exits are noticed within a few milliseconds (their shared memory is cleaned up by
+            // this DNM), not on every module heartbeat; readings and snapshots follow the tick.
+            if self.last_supervise.elapsed() >= SUPERVISE_EVERY {
+                self.last_supervise = Instant::now();
+                self.supervise();
+            }
             let due = self
                 .last_pass
                 .is_none_or(|t| t.elapsed() + Duration::from_millis(1) >= self.options.tick);
@@ -530,6 +540,18 @@ impl Dnm {
         self.answered.push_back((key, outcome));
         if self.answered.len() > ANSWERED {
             self.answered.pop_front();
+        }
+    }
+
+    /// Answers every command still queued: reports as usual, switches and applies refused.
+    pub(crate) fn refuse_queued_commands(&mut self) {
+        while let Ok(cmd) = self.commands.try_recv() {
+            match cmd {
+                Command::Status(reply) => reply.send(self.report()),
+                Command::Netlist(reply) => reply.send(self.netlist_state()),
+                Command::Switch { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
+                Command::Apply { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
+            }
         }
     }
 

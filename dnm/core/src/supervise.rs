@@ -322,6 +322,7 @@ impl Dnm {
     /// Stops every module and waits for them (SIGTERM, then SIGKILL after the grace period).
     pub fn shutdown(&mut self) {
         self.stopping_all = true;
+        self.refuse_queued_commands();
         for (_, _, reply) in std::mem::take(&mut self.queued_applies) {
             reply.send(Err(DnmError::Stopped.to_string()));
         }

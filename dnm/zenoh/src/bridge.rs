@@ -89,11 +89,12 @@ fn to_wire(h: &PortHeader) -> SampleHeader {
 
 /// The header as it enters this machine: the send time on this machine's monotonic clock, so
 /// modules judge the sample's age as they judge local ones (assumes synchronised wall clocks;
-/// a send time ahead of this machine's clock counts as now).
+/// a send time ahead of this machine's clock counts as now). A sample without a wall-clock time
+/// (an older sender, a foreign publisher) is stamped with its arrival: Zenoh delivers it live.
 fn from_wire(h: SampleHeader) -> PortHeader {
     let now = dnm_module::protocol::monotonic_ns();
     let stamp_ns = if h.unix_ns == 0 {
-        h.stamp_ns
+        now
     } else {
         now.saturating_sub(unix_now_ns().saturating_sub(h.unix_ns))
     };

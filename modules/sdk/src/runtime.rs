@@ -697,7 +697,9 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                 for (input, a) in active.iter_mut().enumerate() {
                     *a = routes.and_then(|r| r.source(input, slot));
                 }
-                if word != last_word {
+                // Words this process has no plan for (it is still preparing) change nothing: the
+                // first word it serves counts as its start, whenever it woke up.
+                if routes.is_some() && word != last_word {
                     // An input switched to another source shows only what that source sends
                     // from the switch on: what it queued before (it may have gone quiet long
                     // ago) is old. The DNM stamps each store of the word.
@@ -711,25 +713,23 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                     }
                     last_word = word;
                 }
-                let mut fresh = false;
                 for c in active.iter().flatten() {
-                    fresh |= conns[*c].drain()?;
+                    conns[*c].drain()?;
                 }
+                // An on-input module steps when an input has a sample it has not read that was
+                // sent since the input's source became active.
                 let due = match period {
                     Some(_) => ticked,
-                    None => {
-                        fresh
-                            || active.iter().enumerate().any(|(input, c)| {
-                                c.is_some_and(|c| {
-                                    let g = conns[c].generation;
-                                    conns[c]
-                                        .latest
-                                        .as_ref()
-                                        .is_some_and(|s| sent_since(s, fresh_after[input]))
-                                        && seen[input] != Some((c, g))
-                                })
-                            })
-                    }
+                    None => active.iter().enumerate().any(|(input, c)| {
+                        c.is_some_and(|c| {
+                            let g = conns[c].generation;
+                            conns[c]
+                                .latest
+                                .as_ref()
+                                .is_some_and(|s| sent_since(s, fresh_after[input]))
+                                && seen[input] != Some((c, g))
+                        })
+                    }),
                 };
                 if !due {
                     continue;
@@ -771,6 +771,12 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                 if let Err(e) = prepare(&node, &spec, plan, &mut conns, &mut listeners, &mut plans)
                 {
                     tracing::error!(module = %launch.module, revision, "cannot prepare: {e}");
+                    // The revision in force itself: this process cannot serve it, so it ends and
+                    // its restart policy takes over.
+                    let (in_force, _) = split_task_word(*word_entry.get());
+                    if revision == in_force {
+                        return Err(e);
+                    }
                     status.prepare_failed = revision;
                 }
             }
@@ -778,6 +784,8 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
             retire(&mut conns, &mut listeners, &mut plans, &mut seen);
             status.plan_revision = plans.last().map_or(0, |p| p.revision);
             status.state = ModuleState::Running as u32;
+            // A sign of life, so a module that hangs in its first step is found too.
+            status.heartbeat_ns = monotonic_ns();
             publish_status(&status)?;
         }
     }
