@@ -45,7 +45,10 @@ impl Dnm {
             reply.send(Err(DnmError::Stopped.to_string()));
             return;
         }
-        if self.apply.is_some() || !self.queued_applies.is_empty() {
+        if self.apply.is_some()
+            || !self.queued_applies.is_empty()
+            || self.waits_for_stopping(&netlist)
+        {
             if self.queued_applies.len() >= COMMAND_QUEUE {
                 reply.send(Err(DnmError::Busy(self.queued_applies.len()).to_string()));
                 return;
@@ -53,12 +56,24 @@ impl Dnm {
             self.queued_applies.push_back((netlist, key, reply));
             return;
         }
+        self.start_apply(netlist, key, reply);
+    }
+
+    /// Prepares an apply and makes it the pending one; if preparing fails, answers at once and
+    /// returns false (nothing changed).
+    fn start_apply(
+        &mut self,
+        netlist: Netlist,
+        key: Option<CommandKey>,
+        reply: Reply<Result<u64, String>>,
+    ) -> bool {
         match self.prepare_apply(netlist, key.clone()) {
             Ok(mut pending) => {
                 pending.replies.push(reply);
                 self.apply = Some(pending);
                 // Modules that are already prepared (none changed) commit at once.
                 self.progress_apply();
+                true
             }
             Err(e) => {
                 let e = e.to_string();
@@ -66,6 +81,7 @@ impl Dnm {
                     self.remember(k, Outcome::Apply(Err(e.clone())));
                 }
                 reply.send(Err(e));
+                false
             }
         }
     }
@@ -321,8 +337,15 @@ impl Dnm {
     /// the failed revision's references are dropped.
     fn undo(&mut self, mut p: PendingApply) {
         for (name, mut slot) in std::mem::take(&mut p.staged) {
+            let prefix = format!("{name}/");
+            let ports: Vec<PortServices> = p
+                .new_ports
+                .iter()
+                .filter(|s| s.starts_with(&prefix))
+                .filter_map(|s| self.ports.remove(s))
+                .collect();
             if let Some(child) = slot.child.take() {
-                self.retire_process(&name, child);
+                self.retire_holding(&name, child, Some(slot), ports);
             }
         }
         for service in &p.new_ports {
@@ -383,11 +406,19 @@ impl Dnm {
         // Removed modules stop; their port services go unless a module of the new revision
         // keeps the name.
         for name in &p.removed {
-            self.stop_module(name);
-            if let Some(slot) = self.modules.remove(name) {
-                for port in &slot.spec.outputs {
-                    self.ports.remove(&output_service(name, &port.name));
-                }
+            let Some(mut slot) = self.modules.remove(name) else {
+                continue;
+            };
+            let ports: Vec<PortServices> = slot
+                .spec
+                .outputs
+                .iter()
+                .filter_map(|port| self.ports.remove(&output_service(name, &port.name)))
+                .collect();
+            slot.state = ModuleRunState::Stopped;
+            if let Some(child) = slot.child.take() {
+                tracing::info!(dnm = %self.name, module = %name, "module stopping");
+                self.retire_holding(name, child, Some(slot), ports);
             }
         }
         // Replaced modules: the old process stops; the new one starts once it is gone, and
@@ -438,8 +469,16 @@ impl Dnm {
     }
 
     /// Starts the next queued apply, if any.
-    fn next_apply(&mut self) {
+    pub(crate) fn next_apply(&mut self) {
         if self.apply.is_some() || self.stopping_all {
+            return;
+        }
+        if self
+            .queued_applies
+            .front()
+            .is_some_and(|(n, _, _)| self.waits_for_stopping(n))
+        {
+            // Started by supervision once the process is gone.
             return;
         }
         if let Some((netlist, key, reply)) = self.queued_applies.pop_front() {
@@ -450,20 +489,8 @@ impl Dnm {
                     return self.next_apply();
                 }
             }
-            match self.prepare_apply(netlist, key.clone()) {
-                Ok(mut pending) => {
-                    pending.replies.push(reply);
-                    self.apply = Some(pending);
-                    self.progress_apply();
-                }
-                Err(e) => {
-                    let e = e.to_string();
-                    if let Some(k) = key {
-                        self.remember(k, Outcome::Apply(Err(e.clone())));
-                    }
-                    reply.send(Err(e));
-                    self.next_apply();
-                }
+            if !self.start_apply(netlist, key, reply) {
+                self.next_apply();
             }
         }
     }

@@ -67,15 +67,7 @@ impl ModuleSlot {
         name: &str,
         on_input_hung_after: Duration,
     ) -> Result<Self, DnmError> {
-        let decl = netlist
-            .module(name)
-            .ok_or_else(|| DnmError::Ipc(format!("module {name} vanished")))?
-            .clone();
-        let entry = netlist
-            .catalog
-            .get(&decl.kind)
-            .ok_or_else(|| DnmError::Ipc(format!("kind {} vanished", decl.kind)))?
-            .clone();
+        let (decl, entry) = declared(netlist, name)?;
         let plan_pub = plan_service_factory(node, name)
             .map_err(|e| DnmError::Ipc(e.to_string()))?
             .publisher_builder()
@@ -122,15 +114,7 @@ impl ModuleSlot {
         netlist: &Netlist,
         on_input_hung_after: Duration,
     ) -> Result<(), DnmError> {
-        let decl = netlist
-            .module(&self.decl.name)
-            .ok_or_else(|| DnmError::Ipc(format!("module {} vanished", self.decl.name)))?
-            .clone();
-        let entry = netlist
-            .catalog
-            .get(&decl.kind)
-            .ok_or_else(|| DnmError::Ipc(format!("kind {} vanished", decl.kind)))?
-            .clone();
+        let (decl, entry) = declared(netlist, &self.decl.name)?;
         self.hung_after = hung_deadline(&decl, &entry.spec, on_input_hung_after);
         self.decl = decl;
         self.spec = entry.spec;
@@ -172,6 +156,23 @@ impl ModuleSlot {
     }
 }
 
+/// A module's declaration in `netlist` and its kind's catalogue entry.
+fn declared(
+    netlist: &Netlist,
+    name: &str,
+) -> Result<(dnm_netlist::Module, dnm_netlist::CatalogEntry), DnmError> {
+    let decl = netlist
+        .module(name)
+        .ok_or_else(|| DnmError::Ipc(format!("module {name} vanished")))?
+        .clone();
+    let entry = netlist
+        .catalog
+        .get(&decl.kind)
+        .ok_or_else(|| DnmError::Ipc(format!("kind {} vanished", decl.kind)))?
+        .clone();
+    Ok((decl, entry))
+}
+
 /// How long a module may go without a sign of life: its own `hung_after`, else five periods of
 /// a periodic module (at least a second), else the DNM's default for on-input modules. Never
 /// less than two heartbeats (two periods for a periodic module) plus slack for supervision,
@@ -201,4 +202,11 @@ pub(crate) struct Stopping {
     pub(crate) module: String,
     pub(crate) child: Child,
     pub(crate) kill_at: Instant,
+    /// The module's control and port services, kept (never read) until the process is gone so
+    /// they are not removed while it still uses them, and a new module of the name opens fresh
+    /// ones.
+    #[allow(dead_code)]
+    pub(crate) held_slot: Option<ModuleSlot>,
+    #[allow(dead_code)]
+    pub(crate) held_ports: Vec<PortServices>,
 }

@@ -11,7 +11,7 @@ use iceoryx2::port::update_connections::UpdateConnections;
 
 use crate::error::DnmError;
 use crate::node::Dnm;
-use crate::slot::{ModuleSlot, Stopping};
+use crate::slot::{ModuleSlot, PortServices, Stopping};
 
 /// The largest back-off between restarts.
 const MAX_BACKOFF: Duration = Duration::from_secs(5);
@@ -64,13 +64,37 @@ impl Dnm {
     /// Asks a process to exit (SIGTERM) and leaves it to supervision, which kills it after the
     /// grace period and reaps it. Never waits.
     pub(crate) fn retire_process(&mut self, module: &str, child: Child) {
+        self.retire_holding(module, child, None, Vec::new());
+    }
+
+    /// [`Dnm::retire_process`], keeping the module's services until the process is gone.
+    pub(crate) fn retire_holding(
+        &mut self,
+        module: &str,
+        child: Child,
+        held_slot: Option<ModuleSlot>,
+        held_ports: Vec<PortServices>,
+    ) {
         // SAFETY: kill(2) with the pid of a child we have not reaped yet.
         unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
         self.stopping.push(Stopping {
             module: module.to_string(),
             child,
             kill_at: Instant::now() + self.options.stop_grace,
+            held_slot,
+            held_ports,
         });
+    }
+
+    /// Whether applying `netlist` would add a module whose previous process is still being
+    /// stopped: such an apply waits until it is gone.
+    pub(crate) fn waits_for_stopping(&self, netlist: &dnm_netlist::Netlist) -> bool {
+        self.stopping.iter().any(|s| {
+            !self.modules.contains_key(&s.module)
+                && netlist
+                    .module(&s.module)
+                    .is_some_and(|m| m.dnm == self.name)
+        })
     }
 
     /// Stops a module's process (asynchronously) and marks it stopped.
@@ -244,6 +268,10 @@ impl Dnm {
         if any_died {
             let c = self.node.try_cleanup_dead_nodes();
             self.cleaned += c.cleanups;
+        }
+        // An apply that waited for a stopping process may start now.
+        if self.apply.is_none() && !self.queued_applies.is_empty() {
+            self.next_apply();
         }
         // Starts that are due: restarts after their back-off, replacements once the process
         // they replace is gone.
