@@ -742,3 +742,37 @@ fn a_plan_a_module_cannot_prepare_is_refused_and_the_module_keeps_running() {
     let ticks = collect::<Tick>(&relay, |t| t.len() >= 10);
     assert!(ticks.iter().all(|t| t.origin == 1));
 }
+
+#[test]
+fn a_process_can_host_dnms_again_after_stopping_them() {
+    // The library use: start a machine's DNMs in this process, stop them, start them again.
+    let name = format!("t{}again", std::process::id());
+    let dir = std::env::temp_dir().join(format!("dnm-test-{name}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("netlist.toml");
+    std::fs::write(&path, CHAIN.replace("SYSTEM", &name)).unwrap();
+    let mut zenoh = zenoh::Config::default();
+    zenoh
+        .insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    for round in 0..2 {
+        let netlist = dnm::load_netlist(&path).unwrap();
+        let mut options = dnm::HostOptions::standard().unwrap();
+        options.dnm.module_host = module_host();
+        let host =
+            dnm::admin::Host::start(netlist, &["main".into()], options, zenoh.clone()).unwrap();
+        support::eventually(&format!("round {round}: every module running"), || {
+            dnm::admin::request(&name, &Request::Status)
+                .ok()
+                .filter(|r| {
+                    r.dnms.len() == 1
+                        && r.dnms[0]
+                            .modules
+                            .iter()
+                            .all(|m| m.state == ModuleRunState::Running)
+                })
+        });
+        host.stop();
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

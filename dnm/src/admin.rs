@@ -195,6 +195,11 @@ fn start(
 ) -> anyhow::Result<Host> {
     use anyhow::Context;
     use zenoh::Wait;
+    if !dnm_core::clear_stop_if_idle() {
+        anyhow::bail!(
+            "DNMs of this process are still stopping; wait for them before starting again"
+        );
+    }
     let session = zenoh::open(zenoh)
         .wait()
         .map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))?;

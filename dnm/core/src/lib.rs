@@ -45,7 +45,7 @@ pub use dnm_proto::{
     DnmReport, ModuleEvent, ModuleReport, ModuleRunState, NetlistState, SwitchRecord,
 };
 pub use error::DnmError;
-pub use node::{Commander, Dnm, request_stop};
+pub use node::{Commander, Dnm, clear_stop_if_idle, request_stop};
 pub use options::{DnmOptions, module_host_path};
 pub use plugin::{Context, Plugin, Snapshot};
 

@@ -42,9 +42,39 @@ const SUPERVISE_EVERY: Duration = Duration::from_millis(10);
 /// Set when this process was asked to terminate; every DNM loop of the process stops.
 static STOP: AtomicBool = AtomicBool::new(false);
 
+/// DNM loops running in this process.
+static LOOPS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
 /// Asks every DNM loop of this process to stop (as SIGTERM does).
 pub fn request_stop() {
     STOP.store(true, Ordering::Relaxed);
+}
+
+/// Forgets an earlier [`request_stop`] once no DNM loop of this process runs any more, so a
+/// process can start DNMs again (a library user, a test). Returns whether it did.
+pub fn clear_stop_if_idle() -> bool {
+    if LOOPS.load(Ordering::Acquire) == 0 {
+        STOP.store(false, Ordering::Relaxed);
+        true
+    } else {
+        false
+    }
+}
+
+/// Counts a running DNM loop while it lives.
+struct LoopGuard;
+
+impl LoopGuard {
+    fn enter() -> Self {
+        LOOPS.fetch_add(1, Ordering::AcqRel);
+        LoopGuard
+    }
+}
+
+impl Drop for LoopGuard {
+    fn drop(&mut self) {
+        LOOPS.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 /// Hands commands to a DNM's thread from any other thread and wakes it. Cheap to clone.
@@ -446,6 +476,7 @@ impl Dnm {
     pub fn run(&mut self) -> Result<(), DnmError> {
         // From now on the loop ends when the last commander goes.
         self.command_tx = None;
+        let _running = LoopGuard::enter();
         let events = self.events.clone();
         let waitset = WaitSetBuilder::new()
             .create::<Svc>()
