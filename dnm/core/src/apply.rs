@@ -23,8 +23,8 @@ use crate::error::DnmError;
 use crate::node::{COMMAND_QUEUE, Dnm};
 use crate::pending::{Outcome, PendingApply};
 use crate::plan::{module_plan, task_slots};
-use crate::plugin::Context;
-use crate::slot::{ModuleSlot, PortServices};
+use crate::plugin::{Context, Plugin};
+use crate::slot::{ModuleSlot, PortServices, exec_of};
 
 impl Dnm {
     /// Starts applying `netlist`: the answer goes to `reply` when the revision is committed or
@@ -170,10 +170,7 @@ impl Dnm {
             let Some(entry) = netlist.catalog.get(&module.kind) else {
                 continue;
             };
-            let exec = match &entry.source {
-                dnm_netlist::KindSource::BuiltIn => self.options.module_host.clone(),
-                dnm_netlist::KindSource::Exec { path } => path.into(),
-            };
+            let exec = exec_of(&entry.source, &self.options.module_host);
             if !is_executable(&exec) {
                 return Err(DnmError::Spawn {
                     module: name.clone(),
@@ -183,23 +180,19 @@ impl Dnm {
             }
         }
         // 2. Plugins: remote outputs mirrored here before any plan references them.
-        let local_outputs = self.local_outputs();
-        for i in 0..self.plugins.len() {
-            let ctx = Context {
-                system: &self.system,
-                dnm: &self.name,
-                prefix: &self.prefix,
-                node: &self.node,
-                local_outputs: &local_outputs,
-            };
-            self.plugins[i]
-                .prepare(&ctx, netlist, p.revision)
-                .map_err(|why| DnmError::Plugin {
-                    plugin: self.plugins[i].name(),
-                    why,
-                })?;
-            p.prepared_plugins = i + 1;
-        }
+        let revision = p.revision;
+        let (netlist, prepared) = (&p.netlist, &mut p.prepared_plugins);
+        let n = self.plugins.len();
+        self.with_plugins(0..n, |plugin, ctx| {
+            plugin.prepare(ctx, netlist, revision)?;
+            *prepared += 1;
+            Ok(())
+        })
+        .map_err(|(i, why)| DnmError::Plugin {
+            plugin: self.plugins[i].name(),
+            why,
+        })?;
+        let netlist = &p.netlist;
         // 3. New modules: control services, their plan (found as history), then the process.
         for name in added {
             let mut slot =
@@ -216,6 +209,27 @@ impl Dnm {
                 continue;
             }
             slot.post_plan(&module_plan(netlist, name, p.revision))?;
+        }
+        Ok(())
+    }
+
+    /// Calls `f` on the plugins `order` names, with the DNM's context; stops at the first error
+    /// and returns it with the plugin's index.
+    fn with_plugins(
+        &mut self,
+        order: impl IntoIterator<Item = usize>,
+        mut f: impl FnMut(&mut dyn Plugin, &Context<'_>) -> Result<(), String>,
+    ) -> Result<(), (usize, String)> {
+        let local_outputs = self.local_outputs();
+        let ctx = Context {
+            system: &self.system,
+            dnm: &self.name,
+            prefix: &self.prefix,
+            node: &self.node,
+            local_outputs: &local_outputs,
+        };
+        for i in order {
+            f(self.plugins[i].as_mut(), &ctx).map_err(|e| (i, e))?;
         }
         Ok(())
     }
@@ -351,17 +365,10 @@ impl Dnm {
         for service in &p.new_ports {
             self.ports.remove(service);
         }
-        let local_outputs = self.local_outputs();
-        for i in (0..p.prepared_plugins).rev() {
-            let ctx = Context {
-                system: &self.system,
-                dnm: &self.name,
-                prefix: &self.prefix,
-                node: &self.node,
-                local_outputs: &local_outputs,
-            };
-            self.plugins[i].abort(&ctx, p.revision);
-        }
+        let _ = self.with_plugins((0..p.prepared_plugins).rev(), |plugin, ctx| {
+            plugin.abort(ctx, p.revision);
+            Ok(())
+        });
         if let Some(committed) = &self.netlist {
             for (name, slot) in &self.modules {
                 // Twice, so the failed plan leaves the history a restarting module reads.
@@ -445,17 +452,11 @@ impl Dnm {
             slot.start_at = Some(Instant::now());
         }
         // Routes to and from other DNMs and the recording follow the committed revision.
-        let local_outputs = self.local_outputs();
-        for i in 0..self.plugins.len() {
-            let ctx = Context {
-                system: &self.system,
-                dnm: &self.name,
-                prefix: &self.prefix,
-                node: &self.node,
-                local_outputs: &local_outputs,
-            };
-            self.plugins[i].commit(&ctx, &netlist, revision);
-        }
+        let n = self.plugins.len();
+        let _ = self.with_plugins(0..n, |plugin, ctx| {
+            plugin.commit(ctx, &netlist, revision);
+            Ok(())
+        });
         tracing::info!(dnm = %self.name, revision, task = ?self.active, "netlist applied");
         if let Some(k) = p.key.take() {
             self.remember(k, Outcome::Apply(Ok(revision)));

@@ -11,8 +11,6 @@ pub enum DnmError {
     AlreadyRunning { system: String, dnm: String },
     #[error("unknown task `{task}`; defined tasks: {known}")]
     UnknownTask { task: String, known: String },
-    #[error("no netlist applied yet")]
-    NoNetlist,
     #[error(
         "netlist does not declare DNM `{0}`, which this process hosts; keep it or stop this DNM first"
     )]

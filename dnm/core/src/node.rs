@@ -112,13 +112,6 @@ impl Commander {
         }
         Ok(())
     }
-
-    /// The DNM's report, waiting up to `timeout`.
-    pub fn status(&self, timeout: Duration) -> Result<DnmReport, DnmError> {
-        let (reply, rx) = Reply::channel();
-        self.send(Command::Status(reply))?;
-        rx.recv_timeout(timeout).map_err(|_| DnmError::Stopped)
-    }
 }
 
 /// A database node module.

@@ -149,10 +149,15 @@ impl ModuleSlot {
 
     /// The executable that runs this module.
     pub(crate) fn exec(&self, module_host: &std::path::Path) -> PathBuf {
-        match &self.source {
-            KindSource::BuiltIn => module_host.to_path_buf(),
-            KindSource::Exec { path } => PathBuf::from(path),
-        }
+        exec_of(&self.source, module_host)
+    }
+}
+
+/// The executable that runs modules of a kind from `source`.
+pub(crate) fn exec_of(source: &KindSource, module_host: &std::path::Path) -> PathBuf {
+    match source {
+        KindSource::BuiltIn => module_host.to_path_buf(),
+        KindSource::Exec { path } => PathBuf::from(path),
     }
 }
 

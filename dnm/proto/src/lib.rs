@@ -44,8 +44,6 @@ pub enum ModuleRunState {
     Hung,
     /// Exited, crashed or killed; restarts per its policy.
     Failed,
-    /// Being stopped (removed, replaced, or the DNM is shutting down).
-    Stopping,
     /// Stopped on purpose, or failed past its restart budget.
     Stopped,
 }
