@@ -530,5 +530,10 @@ fn dispatch(req: Request, system: &str, dnms: &[Commander]) -> Response {
                 Err(e) => Response::error(e),
             }
         }
+        Request::Prepare { .. } | Request::Decide { .. } | Request::Adopt { .. } => {
+            Response::error(
+                "transactions come from the system's authority over Zenoh, not the admin socket",
+            )
+        }
     }
 }

@@ -61,13 +61,13 @@ impl Dnm {
 
     /// Prepares an apply and makes it the pending one; if preparing fails, answers at once and
     /// returns false (nothing changed).
-    fn start_apply(
+    pub(crate) fn start_apply(
         &mut self,
         netlist: Netlist,
         key: Option<CommandKey>,
         reply: Reply<Result<u64, String>>,
     ) -> bool {
-        match self.prepare_apply(netlist, key.clone()) {
+        match self.prepare_apply(netlist, key.clone(), None) {
             Ok(mut pending) => {
                 pending.replies.push(reply);
                 self.apply = Some(pending);
@@ -86,17 +86,28 @@ impl Dnm {
         }
     }
 
-    /// Everything of an apply up to waiting for the modules. On error nothing has changed.
-    fn prepare_apply(
+    /// Everything of an apply up to waiting for the modules, as the next revision or as the
+    /// given one (which must be newer than any tried here). On error nothing has changed.
+    pub(crate) fn prepare_apply(
         &mut self,
         netlist: Netlist,
         key: Option<CommandKey>,
+        revision: Option<u64>,
     ) -> Result<PendingApply, DnmError> {
         if netlist.dnm(&self.name).is_none() {
             return Err(DnmError::DnmMissing(self.name.clone()));
         }
         // Never reuse a number: a failed apply's plans may still sit in modules' history.
-        let revision = self.revision.max(self.last_attempt) + 1;
+        let next = self.revision.max(self.last_attempt) + 1;
+        let revision = match revision {
+            Some(r) if r < next => {
+                return Err(DnmError::Refused(format!(
+                    "revision {r} was already used here; the next free one is {next}"
+                )));
+            }
+            Some(r) => r,
+            None => next,
+        };
         self.last_attempt = revision;
         let me = self.name.clone();
         let wanted: BTreeMap<String, dnm_netlist::Module> = netlist
@@ -131,6 +142,10 @@ impl Dnm {
             deadline: Instant::now() + self.options.prepare_timeout,
             key,
             replies: Vec::new(),
+            txn: None,
+            task: None,
+            ready: Vec::new(),
+            held: false,
         };
         match self.stage(&mut pending, &added) {
             Ok(()) => Ok(pending),
@@ -253,6 +268,10 @@ impl Dnm {
         let Some(p) = self.apply.as_ref() else {
             return;
         };
+        if p.held {
+            // Prepared: it waits for the authority's decision, however long that takes.
+            return;
+        }
         let revision = p.revision;
         // A new module that exited while preparing fails the apply.
         let mut exited = None;
@@ -310,7 +329,15 @@ impl Dnm {
             })
             .collect();
         if waiting.is_empty() {
-            if let Some(p) = self.apply.take() {
+            if let Some(p) = self.apply.as_mut().filter(|p| p.txn.is_some()) {
+                p.held = true;
+                let ready = std::mem::take(&mut p.ready);
+                tracing::info!(dnm = %self.name, revision, "prepared; waiting for the decision");
+                self.publish();
+                for r in ready {
+                    r.send(Ok(()));
+                }
+            } else if let Some(p) = self.apply.take() {
                 self.commit(p);
             }
         } else if Instant::now() >= p.deadline {
@@ -333,8 +360,12 @@ impl Dnm {
     pub(crate) fn abort_apply(&mut self, mut p: PendingApply, why: String) {
         tracing::warn!(dnm = %self.name, revision = p.revision, "apply refused: {why}");
         let replies = std::mem::take(&mut p.replies);
+        let ready = std::mem::take(&mut p.ready);
         let key = p.key.take();
         self.undo(p);
+        for r in ready {
+            r.send(Err(why.clone()));
+        }
         if let Some(k) = key {
             self.remember(k, Outcome::Apply(Err(why.clone())));
         }
@@ -383,15 +414,19 @@ impl Dnm {
     }
 
     /// Puts a prepared revision in force: one store into the task word, then the rest follows.
-    fn commit(&mut self, mut p: PendingApply) {
+    /// Returns the task it left and the one in force.
+    pub(crate) fn commit(&mut self, mut p: PendingApply) -> (Option<String>, Option<String>) {
         let revision = p.revision;
         let netlist = p.netlist.clone();
-        // The active task carries over if the new netlist still defines it.
+        // The task the transaction names, else the active task carries over if the new
+        // netlist still defines it.
         let tasks = task_slots(&netlist);
-        let task = self
-            .active
+        let left = self.active.clone();
+        let task = p
+            .task
             .clone()
             .filter(|t| tasks.contains(t))
+            .or_else(|| self.active.clone().filter(|t| tasks.contains(t)))
             .or_else(|| netlist.initial_task().map(str::to_string));
         let slot = task
             .as_ref()
@@ -467,6 +502,7 @@ impl Dnm {
             r.send(Ok(revision));
         }
         self.next_apply();
+        (left, self.active.clone())
     }
 
     /// Starts the next queued apply, if any.

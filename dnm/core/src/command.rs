@@ -58,4 +58,49 @@ pub enum Command {
         key: Option<CommandKey>,
         reply: Reply<Result<u64, String>>,
     },
+    /// First phase of a transaction the system's authority runs across its DNMs: get ready to
+    /// put `txn` in force and hold it until the decision. The answer comes once everything is
+    /// prepared (for an apply: every module has opened the new revision's subscriptions).
+    Prepare {
+        txn: Txn,
+        reply: Reply<Result<(), String>>,
+    },
+    /// Second phase: commit the held transaction `id` at `at_unix_ns` (wall clock; at once if
+    /// past) or drop it. The answer comes when it took effect (`None` when dropped). A retried
+    /// decision is answered with its first result.
+    Decide {
+        decision: Decision,
+        reply: Reply<Result<Option<SwitchRecord>, String>>,
+    },
+    /// Takes over what the authority decided, outside any transaction: a DNM that missed a
+    /// decision (it restarted, or was cut off) catches up with it. Applies `netlist` as
+    /// `revision` in `task`, or only switches when the revision is already in force.
+    Adopt {
+        revision: u64,
+        task: Option<String>,
+        netlist: Box<Netlist>,
+        reply: Reply<Result<u64, String>>,
+    },
+}
+
+/// What a transaction puts in force: `revision` with `task` active. With a netlist it is an
+/// apply of that netlist as `revision`; without, a switch within the revision in force.
+#[derive(Debug)]
+pub struct Txn {
+    pub id: u64,
+    pub revision: u64,
+    pub task: Option<String>,
+    pub netlist: Option<Box<Netlist>>,
+}
+
+/// The authority's decision on transaction `id`, which put (or would have put) `revision` with
+/// `task` in force.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Decision {
+    pub id: u64,
+    pub commit: bool,
+    /// When every DNM puts it in force, wall-clock ns since the Unix epoch.
+    pub at_unix_ns: u64,
+    pub revision: u64,
+    pub task: Option<String>,
 }

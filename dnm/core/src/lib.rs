@@ -36,10 +36,11 @@ mod plugin;
 pub mod procfs;
 mod slot;
 mod supervise;
+mod txn;
 pub mod values;
 pub mod worker;
 
-pub use command::{Command, CommandKey, Reply};
+pub use command::{Command, CommandKey, Decision, Reply, Txn};
 pub use dnm_proto as proto;
 pub use dnm_proto::{
     DnmReport, ModuleEvent, ModuleReport, ModuleRunState, NetlistState, SwitchRecord,

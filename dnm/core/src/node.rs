@@ -23,6 +23,7 @@ use dnm_proto::{
 };
 
 use crate::command::{Command, CommandKey, Reply};
+use crate::txn::{Decided, HeldSwitch, Scheduled};
 use crate::error::{DnmError, ipc};
 use crate::options::DnmOptions;
 use crate::pending::{Outcome, PendingApply, QueuedApply};
@@ -149,6 +150,9 @@ pub struct Dnm {
     pub(crate) queued_applies: VecDeque<QueuedApply>,
     pub(crate) stopping: Vec<Stopping>,
     pub(crate) events_log: VecDeque<ModuleEvent>,
+    pub(crate) held_switch: Option<HeldSwitch>,
+    pub(crate) scheduled: Option<Scheduled>,
+    pub(crate) decided: Decided,
     commands: Receiver<Command>,
     command_tx: Option<SyncSender<Command>>,
     supervision: SupervisionReport,
@@ -252,6 +256,9 @@ impl Dnm {
             queued_applies: VecDeque::new(),
             stopping: Vec::new(),
             events_log: VecDeque::new(),
+            held_switch: None,
+            scheduled: None,
+            decided: Decided::new(),
             commands,
             command_tx: Some(command_tx),
             supervision: SupervisionReport::default(),
@@ -400,6 +407,9 @@ impl Dnm {
             active_task: self.active.clone(),
             tasks: self.tasks.clone(),
             preparing: self.apply.as_ref().map(|a| a.revision),
+            last_attempt: self.last_attempt,
+            holding: self.holding(),
+            scheduled_at_unix_ns: self.scheduled_at(),
             cpu_percent: self.cpu.percent,
             memory: self.memory,
             modules: self
@@ -483,9 +493,12 @@ impl Dnm {
         self.supervision.period_ms = self.options.tick.as_millis() as u64;
         self.pass();
         loop {
-            let result = waitset
-                .wait_and_process_once(|_| CallbackProgression::Continue)
-                .map_err(ipc("wait"))?;
+            let result = match self.until_due() {
+                Some(t) => waitset
+                    .wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, t),
+                None => waitset.wait_and_process_once(|_| CallbackProgression::Continue),
+            }
+            .map_err(ipc("wait"))?;
             if result == WaitSetRunResult::TerminationRequest {
                 // iceoryx2 hands a signal to one waiter: tell the other DNMs of this process.
                 request_stop();
@@ -507,6 +520,7 @@ impl Dnm {
                     Err(std::sync::mpsc::TryRecvError::Disconnected) => return Ok(()),
                 }
             }
+            self.run_due();
             self.read_statuses();
             self.progress_apply();
             // Exits are noticed within a few milliseconds (their shared memory is cleaned up by
@@ -575,6 +589,9 @@ impl Dnm {
                 Command::Netlist(reply) => reply.send(self.netlist_state()),
                 Command::Switch { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
                 Command::Apply { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
+                Command::Prepare { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
+                Command::Decide { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
+                Command::Adopt { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
             }
         }
     }
@@ -623,6 +640,14 @@ impl Dnm {
                 }
                 self.begin_apply(*netlist, key, reply);
             }
+            Command::Prepare { txn, reply } => self.prepare_txn(txn, reply),
+            Command::Decide { decision, reply } => self.decide_txn(decision, reply),
+            Command::Adopt {
+                revision,
+                task,
+                netlist,
+                reply,
+            } => self.adopt(revision, task, *netlist, reply),
         }
     }
 }

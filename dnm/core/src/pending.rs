@@ -24,6 +24,15 @@ pub(crate) struct PendingApply {
     pub(crate) deadline: Instant,
     pub(crate) key: Option<CommandKey>,
     pub(crate) replies: Vec<Reply<Result<u64, String>>>,
+    /// The authority's transaction this apply prepares: once prepared it is held (no deadline)
+    /// until the decision.
+    pub(crate) txn: Option<u64>,
+    /// The task to put in force with the revision (else the active one carries over).
+    pub(crate) task: Option<String>,
+    /// Answered once every module has prepared.
+    pub(crate) ready: Vec<Reply<Result<(), String>>>,
+    /// Prepared and waiting for the authority's decision.
+    pub(crate) held: bool,
 }
 
 /// The remembered answer of a command, by its key.

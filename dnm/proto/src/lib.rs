@@ -178,6 +178,15 @@ pub struct DnmReport {
     /// The revision being prepared, while an apply is in progress.
     #[serde(default)]
     pub preparing: Option<u64>,
+    /// The newest revision number tried here (committed or not); the next must be newer.
+    #[serde(default)]
+    pub last_attempt: u64,
+    /// The authority's transaction this DNM holds (prepared or scheduled), if any.
+    #[serde(default)]
+    pub holding: Option<u64>,
+    /// When the scheduled decision takes effect, wall-clock ns since the Unix epoch.
+    #[serde(default)]
+    pub scheduled_at_unix_ns: Option<u64>,
     pub cpu_percent: f64,
     pub memory: Option<Memory>,
     pub modules: Vec<ModuleReport>,
@@ -224,6 +233,35 @@ pub enum Request {
     Switch { task: String },
     /// Validate and apply a new netlist; `file` names it in errors.
     Apply { file: String, text: String },
+    /// First phase of the authority's transaction `txn`: prepare `revision` with `task` in
+    /// force (an apply of netlist `text` when given, else a switch) and hold it until decided.
+    Prepare {
+        txn: u64,
+        revision: u64,
+        #[serde(default)]
+        task: Option<String>,
+        #[serde(default)]
+        file: Option<String>,
+        #[serde(default)]
+        text: Option<String>,
+    },
+    /// Second phase: put transaction `txn` in force at `at_unix_ns` (wall clock), or drop it.
+    Decide {
+        txn: u64,
+        commit: bool,
+        at_unix_ns: u64,
+        revision: u64,
+        #[serde(default)]
+        task: Option<String>,
+    },
+    /// Take over what the authority decided, outside a transaction (a DNM that missed it).
+    Adopt {
+        revision: u64,
+        #[serde(default)]
+        task: Option<String>,
+        file: String,
+        text: String,
+    },
 }
 
 /// The answer to a [`Request`].

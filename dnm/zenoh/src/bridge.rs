@@ -28,7 +28,9 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use dnm_core::worker::{Control, Sets, Worker, dbg, err};
-use dnm_core::{Command, CommandKey, Commander, Context, DnmReport, Plugin, Reply, Snapshot};
+use dnm_core::{
+    Command, CommandKey, Commander, Context, Decision, DnmReport, Plugin, Reply, Snapshot, Txn,
+};
 use dnm_module::protocol::{PortHeader, dnm_config, output_event, output_service};
 use dnm_module::{event_service, port_service};
 use dnm_netlist::{MessageType, Netlist};
@@ -995,6 +997,134 @@ fn command_loop(
                 }) {
                     // The command (with its reply) came back unsent: free its apply slot here.
                     applies.fetch_sub(1, Ordering::AcqRel);
+                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
+                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
+                    }
+                }
+            }
+            Request::Prepare {
+                txn,
+                revision,
+                task,
+                file,
+                text,
+            } => {
+                let netlist = match text {
+                    None => None,
+                    Some(text) => {
+                        let file = file.unwrap_or_else(|| "netlist.toml".into());
+                        match parse(Path::new(&file), &text) {
+                            Ok(n) if n.system == system => Some(Box::new(n)),
+                            Ok(n) => {
+                                finish(
+                                    query,
+                                    &Response::error(format!(
+                                        "netlist is for system `{}`, this is `{system}`",
+                                        n.system
+                                    )),
+                                );
+                                continue;
+                            }
+                            Err(e) => {
+                                finish(query, &Response::error(format!("netlist refused:\n{e}")));
+                                continue;
+                            }
+                        }
+                    }
+                };
+                let tx = jobs_tx.clone();
+                let (reply, slot) = answer_slot(tx, query, move |r: Result<(), String>| match r {
+                    Ok(()) => Response {
+                        ok: true,
+                        revision: Some(revision),
+                        ..Response::default()
+                    },
+                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
+                });
+                let txn = Txn {
+                    id: txn,
+                    revision,
+                    task,
+                    netlist,
+                };
+                if let Err(e) = commander.send(Command::Prepare { txn, reply }) {
+                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
+                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
+                    }
+                }
+            }
+            Request::Decide {
+                txn,
+                commit,
+                at_unix_ns,
+                revision,
+                task,
+            } => {
+                let tx = jobs_tx.clone();
+                let (reply, slot) = answer_slot(
+                    tx,
+                    query,
+                    move |r: Result<Option<dnm_proto::SwitchRecord>, String>| match r {
+                        Ok(s) => Response {
+                            ok: true,
+                            revision: Some(revision),
+                            switches: s.into_iter().collect(),
+                            ..Response::default()
+                        },
+                        Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
+                    },
+                );
+                let decision = Decision {
+                    id: txn,
+                    commit,
+                    at_unix_ns,
+                    revision,
+                    task,
+                };
+                if let Err(e) = commander.send(Command::Decide { decision, reply }) {
+                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
+                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
+                    }
+                }
+            }
+            Request::Adopt {
+                revision,
+                task,
+                file,
+                text,
+            } => {
+                let netlist = match parse(Path::new(&file), &text) {
+                    Ok(n) if n.system == system => n,
+                    Ok(n) => {
+                        finish(
+                            query,
+                            &Response::error(format!(
+                                "netlist is for system `{}`, this is `{system}`",
+                                n.system
+                            )),
+                        );
+                        continue;
+                    }
+                    Err(e) => {
+                        finish(query, &Response::error(format!("netlist refused:\n{e}")));
+                        continue;
+                    }
+                };
+                let tx = jobs_tx.clone();
+                let (reply, slot) = answer_slot(tx, query, move |r: Result<u64, String>| match r {
+                    Ok(revision) => Response {
+                        ok: true,
+                        revision: Some(revision),
+                        ..Response::default()
+                    },
+                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
+                });
+                if let Err(e) = commander.send(Command::Adopt {
+                    revision,
+                    task,
+                    netlist: Box::new(netlist),
+                    reply,
+                }) {
                     if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
                         finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
                     }

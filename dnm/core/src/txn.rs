@@ -1,0 +1,305 @@
+//! The DNM's side of the transactions the system's authority runs across its DNMs: prepare and
+//! hold, then put in force at the decided instant or drop; and taking over a decision a DNM
+//! missed (it restarted, or was cut off).
+//!
+//! A DNM never puts a transaction in force on its own: a held transaction waits for the
+//! decision however long that takes, while the DNM serves the revision and task in force.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use dnm_module::protocol::monotonic_ns;
+use dnm_netlist::Netlist;
+use dnm_proto::SwitchRecord;
+
+use crate::command::{Decision, Reply, Txn};
+use crate::error::DnmError;
+use crate::node::Dnm;
+
+/// A prepared switch waiting for its decision.
+#[derive(Debug)]
+pub(crate) struct HeldSwitch {
+    pub(crate) id: u64,
+    pub(crate) task: String,
+}
+
+/// A committed decision waiting for its instant.
+pub(crate) struct Scheduled {
+    pub(crate) decision: Decision,
+    pub(crate) due: Instant,
+    pub(crate) replies: Vec<Reply<DecideResult>>,
+}
+
+pub(crate) type DecideResult = Result<Option<SwitchRecord>, String>;
+
+/// Decisions remembered for retries.
+const DECIDED: usize = 256;
+
+/// The loop sleeps out the last this much before a decided instant instead of waiting on its
+/// wait set, so the store lands within the timer's slack of the instant on every DNM.
+const FINE_WAIT: Duration = Duration::from_millis(2);
+
+/// The local instant of a wall-clock time (now if it has passed).
+fn due_instant(at_unix_ns: u64) -> Instant {
+    let now = Instant::now();
+    let wall = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    now + Duration::from_nanos(at_unix_ns.saturating_sub(wall))
+}
+
+impl Dnm {
+    /// The transaction held or scheduled here, if any.
+    pub(crate) fn holding(&self) -> Option<u64> {
+        self.held_switch
+            .as_ref()
+            .map(|h| h.id)
+            .or_else(|| self.apply.as_ref().and_then(|p| p.txn))
+            .or_else(|| self.scheduled.as_ref().map(|s| s.decision.id))
+    }
+
+    /// When the scheduled decision is due, wall clock, if one is.
+    pub(crate) fn scheduled_at(&self) -> Option<u64> {
+        self.scheduled.as_ref().map(|s| s.decision.at_unix_ns)
+    }
+
+    fn decided(&self, id: u64) -> Option<DecideResult> {
+        self.decided
+            .iter()
+            .find(|(i, _)| *i == id)
+            .map(|(_, r)| r.clone())
+    }
+
+    fn remember_decided(&mut self, id: u64, r: DecideResult) {
+        self.decided.push_back((id, r));
+        if self.decided.len() > DECIDED {
+            self.decided.pop_front();
+        }
+    }
+
+    pub(crate) fn prepare_txn(&mut self, txn: Txn, reply: Reply<Result<(), String>>) {
+        // A retried prepare of what is held, scheduled or done already.
+        if self.held_switch.as_ref().is_some_and(|h| h.id == txn.id)
+            || self.scheduled.as_ref().is_some_and(|s| s.decision.id == txn.id)
+            || self.decided(txn.id).is_some()
+        {
+            return reply.send(Ok(()));
+        }
+        if let Some(p) = self.apply.as_mut().filter(|p| p.txn == Some(txn.id)) {
+            if p.held {
+                reply.send(Ok(()));
+            } else {
+                p.ready.push(reply);
+            }
+            return;
+        }
+        if let Some(other) = self.holding() {
+            return reply.send(Err(format!(
+                "DNM `{}` holds transaction {other} until its decision",
+                self.name
+            )));
+        }
+        if self.stopping_all {
+            return reply.send(Err(DnmError::Stopped.to_string()));
+        }
+        let Some(netlist) = txn.netlist else {
+            let task = txn.task.unwrap_or_default();
+            if txn.revision != self.revision {
+                return reply.send(Err(format!(
+                    "DNM `{}` has revision {} in force, not {}",
+                    self.name, self.revision, txn.revision
+                )));
+            }
+            if !self.tasks.contains(&task) {
+                return reply.send(Err(DnmError::UnknownTask {
+                    task,
+                    known: self.tasks.join(", "),
+                }
+                .to_string()));
+            }
+            self.held_switch = Some(HeldSwitch { id: txn.id, task });
+            self.publish();
+            return reply.send(Ok(()));
+        };
+        if self.apply.is_some() || !self.queued_applies.is_empty() {
+            return reply.send(Err(format!(
+                "DNM `{}` is applying a netlist; send the transaction again",
+                self.name
+            )));
+        }
+        if self.waits_for_stopping(&netlist) {
+            return reply.send(Err(format!(
+                "modules of DNM `{}` are still stopping; send the transaction again",
+                self.name
+            )));
+        }
+        match self.prepare_apply(*netlist, None, Some(txn.revision)) {
+            Ok(mut p) => {
+                p.txn = Some(txn.id);
+                p.task = txn.task;
+                p.ready.push(reply);
+                self.apply = Some(p);
+                self.progress_apply();
+            }
+            Err(e) => reply.send(Err(e.to_string())),
+        }
+    }
+
+    pub(crate) fn decide_txn(&mut self, d: Decision, reply: Reply<DecideResult>) {
+        if let Some(r) = self.decided(d.id) {
+            return reply.send(r);
+        }
+        if let Some(s) = self
+            .scheduled
+            .as_mut()
+            .filter(|s| s.decision.id == d.id)
+        {
+            s.replies.push(reply);
+            return;
+        }
+        let holds_switch = self.held_switch.as_ref().is_some_and(|h| h.id == d.id);
+        let holds_apply = self
+            .apply
+            .as_ref()
+            .is_some_and(|p| p.txn == Some(d.id) && p.held);
+        if !holds_switch && !holds_apply {
+            if !d.commit {
+                // Nothing held; a prepare still in progress is dropped too.
+                if let Some(p) = self.apply.take_if(|p| p.txn == Some(d.id)) {
+                    self.abort_apply(p, format!("transaction {} dropped", d.id));
+                }
+                return reply.send(Ok(None));
+            }
+            if self.revision == d.revision && self.active == d.task {
+                return reply.send(Ok(None));
+            }
+            return reply.send(Err(format!(
+                "DNM `{}` does not hold transaction {} (it restarted or never prepared it); \
+                 it needs revision {} adopted",
+                self.name, d.id, d.revision
+            )));
+        }
+        if !d.commit {
+            if holds_switch {
+                self.held_switch = None;
+            } else if let Some(p) = self.apply.take() {
+                self.abort_apply(p, format!("transaction {} dropped", d.id));
+            }
+            self.remember_decided(d.id, Ok(None));
+            self.publish();
+            return reply.send(Ok(None));
+        }
+        let due = due_instant(d.at_unix_ns);
+        self.scheduled = Some(Scheduled {
+            decision: d,
+            due,
+            replies: vec![reply],
+        });
+        self.run_due();
+    }
+
+    /// How long the loop may wait before it must call [`Dnm::run_due`].
+    pub(crate) fn until_due(&self) -> Option<Duration> {
+        let s = self.scheduled.as_ref()?;
+        Some(
+            s.due
+                .saturating_duration_since(Instant::now())
+                .saturating_sub(FINE_WAIT),
+        )
+    }
+
+    /// Puts the scheduled decision in force once its instant is near: sleeps out the last
+    /// moment (at most [`FINE_WAIT`]), then stores.
+    pub(crate) fn run_due(&mut self) {
+        let Some(s) = self.scheduled.as_ref() else {
+            return;
+        };
+        let left = s.due.saturating_duration_since(Instant::now());
+        if left > FINE_WAIT {
+            return;
+        }
+        if !left.is_zero() {
+            std::thread::sleep(left);
+        }
+        let Some(s) = self.scheduled.take() else {
+            return;
+        };
+        let r = self.put_in_force(&s.decision).map(Some);
+        if let Err(e) = &r {
+            tracing::error!(dnm = %self.name, txn = s.decision.id, "decision not put in force: {e}");
+        }
+        self.remember_decided(s.decision.id, r.clone());
+        self.publish();
+        for reply in s.replies {
+            reply.send(r.clone());
+        }
+    }
+
+    fn put_in_force(&mut self, d: &Decision) -> Result<SwitchRecord, String> {
+        if let Some(h) = self.held_switch.take_if(|h| h.id == d.id) {
+            return self.switch(&h.task).map_err(|e| e.to_string());
+        }
+        if let Some(p) = self.apply.take_if(|p| p.txn == Some(d.id) && p.held) {
+            let at_ns = monotonic_ns();
+            let start = Instant::now();
+            let (from, to) = self.commit(p);
+            return Ok(SwitchRecord {
+                dnm: self.name.clone(),
+                revision: self.revision,
+                from,
+                to: to.unwrap_or_default(),
+                duration_ns: start.elapsed().as_nanos() as u64,
+                at_ns,
+            });
+        }
+        Err(format!("transaction {} is no longer held here", d.id))
+    }
+
+    /// Takes over `revision` in `task` as the authority decided it: only a switch when the
+    /// revision is in force already, else an apply of `netlist` as that revision.
+    pub(crate) fn adopt(
+        &mut self,
+        revision: u64,
+        task: Option<String>,
+        netlist: Netlist,
+        reply: Reply<Result<u64, String>>,
+    ) {
+        if let Some(id) = self.holding() {
+            return reply.send(Err(format!(
+                "DNM `{}` holds transaction {id}; decide it first",
+                self.name
+            )));
+        }
+        let same = self
+            .netlist
+            .as_ref()
+            .is_some_and(|n| n.digest() == netlist.digest());
+        if revision == self.revision && same {
+            if let Some(t) = task.filter(|t| self.active.as_ref() != Some(t)) {
+                if let Err(e) = self.switch(&t) {
+                    return reply.send(Err(e.to_string()));
+                }
+                self.publish();
+            }
+            return reply.send(Ok(revision));
+        }
+        if self.apply.is_some() || !self.queued_applies.is_empty() {
+            return reply.send(Err(format!(
+                "DNM `{}` is applying a netlist; adopt again later",
+                self.name
+            )));
+        }
+        match self.prepare_apply(netlist, None, Some(revision)) {
+            Ok(mut p) => {
+                p.task = task;
+                p.replies.push(reply);
+                self.apply = Some(p);
+                self.progress_apply();
+            }
+            Err(e) => reply.send(Err(e.to_string())),
+        }
+    }
+}
+
+/// Decisions remembered, by transaction id.
+pub(crate) type Decided = VecDeque<(u64, DecideResult)>;
