@@ -136,6 +136,7 @@ pub fn run_host(
 /// A machine's DNMs running in this process (see [`run_host`]), for programs that drive them
 /// from the same process, such as `dnm demo`.
 pub struct Host {
+    authority: Option<dnm_authority::Authority>,
     session: zenoh::Session,
     system: String,
     handles: Vec<DnmHandle>,
@@ -164,6 +165,16 @@ impl Host {
 
     /// Waits until the DNMs stop (SIGINT/SIGTERM or [`Host::stop`]).
     pub fn wait(self) {
+        if let Some(a) = self.authority {
+            // Until the DNMs stop; the authority stops with them.
+            let handles = self.handles;
+            for h in handles {
+                let _ = h.thread.join();
+            }
+            a.stop();
+            let _ = std::fs::remove_file(&self.socket);
+            return;
+        }
         for h in self.handles {
             let _ = h.thread.join();
         }
@@ -205,9 +216,14 @@ fn start(
         .map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))?;
     tracing::info!(zid = %session.zid(), "on Zenoh");
     // Joining a running system: continue from the netlist, revision and task in force there.
+    // A system with an authority needs none of it: its DNMs start empty and the authority has
+    // them adopt what it decided.
+    let follow = crate::commanded_by_authority(&netlist);
     let mut netlist = netlist;
     let mut joined = None;
-    if let Some(state) = dnm_zenoh::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT) {
+    if follow {
+        tracing::info!(authority = ?netlist.authority(), "the DNMs take what the authority decides");
+    } else if let Some(state) = dnm_zenoh::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT) {
         if let Some((newer, revision, task)) = adopt(&state, &netlist.file, dnms) {
             tracing::info!(revision, task = ?task, "joining the running system");
             netlist = newer;
@@ -226,7 +242,7 @@ fn start(
             .name(format!("dnm-{name}"))
             .spawn(move || {
                 let joined = joined.as_ref().map(|(r, t)| (*r, t.as_deref()));
-                run_dnm(&netlist, &dnm_name, options, session, joined, &ready_tx)
+                run_dnm(&netlist, &dnm_name, options, session, joined, follow, &ready_tx)
             })
             .context("spawning DNM thread")?;
         let commander = match ready_rx.recv() {
@@ -267,6 +283,32 @@ fn start(
         UnixListener::bind(&path).with_context(|| format!("binding {}", path.display()))?;
     tracing::info!(socket = %path.display(), "admin socket ready");
 
+    let authority = match netlist.authority().filter(|a| follow && dnms.iter().any(|d| d == a)) {
+        None => None,
+        Some(_) => {
+            let db = options
+                .state_dir
+                .join(format!("{}-authority.redb", netlist.system));
+            let parse: dnm_authority::ParseNetlist = Arc::new(crate::parse_netlist_text);
+            let a = dnm_authority::Authority::start(
+                session.clone(),
+                &netlist,
+                parse,
+                dnm_authority::AuthorityOptions::new(db),
+            );
+            match a {
+                Ok(a) => Some(a),
+                Err(e) => {
+                    dnm_core::request_stop();
+                    for h in handles {
+                        drop(h.commander);
+                        let _ = h.thread.join();
+                    }
+                    anyhow::bail!("the authority did not start: {e}");
+                }
+            }
+        }
+    };
     let commanders: Vec<Commander> = handles.iter().map(|h| h.commander.clone()).collect();
     let system = netlist.system.clone();
     std::thread::Builder::new()
@@ -274,6 +316,7 @@ fn start(
         .spawn(move || serve(&listener, &system, &commanders))
         .context("spawning admin thread")?;
     Ok(Host {
+        authority,
         session,
         system: netlist.system.clone(),
         handles,
@@ -287,6 +330,7 @@ fn run_dnm(
     options: HostOptions,
     session: zenoh::Session,
     joined: Option<(u64, Option<&str>)>,
+    follow: bool,
     ready: &SyncSender<Result<Commander, String>>,
 ) {
     let started = (|| {
@@ -311,7 +355,9 @@ fn run_dnm(
         if let Some((revision, task)) = joined {
             dnm.continue_from(revision.saturating_sub(1), task);
         }
-        dnm.apply(netlist)?;
+        if !follow {
+            dnm.apply(netlist)?;
+        }
         let commander = dnm.commander()?;
         Ok::<_, dnm_core::DnmError>((dnm, commander))
     })();

@@ -36,6 +36,29 @@ pub struct HostOptions {
     pub dnm: DnmOptions,
     /// Record every output port to MCAP; `None`: no recording.
     pub record: Option<record::RecordOptions>,
+    /// Where durable state lives (the authority's database).
+    pub state_dir: std::path::PathBuf,
+}
+
+/// Where durable state goes by default: `$DNM_STATE_DIR`, else `$XDG_STATE_HOME/dnm`, else
+/// `~/.local/state/dnm`, else a folder under the temporary directory.
+pub fn default_state_dir() -> std::path::PathBuf {
+    if let Some(d) = std::env::var_os("DNM_STATE_DIR") {
+        return d.into();
+    }
+    if let Some(d) = std::env::var_os("XDG_STATE_HOME") {
+        return std::path::PathBuf::from(d).join("dnm");
+    }
+    if let Some(h) = std::env::var_os("HOME") {
+        return std::path::PathBuf::from(h).join(".local/state/dnm");
+    }
+    std::env::temp_dir().join("dnm-state")
+}
+
+/// Whether a system is commanded through its authority: it names one, or it has DNMs across
+/// a radio link. Its DNMs then start empty and take what the authority decided.
+pub fn commanded_by_authority(netlist: &Netlist) -> bool {
+    netlist.authority_dnm.is_some() || netlist.dnms.iter().any(|d| d.radio)
 }
 
 impl HostOptions {
@@ -44,6 +67,7 @@ impl HostOptions {
         Ok(Self {
             dnm: DnmOptions::standard()?,
             record: None,
+            state_dir: default_state_dir(),
         })
     }
 }

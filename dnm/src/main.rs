@@ -8,6 +8,8 @@ use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
 
 mod demo;
+mod ground_cmd;
+mod linksim;
 mod place_cmd;
 use dnm::admin::{Request, Response, request};
 use dnm::{DnmReport, HostOptions};
@@ -126,6 +128,10 @@ enum Cmd {
         dnms: Vec<String>,
         #[command(flatten)]
         record: RecordArgs,
+        /// Where durable state lives, e.g. the authority's database (default: $DNM_STATE_DIR,
+        /// else ~/.local/state/dnm).
+        #[arg(long)]
+        state_dir: Option<PathBuf>,
     },
     /// Report the running system's DNMs and modules.
     Status {
@@ -209,6 +215,14 @@ enum Cmd {
     },
     /// Run a Zenoh router (joins the rover's and the ground's networks), until Ctrl-C.
     Router,
+    /// The ground station: run it, and command the rover through it.
+    Ground {
+        #[command(subcommand)]
+        cmd: ground_cmd::GroundCmd,
+    },
+    /// Emulate a radio link between two endpoints (delay, bandwidth, loss, outages), no root
+    /// needed.
+    Linksim(linksim::LinkArgs),
     /// List the standard module kinds.
     Kinds {
         #[arg(long)]
@@ -285,10 +299,16 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let z = &cli.zenoh;
     match cli.command {
         Cmd::Check { netlist, json } => check(&netlist, json),
+        Cmd::Ground { cmd } => ground_cmd::run(&z.options(), cmd),
+        Cmd::Linksim(args) => {
+            linksim::run(&args)?;
+            Ok(ExitCode::SUCCESS)
+        }
         Cmd::Up {
             netlist,
             dnms,
             record,
+            state_dir,
         } => {
             let n = dnm::load_netlist(&netlist).map_err(|e| anyhow::anyhow!("{e}"))?;
             let dnms = if dnms.is_empty() {
@@ -303,6 +323,9 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             };
             let mut options = HostOptions::standard().context("locating the module host")?;
             options.record = record.options();
+            if let Some(d) = state_dir {
+                options.state_dir = d;
+            }
             if let Some(r) = &options.record {
                 println!(
                     "recording every port to {}/{}-<dnm>.mcap",

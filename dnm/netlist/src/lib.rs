@@ -21,7 +21,7 @@ pub mod spec;
 
 pub use error::{Diagnostic, NetlistError};
 pub use model::{
-    Connection, DEFAULT_DNM, Dnm, Link, MAX_HUNG_AFTER_MS, MAX_NAME_LEN, MAX_RATE_HZ,
+    Connection, DEFAULT_DNM, Dnm, Link, LinkLoss, MAX_HUNG_AFTER_MS, MAX_NAME_LEN, MAX_RATE_HZ,
     MIN_HUNG_AFTER_MS, MIN_RATE_HZ, Module, ModuleGraph, ModuleNode, Netlist, PortRef, RestartMode,
     RestartPolicy, Task, parse_duration_ms,
 };

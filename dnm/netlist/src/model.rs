@@ -41,6 +41,15 @@ struct RawNetlist {
 struct RawSystem {
     name: Spanned<String>,
     default_task: Option<Spanned<String>>,
+    authority: Option<Spanned<String>>,
+    on_link_loss: Option<Spanned<RawLinkLoss>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawLinkLoss {
+    after: Spanned<String>,
+    task: Spanned<String>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -48,6 +57,7 @@ struct RawSystem {
 struct RawDnm {
     name: Spanned<String>,
     parent: Option<Spanned<String>>,
+    link: Option<Spanned<String>>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -119,6 +129,19 @@ impl Default for RestartPolicy {
 pub struct Dnm {
     pub name: String,
     pub parent: Option<String>,
+    /// `link = "radio"`: reached over the radio link (the ground's DNMs). It follows the
+    /// authority's decisions when it hears them and never holds up a transaction; the others
+    /// are on the rover's own network and take every decision together.
+    #[serde(default)]
+    pub radio: bool,
+}
+
+/// What the rover does when no ground station has been heard for a while:
+/// `on_link_loss = { after = "5s", task = "safe" }`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LinkLoss {
+    pub after_ms: u64,
+    pub task: String,
 }
 
 /// A module instance.
@@ -211,6 +234,10 @@ pub struct Netlist {
     pub text: String,
     pub system: String,
     pub default_task: Option<String>,
+    /// The DNM that takes operators' commands and decides for all (`system.authority`; the
+    /// root of the hierarchy when not named): see [`Netlist::authority`].
+    pub authority_dnm: Option<String>,
+    pub on_link_loss: Option<LinkLoss>,
     pub dnms: Vec<Dnm>,
     pub modules: Vec<Module>,
     pub tasks: BTreeMap<String, Task>,
@@ -295,6 +322,17 @@ impl Netlist {
     /// Modules hosted by one DNM, in declaration order.
     pub fn modules_on<'a>(&'a self, dnm: &'a str) -> impl Iterator<Item = &'a Module> + 'a {
         self.modules.iter().filter(move |m| m.dnm == dnm)
+    }
+
+    /// The DNM that decides for all: `system.authority`, else the root of the hierarchy (the
+    /// first DNM without a parent that is not across the radio).
+    pub fn authority(&self) -> Option<&str> {
+        self.authority_dnm.as_deref().or_else(|| {
+            self.dnms
+                .iter()
+                .find(|d| d.parent.is_none() && !d.radio)
+                .map(|d| d.name.as_str())
+        })
     }
 
     /// The task that runs after the netlist is applied: `default_task`, else the first by name.
@@ -408,9 +446,24 @@ fn validate(
             );
             continue;
         }
+        let radio = match &d.link {
+            None => false,
+            Some(l) if l.get_ref() == "radio" => true,
+            Some(l) if l.get_ref() == "local" => false,
+            Some(l) => {
+                r.error(
+                    span_of(l),
+                    format!("dnm[{i}].link"),
+                    format!("link `{}` is not known", l.get_ref()),
+                    Some("use `link = \"radio\"` for a DNM across the radio, or leave it out".into()),
+                );
+                false
+            }
+        };
         dnms.push(Dnm {
             name: d.name.get_ref().clone(),
             parent: d.parent.as_ref().map(|p| p.get_ref().clone()),
+            radio,
         });
     }
     let dnm_names: Vec<String> = dnms.iter().map(|d| d.name.clone()).collect();
@@ -457,6 +510,7 @@ fn validate(
         dnms.push(Dnm {
             name: DEFAULT_DNM.to_string(),
             parent: None,
+            radio: false,
         });
     }
     let default_dnm = dnms[0].name.clone();
@@ -732,6 +786,57 @@ fn validate(
         );
     }
 
+    if let Some(a) = &system.authority {
+        match dnms.iter().find(|d| &d.name == a.get_ref()) {
+            None => r.error(
+                span_of(a),
+                "system.authority",
+                format!("authority DNM `{}` is not declared", a.get_ref()),
+                Some(suggest(a.get_ref(), dnms.iter().map(|d| d.name.as_str()))),
+            ),
+            Some(d) if d.radio => r.error(
+                span_of(a),
+                "system.authority",
+                format!("authority DNM `{}` is across the radio link", a.get_ref()),
+                Some("name a DNM of the rover: it must decide while the link is down".into()),
+            ),
+            Some(_) => {}
+        }
+    }
+    let on_link_loss = system.on_link_loss.as_ref().and_then(|l| {
+        let l = l.get_ref();
+        let after_ms = match parse_duration_ms(l.after.get_ref()) {
+            Some(ms) if (MIN_LINK_LOSS_MS..=MAX_LINK_LOSS_MS).contains(&ms) => Some(ms),
+            _ => {
+                r.error(
+                    span_of(&l.after),
+                    "system.on_link_loss.after",
+                    format!(
+                        "`{}` is not a duration from {} s to {} h",
+                        l.after.get_ref(),
+                        MIN_LINK_LOSS_MS / 1000,
+                        MAX_LINK_LOSS_MS / 3_600_000
+                    ),
+                    Some("use e.g. `after = \"5s\"`".into()),
+                );
+                None
+            }
+        };
+        if !tasks.contains_key(l.task.get_ref()) {
+            r.error(
+                span_of(&l.task),
+                "system.on_link_loss.task",
+                format!("task `{}` is not defined", l.task.get_ref()),
+                Some(suggest(l.task.get_ref(), tasks.keys().map(String::as_str))),
+            );
+            return None;
+        }
+        Some(LinkLoss {
+            after_ms: after_ms?,
+            task: l.task.get_ref().clone(),
+        })
+    });
+
     // The module graph.
     let mut graph = ModuleGraph::default();
     let mut nodes = BTreeMap::new();
@@ -770,6 +875,8 @@ fn validate(
         text: text.to_string(),
         system: system.name.into_inner(),
         default_task: system.default_task.map(Spanned::into_inner),
+        authority_dnm: system.authority.map(Spanned::into_inner),
+        on_link_loss,
         dnms,
         modules,
         tasks,
@@ -869,6 +976,11 @@ fn toml_to_param(v: &toml::Value) -> Option<ParamValue> {
 pub const MIN_RATE_HZ: f64 = 0.01;
 /// Highest `rate_hz` a module may run at.
 pub const MAX_RATE_HZ: f64 = 10_000.0;
+/// Shortest `on_link_loss.after`: below it, a few lost pings would look like a lost link.
+pub const MIN_LINK_LOSS_MS: u64 = 1_000;
+/// Longest `on_link_loss.after`.
+pub const MAX_LINK_LOSS_MS: u64 = 24 * 3_600_000;
+
 /// Shortest `hung_after`: below it, scheduling jitter and idle heartbeats (every 250 ms) would
 /// read as a hang. A DNM also never uses less than two periods of a periodic module.
 pub const MIN_HUNG_AFTER_MS: u64 = 500;

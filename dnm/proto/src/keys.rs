@@ -39,6 +39,12 @@ pub fn cmd(system: &str, dnm: &str) -> String {
     format!("{system}/dnm/{dnm}/cmd")
 }
 
+/// `<system>/authority`: where ground stations send their commands (queries carrying a
+/// [`crate::station::Uplink`]); the rover's authority DNM answers.
+pub fn authority(system: &str) -> String {
+    format!("{system}/authority")
+}
+
 /// `<system>/module/<dnm>/<module>`.
 pub fn module(system: &str, dnm: &str, module: &str) -> String {
     format!("{system}/module/{dnm}/{module}")

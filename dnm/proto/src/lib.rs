@@ -12,6 +12,7 @@
 //! ```
 
 pub mod keys;
+pub mod station;
 
 use serde::{Deserialize, Serialize};
 

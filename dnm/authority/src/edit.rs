@@ -1,0 +1,181 @@
+//! One module added, replaced or removed in a netlist's text: what `dnm module` and a ground
+//! station's module commands do to the netlist in force.
+
+use dnm_proto::station::ModuleEdit;
+
+/// `key=value`, the value read as TOML (a bare word is a string).
+pub fn param_value(kv: &str) -> Result<(String, toml::Value), String> {
+    let (k, v) = kv
+        .split_once('=')
+        .ok_or_else(|| format!("parameter `{kv}` must be `key=value`"))?;
+    let v = v.trim();
+    let value = format!("v = {v}")
+        .parse::<toml::Table>()
+        .ok()
+        .and_then(|mut t| t.remove("v"))
+        .unwrap_or_else(|| toml::Value::String(v.to_string()));
+    Ok((k.trim().to_string(), value))
+}
+
+fn params(list: &[String]) -> Result<toml::Table, String> {
+    let mut p = toml::Table::new();
+    for kv in list {
+        let (k, v) = param_value(kv)?;
+        p.insert(k, v);
+    }
+    Ok(p)
+}
+
+/// The netlist `text` with `edit` made, and a sentence saying what changed. The result still
+/// has to be validated (the kind may not exist, a link may not fit).
+pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), String> {
+    let mut doc: toml::Table = text
+        .parse()
+        .map_err(|e| format!("the netlist in force does not parse: {e}"))?;
+    let modules = doc
+        .entry("module")
+        .or_insert_with(|| toml::Value::Array(Vec::new()))
+        .as_array_mut()
+        .ok_or("`module` is not an array")?;
+    let what = match edit {
+        ModuleEdit::Add {
+            name,
+            kind,
+            dnm,
+            params: ps,
+            links,
+        } => {
+            if modules
+                .iter()
+                .any(|m| m.get("name").and_then(|n| n.as_str()) == Some(name.as_str()))
+            {
+                return Err(format!(
+                    "module `{name}` exists already; replace it or pick another name"
+                ));
+            }
+            let mut m = toml::Table::new();
+            m.insert("name".into(), name.clone().into());
+            m.insert("kind".into(), kind.clone().into());
+            if let Some(d) = dnm {
+                m.insert("dnm".into(), d.clone().into());
+            }
+            let p = params(ps)?;
+            if !p.is_empty() {
+                m.insert("params".into(), p.into());
+            }
+            modules.push(m.into());
+            for l in links {
+                let (task, link) = l
+                    .split_once(':')
+                    .ok_or_else(|| format!("link `{l}` must be `TASK:from.port -> to.port`"))?;
+                let to = link
+                    .split_once("->")
+                    .map(|(_, t)| t.trim().to_string())
+                    .unwrap_or_default();
+                let tasks = doc
+                    .entry("task")
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                    .as_table_mut()
+                    .ok_or("`task` is not a table")?;
+                let t = tasks
+                    .entry(task.trim())
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                    .as_table_mut()
+                    .ok_or("a task is not a table")?;
+                let list = t
+                    .entry("links")
+                    .or_insert_with(|| toml::Value::Array(Vec::new()))
+                    .as_array_mut()
+                    .ok_or("`links` is not an array")?;
+                // The new link takes over the input it feeds.
+                list.retain(|x| {
+                    x.as_str()
+                        .and_then(|s| s.split_once("->"))
+                        .is_none_or(|(_, t)| t.trim() != to)
+                });
+                list.push(link.trim().into());
+            }
+            format!("added module `{name}`")
+        }
+        ModuleEdit::Remove { name } => {
+            let before = modules.len();
+            modules.retain(|m| m.get("name").and_then(|n| n.as_str()) != Some(name.as_str()));
+            if modules.len() == before {
+                return Err(format!("the netlist in force has no module `{name}`"));
+            }
+            if let Some(tasks) = doc.get_mut("task").and_then(|t| t.as_table_mut()) {
+                let prefix = format!("{name}.");
+                for (_, t) in tasks.iter_mut() {
+                    if let Some(list) = t.get_mut("links").and_then(|l| l.as_array_mut()) {
+                        list.retain(|x| {
+                            x.as_str().is_none_or(|s| {
+                                !s.split("->").any(|side| side.trim().starts_with(&prefix))
+                            })
+                        });
+                    }
+                }
+            }
+            format!("removed module `{name}`")
+        }
+        ModuleEdit::Replace {
+            name,
+            kind,
+            params: ps,
+        } => {
+            let m = modules
+                .iter_mut()
+                .find(|m| m.get("name").and_then(|n| n.as_str()) == Some(name.as_str()))
+                .and_then(|m| m.as_table_mut())
+                .ok_or_else(|| format!("the netlist in force has no module `{name}`"))?;
+            if let Some(k) = kind {
+                m.insert("kind".into(), k.clone().into());
+                m.remove("params");
+            }
+            if !ps.is_empty() {
+                m.insert("params".into(), params(ps)?.into());
+            }
+            format!("replaced module `{name}`")
+        }
+    };
+    let text = toml::to_string(&doc).map_err(|e| format!("writing the edited netlist: {e}"))?;
+    Ok((text, what))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TEXT: &str = r#"
+[system]
+name = "s"
+[[module]]
+name = "a"
+kind = "counter"
+[[module]]
+name = "b"
+kind = "printer"
+[task.t]
+links = ["a.out -> b.in"]
+"#;
+
+    #[test]
+    fn remove_drops_the_module_and_its_links() {
+        let (text, what) = edit_netlist(TEXT, &ModuleEdit::Remove { name: "a".into() }).unwrap();
+        assert_eq!(what, "removed module `a`");
+        assert!(!text.contains("counter") && !text.contains("a.out"), "{text}");
+    }
+
+    #[test]
+    fn replace_sets_kind_and_params_and_unknown_modules_are_refused() {
+        let edit = ModuleEdit::Replace {
+            name: "b".into(),
+            kind: Some("logger".into()),
+            params: vec!["level=2".into(), "tag=x".into()],
+        };
+        let (text, _) = edit_netlist(TEXT, &edit).unwrap();
+        assert!(text.contains("logger") && text.contains("level = 2"), "{text}");
+        assert!(text.contains(r#"tag = "x""#), "{text}");
+        let e = edit_netlist(TEXT, &ModuleEdit::Remove { name: "z".into() }).unwrap_err();
+        assert!(e.contains("no module `z`"), "{e}");
+    }
+}

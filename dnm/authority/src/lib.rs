@@ -1,0 +1,921 @@
+//! The rover's authority: one DNM of the rover (the one the netlist names, else the root of
+//! its hierarchy) takes the commands of ground stations and decides for every DNM.
+//!
+//! - **Exactly once, in order.** A station sends its commands with a sequence number; the
+//!   authority stores each (redb, fsync) before acknowledging it, runs them in the station's
+//!   order, stores each fate with the decision it led to in one transaction, and answers a
+//!   re-sent command with that fate. A restarted authority re-runs nothing it finished.
+//! - **Atomic across DNMs.** A switch or an apply is a two-phase transaction: every DNM of the
+//!   rover prepares it and holds it; the authority stores its decision, then tells every DNM to
+//!   put it in force at one instant (`switch_lead` ahead, wall clock). A DNM puts nothing in
+//!   force on its own. A DNM that missed a decision (it restarted, or was cut off) is found by
+//!   the reconciler, which sends the decision again or has the DNM adopt the decided revision.
+//!   DNMs across the radio (`link = "radio"`) follow the decisions when they are reachable and
+//!   never hold up a transaction.
+//! - **Time-tagged switches** run at their rover time whether or not a station is in contact,
+//!   and can be cancelled until then.
+//! - **Loss of signal.** With `on_link_loss` in the netlist, the authority switches the rover
+//!   to that task when no station has been heard for that long, and records it.
+//!
+//! Clocks: the instants are wall-clock times, so the DNMs of the rover must share a
+//! synchronised clock (NTP or PTP on the rover's network; one clock on one machine). The spread
+//! of switch instants across DNMs is their clock offset plus the wake-up jitter of each
+//! machine. Ground stations' clocks matter only for time tags, which are rover time.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! # let session: zenoh::Session = unimplemented!();
+//! # let netlist: dnm_netlist::Netlist = unimplemented!();
+//! # let parse: dnm_authority::ParseNetlist = unimplemented!();
+//! let options = dnm_authority::AuthorityOptions::new("/var/lib/dnm/beetle-authority.redb");
+//! let authority = dnm_authority::Authority::start(session, &netlist, parse, options)?;
+//! // ... until the DNMs stop:
+//! authority.stop();
+//! # Ok(()) }
+//! ```
+
+mod edit;
+mod store;
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex, mpsc};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use dnm_netlist::Netlist;
+use dnm_proto::station::{Downlink, Fate, Order, RoverEvent, RoverState, Sent, Uplink};
+use dnm_proto::{DnmReport, RemoteCommand, Request, Response, keys};
+use zenoh::Wait;
+use zenoh::qos::{CongestionControl, Priority};
+use zenoh::query::{ConsolidationMode, Query, QueryTarget};
+
+pub use edit::{edit_netlist, param_value};
+use store::{DecisionRecord, Finish, State, Store, Timer};
+
+/// Validates a netlist text as the DNMs do (the module catalogue is the caller's).
+pub type ParseNetlist = Arc<dyn Fn(&Path, &str) -> Result<Netlist, String> + Send + Sync>;
+
+#[derive(Debug, thiserror::Error)]
+pub enum AuthorityError {
+    #[error("the authority's store: {0}")]
+    Store(String),
+    #[error("Zenoh: {0}")]
+    Zenoh(String),
+    #[error("{0}")]
+    Netlist(String),
+}
+
+/// How the authority works.
+#[derive(Debug, Clone)]
+pub struct AuthorityOptions {
+    /// Its database (created if missing).
+    pub db: PathBuf,
+    /// From the decision to the instant every DNM puts it in force: long enough for the
+    /// decision to reach every DNM of the rover.
+    pub switch_lead: Duration,
+    /// How long the DNMs may take to prepare a transaction (start modules, subscribe).
+    pub prepare_timeout: Duration,
+    /// How often every DNM is checked against what was decided.
+    pub reconcile_every: Duration,
+}
+
+impl AuthorityOptions {
+    pub fn new(db: impl Into<PathBuf>) -> Self {
+        Self {
+            db: db.into(),
+            switch_lead: Duration::from_millis(50),
+            prepare_timeout: Duration::from_secs(10),
+            reconcile_every: Duration::from_millis(500),
+        }
+    }
+}
+
+/// Uplinks waiting for the intake thread at most; more are dropped (the station sends again).
+const UPLINK_QUEUE: usize = 64;
+/// Events and time-tagged commands in an answer to a station, at most.
+const STATE_EVENTS: usize = 16;
+
+fn now_unix_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// What the worker decides with: the durable state and the netlist in force.
+struct Core {
+    state: State,
+    netlist: Netlist,
+    digest: String,
+}
+
+struct Shared {
+    system: String,
+    name: String,
+    session: zenoh::Session,
+    store: Store,
+    parse: ParseNetlist,
+    options: AuthorityOptions,
+    core: Mutex<Core>,
+    /// What stations are told of the rover.
+    rover: Mutex<RoverState>,
+    /// When a station was last heard.
+    contact: Mutex<Instant>,
+    heard: AtomicBool,
+    wake: (Mutex<bool>, Condvar),
+    stop: AtomicBool,
+}
+
+impl Shared {
+    fn wake(&self) {
+        if let Ok(mut w) = self.wake.0.lock() {
+            *w = true;
+            self.wake.1.notify_all();
+        }
+    }
+
+    fn sleep(&self, d: Duration) {
+        let Ok(w) = self.wake.0.lock() else {
+            return;
+        };
+        if let Ok((mut w, _)) = self.wake.1.wait_timeout_while(w, d, |w| !*w) {
+            *w = false;
+        }
+    }
+}
+
+/// The running authority: its queryable for stations, its worker and its reconciler.
+pub struct Authority {
+    shared: Arc<Shared>,
+    threads: Vec<JoinHandle<()>>,
+    _queryable: zenoh::query::Queryable<()>,
+}
+
+impl std::fmt::Debug for Authority {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Authority")
+            .field("system", &self.shared.system)
+            .field("dnm", &self.shared.name)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Authority {
+    /// Starts the authority of `netlist`'s system on `session`. Its state comes from the
+    /// database; a new database starts from `netlist`, decided as the revision after any the
+    /// running DNMs have used.
+    pub fn start(
+        session: zenoh::Session,
+        netlist: &Netlist,
+        parse: ParseNetlist,
+        options: AuthorityOptions,
+    ) -> Result<Self, AuthorityError> {
+        let name = netlist
+            .authority()
+            .ok_or_else(|| AuthorityError::Netlist("the netlist names no authority DNM".into()))?
+            .to_string();
+        let system = netlist.system.clone();
+        let store = Store::open(&options.db)?;
+        let state = match store.state()? {
+            Some(s) => {
+                if s.text != netlist.text {
+                    tracing::warn!(
+                        revision = s.revision,
+                        "continuing from the decided revision {}; {} is not it (apply it to change)",
+                        s.revision,
+                        netlist.file.display()
+                    );
+                }
+                s
+            }
+            None => {
+                let used = reports(&session, &system, Duration::from_secs(1))
+                    .iter()
+                    .map(|r| r.last_attempt.max(r.revision))
+                    .max()
+                    .unwrap_or(0);
+                let revision = used + 1;
+                let s = State {
+                    revision,
+                    task: netlist.initial_task().map(str::to_string),
+                    file: netlist.file.display().to_string(),
+                    text: netlist.text.clone(),
+                    next_txn: 1,
+                    burned: revision,
+                    ..State::default()
+                };
+                store.save_state(&s)?;
+                tracing::info!(revision, file = %netlist.file.display(), "authority decided its first revision");
+                s
+            }
+        };
+        let current = (parse)(Path::new(&state.file), &state.text).map_err(|e| {
+            AuthorityError::Netlist(format!("the decided netlist no longer validates: {e}"))
+        })?;
+        let digest = format!("{:016x}", current.digest());
+        let shared = Arc::new(Shared {
+            system: system.clone(),
+            name,
+            session: session.clone(),
+            store,
+            parse,
+            options,
+            core: Mutex::new(Core {
+                state,
+                netlist: current,
+                digest,
+            }),
+            rover: Mutex::new(RoverState::default()),
+            contact: Mutex::new(Instant::now()),
+            heard: AtomicBool::new(false),
+            wake: (Mutex::new(false), Condvar::new()),
+            stop: AtomicBool::new(false),
+        });
+        if let Ok(core) = shared.core.lock() {
+            publish_rover(&shared, &core);
+        }
+        let (tx, rx) = mpsc::sync_channel::<Query>(UPLINK_QUEUE);
+        let queryable = session
+            .declare_queryable(keys::authority(&system))
+            .callback(move |q| {
+                if tx.try_send(q).is_err() {
+                    tracing::warn!("uplink dropped: the authority is busy");
+                }
+            })
+            .wait()
+            .map_err(|e| AuthorityError::Zenoh(e.to_string()))?;
+        let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
+            std::thread::Builder::new()
+                .name(name.into())
+                .spawn(f)
+                .map_err(|e| AuthorityError::Zenoh(format!("spawning {name}: {e}")))
+        };
+        let threads = vec![
+            spawn("authority-intake", {
+                let s = shared.clone();
+                Box::new(move || intake_loop(&s, &rx))
+            })?,
+            spawn("authority-worker", {
+                let s = shared.clone();
+                Box::new(move || worker_loop(&s))
+            })?,
+            spawn("authority-reconcile", {
+                let s = shared.clone();
+                Box::new(move || reconcile_loop(&s))
+            })?,
+        ];
+        tracing::info!(system = %system, dnm = %shared.name, "authority ready");
+        Ok(Self {
+            shared,
+            threads,
+            _queryable: queryable,
+        })
+    }
+
+    /// Stops the authority's threads (a transaction in flight finishes first).
+    pub fn stop(self) {
+        self.shared.stop.store(true, Ordering::Relaxed);
+        self.shared.wake();
+        for t in self.threads {
+            let _ = t.join();
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Stations.
+
+fn intake_loop(s: &Shared, rx: &mpsc::Receiver<Query>) {
+    loop {
+        let q = match rx.recv_timeout(Duration::from_millis(200)) {
+            Ok(q) => q,
+            Err(mpsc::RecvTimeoutError::Timeout) if !s.stop.load(Ordering::Relaxed) => continue,
+            Err(_) => return,
+        };
+        let answer = take_uplink(s, &q);
+        let bytes = serde_json::to_vec(&answer).unwrap_or_default();
+        if let Err(e) = q.reply(keys::authority(&s.system), bytes).wait() {
+            tracing::debug!("answering a station: {e}");
+        }
+    }
+}
+
+fn take_uplink(s: &Shared, q: &Query) -> Downlink {
+    let rover = || s.rover.lock().map(|r| r.clone()).unwrap_or_default();
+    let refuse = |e: String| Downlink {
+        at_unix_ns: now_unix_ns(),
+        outcomes: Vec::new(),
+        rover: rover(),
+        error: Some(e),
+    };
+    let Some(payload) = q.payload() else {
+        return refuse("empty uplink; send JSON {\"station\":\"ground-1\",\"commands\":[...]}".into());
+    };
+    let up: Uplink = match serde_json::from_slice(&payload.to_bytes()) {
+        Ok(u) => u,
+        Err(e) => {
+            return refuse(format!(
+                "unreadable uplink ({e}); send JSON {{\"station\":\"ground-1\",\"commands\":[{{\"seq\":1,\"id\":\"…\",\"order\":{{\"cmd\":\"switch\",\"task\":\"auto\"}}}}]}}"
+            ));
+        }
+    };
+    if up.station.is_empty()
+        || up.station.len() > 64
+        || up.station.contains(['\0', '/', '*', '$', '?', '#'])
+    {
+        return refuse(format!(
+            "station name `{}` is not usable: 1 to 64 characters, no `/`, `*`, `$`, `?`, `#`",
+            up.station
+        ));
+    }
+    if let Ok(mut c) = s.contact.lock() {
+        *c = Instant::now();
+    }
+    if !s.heard.swap(true, Ordering::Relaxed) {
+        s.wake();
+    }
+    match s.store.intake(&up.station, &up.commands, up.pending_from) {
+        Ok(outcomes) => {
+            if outcomes.iter().any(|o| o.fate == Fate::Acknowledged) {
+                s.wake();
+            }
+            Downlink {
+                at_unix_ns: now_unix_ns(),
+                outcomes,
+                rover: rover(),
+                error: None,
+            }
+        }
+        Err(e) => {
+            tracing::error!("taking commands of `{}`: {e}", up.station);
+            refuse(format!("the rover could not store the commands: {e}"))
+        }
+    }
+}
+
+fn publish_rover(s: &Shared, core: &Core) {
+    let scheduled = s
+        .store
+        .timers()
+        .unwrap_or_default()
+        .into_iter()
+        .map(|t| (t.station, t.seq, t.at_unix_ns))
+        .collect();
+    let events = core.state.events.iter().rev().take(STATE_EVENTS).rev().cloned().collect();
+    if let Ok(mut r) = s.rover.lock() {
+        *r = RoverState {
+            authority: s.name.clone(),
+            revision: core.state.revision,
+            task: core.state.task.clone(),
+            events,
+            scheduled,
+        };
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The worker: commands in order, time tags, loss of signal.
+
+fn worker_loop(s: &Shared) {
+    while !s.stop.load(Ordering::Relaxed) {
+        let mut next_wait = Duration::from_millis(100);
+        match work_once(s) {
+            Ok(true) => continue,
+            Ok(false) => {}
+            Err(e) => {
+                tracing::error!("authority: {e}");
+                next_wait = Duration::from_secs(1);
+            }
+        }
+        s.sleep(next_wait);
+    }
+}
+
+/// Does one piece of work if there is one; returns whether it did.
+fn work_once(s: &Shared) -> Result<bool, AuthorityError> {
+    let Ok(mut core) = s.core.lock() else {
+        return Err(AuthorityError::Store("the authority's state lock is poisoned".into()));
+    };
+    let core = &mut *core;
+    // A station heard after the link was lost.
+    if s.heard.load(Ordering::Relaxed) && core.state.link_lost {
+        core.state.link_lost = false;
+        let e = RoverEvent {
+            at_unix_ns: now_unix_ns(),
+            what: "link_back".into(),
+            detail: "a ground station was heard again; the rover stays in its task".into(),
+            revision: core.state.revision,
+            task: core.state.task.clone(),
+        };
+        tracing::info!("ground station heard again");
+        core.state.event(e);
+        s.store.save_state(&core.state)?;
+        publish_rover(s, core);
+    }
+    // Loss of signal.
+    if let Some(l) = core.netlist.on_link_loss.clone() {
+        let silent = s.contact.lock().map(|c| c.elapsed()).unwrap_or_default();
+        if silent >= Duration::from_millis(l.after_ms) && !core.state.link_lost {
+            s.heard.store(false, Ordering::Relaxed);
+            core.state.link_lost = true;
+            let detail = format!(
+                "no ground station heard for {:.1} s: switching to `{}`",
+                silent.as_secs_f64(),
+                l.task
+            );
+            tracing::warn!("{detail}");
+            let fate = if core.state.task.as_deref() == Some(l.task.as_str()) {
+                s.store.save_state(&core.state)?;
+                None
+            } else {
+                Some(transact(s, core, None, Some(l.task.clone()), None, None, None))
+            };
+            let e = RoverEvent {
+                at_unix_ns: now_unix_ns(),
+                what: "link_loss".into(),
+                detail: match &fate {
+                    Some(Fate::Refused { reason }) => format!("{detail}; refused: {reason}"),
+                    _ => detail,
+                },
+                revision: core.state.revision,
+                task: core.state.task.clone(),
+            };
+            core.state.event(e);
+            s.store.save_state(&core.state)?;
+            publish_rover(s, core);
+            return Ok(true);
+        }
+    }
+    // Time-tagged switches whose time has come (prepared a little ahead).
+    let now = now_unix_ns();
+    let margin = (s.options.switch_lead * 4).as_nanos() as u64;
+    if let Some(t) = s
+        .store
+        .timers()?
+        .into_iter()
+        .filter(|t| t.at_unix_ns <= now + margin)
+        .min_by_key(|t| t.at_unix_ns)
+    {
+        let cmd = (t.station.clone(), t.seq, t.id.clone());
+        transact(
+            s,
+            core,
+            None,
+            Some(t.task.clone()),
+            Some(t.at_unix_ns),
+            Some(cmd),
+            Some((t.station.clone(), t.seq)),
+        );
+        publish_rover(s, core);
+        return Ok(true);
+    }
+    // The next command.
+    let Some((station, sent)) = s.store.next_command()? else {
+        return Ok(false);
+    };
+    run_command(s, core, &station, sent)?;
+    publish_rover(s, core);
+    Ok(true)
+}
+
+fn refuse(s: &Shared, station: &str, sent: &Sent, reason: String) -> Result<(), AuthorityError> {
+    tracing::warn!(station, seq = sent.seq, "command refused: {reason}");
+    s.store.finish(Finish {
+        fates: vec![(station, sent.seq, &sent.id, Fate::Refused { reason })],
+        done: Some((station, sent.seq)),
+        ..Finish::default()
+    })
+}
+
+fn run_command(
+    s: &Shared,
+    core: &mut Core,
+    station: &str,
+    sent: Sent,
+) -> Result<(), AuthorityError> {
+    let cmd = Some((station.to_string(), sent.seq, sent.id.clone()));
+    match &sent.order {
+        Order::Switch { task, at_unix_ns } => {
+            if !core.netlist.tasks.contains_key(task) {
+                let known: Vec<&str> = core.netlist.tasks.keys().map(String::as_str).collect();
+                return refuse(
+                    s,
+                    station,
+                    &sent,
+                    format!("unknown task `{task}`; the tasks are {}", known.join(", ")),
+                );
+            }
+            let lead = s.options.switch_lead.as_nanos() as u64 * 4;
+            if let Some(at) = at_unix_ns.filter(|at| *at > now_unix_ns() + lead) {
+                tracing::info!(station, seq = sent.seq, task, at, "time-tagged switch scheduled");
+                return s.store.finish(Finish {
+                    fates: vec![(station, sent.seq, &sent.id, Fate::Scheduled { at_unix_ns: at })],
+                    done: Some((station, sent.seq)),
+                    timer_add: Some(Timer {
+                        station: station.to_string(),
+                        seq: sent.seq,
+                        id: sent.id.clone(),
+                        task: task.clone(),
+                        at_unix_ns: at,
+                    }),
+                    ..Finish::default()
+                });
+            }
+            transact(s, core, None, Some(task.clone()), *at_unix_ns, cmd, None);
+            Ok(())
+        }
+        Order::Apply { file, text } => match (s.parse)(Path::new(file), text) {
+            Err(e) => refuse(s, station, &sent, format!("netlist refused, nothing changed:\n{e}")),
+            Ok(n) if n.system != s.system => refuse(
+                s,
+                station,
+                &sent,
+                format!("netlist is for system `{}`, this is `{}`", n.system, s.system),
+            ),
+            Ok(n) => {
+                transact(s, core, Some(n), None, None, cmd, None);
+                Ok(())
+            }
+        },
+        Order::Module { edit } => {
+            let edited = edit_netlist(&core.state.text, edit).and_then(|(text, what)| {
+                let file = format!("<{} netlist in force, {what}>", s.system);
+                (s.parse)(Path::new(&file), &text)
+                    .map_err(|e| format!("{what}: the netlist would not validate:\n{e}"))
+            });
+            match edited {
+                Err(e) => refuse(s, station, &sent, e),
+                Ok(n) => {
+                    transact(s, core, Some(n), None, None, cmd, None);
+                    Ok(())
+                }
+            }
+        }
+        Order::Cancel { seq } => {
+            if let Some(t) = s.store.timer(station, *seq)? {
+                tracing::info!(station, seq, "time-tagged switch cancelled");
+                return s.store.finish(Finish {
+                    fates: vec![
+                        (station, *seq, &t.id, Fate::CancelledBy { by: sent.seq }),
+                        (station, sent.seq, &sent.id, Fate::Cancelled { seq: *seq }),
+                    ],
+                    done: Some((station, sent.seq)),
+                    timer_remove: Some((station, *seq)),
+                    ..Finish::default()
+                });
+            }
+            let why = match s.store.fate(station, *seq)? {
+                None if *seq >= sent.seq => format!("command {seq} comes after this cancel"),
+                None => format!("command {seq} is not a time-tagged switch waiting for its time"),
+                Some(Fate::Applied { revision, at_unix_ns, .. }) => format!(
+                    "command {seq} already ran (revision {revision}, at {at_unix_ns} ns rover time)"
+                ),
+                Some(f) => format!("command {seq} is not waiting: {}", describe(&f)),
+            };
+            refuse(s, station, &sent, format!("nothing to cancel: {why}"))
+        }
+    }
+}
+
+fn describe(f: &Fate) -> String {
+    match f {
+        Fate::Refused { reason } => format!("it was refused ({reason})"),
+        Fate::CancelledBy { by } => format!("it was cancelled by command {by}"),
+        Fate::Cancelled { .. } => "it is a cancel".into(),
+        other => format!("{other:?}"),
+    }
+}
+
+/// Runs one transaction on every DNM of the rover: prepare everywhere, decide (stored with
+/// the command's fate in one write), then put in force at one instant everywhere.
+#[allow(clippy::too_many_arguments)]
+fn transact(
+    s: &Shared,
+    core: &mut Core,
+    netlist: Option<Netlist>,
+    task: Option<String>,
+    at: Option<u64>,
+    cmd: Option<(String, u64, String)>,
+    timer_remove: Option<(String, u64)>,
+) -> Fate {
+    let finish = |core: &Core, fate: &Fate| {
+        let fates = cmd
+            .iter()
+            .map(|(st, seq, id)| (st.as_str(), *seq, id.as_str(), fate.clone()))
+            .collect();
+        let r = s.store.finish(Finish {
+            fates,
+            done: cmd.as_ref().map(|(st, seq, _)| (st.as_str(), *seq)),
+            timer_add: None,
+            timer_remove: timer_remove.as_ref().map(|(st, seq)| (st.as_str(), *seq)),
+            state: Some(&core.state),
+        });
+        if let Err(e) = &r {
+            tracing::error!("storing a decision: {e}");
+        }
+        r
+    };
+    let target = netlist.as_ref().unwrap_or(&core.netlist);
+    let participants: Vec<String> = target
+        .dnms
+        .iter()
+        .filter(|d| !d.radio)
+        .map(|d| d.name.clone())
+        .collect();
+    // The task in force after it: named, else the active one if it is still defined, else
+    // the netlist's initial task.
+    let task = task
+        .filter(|t| target.tasks.contains_key(t))
+        .or_else(|| {
+            core.state
+                .task
+                .clone()
+                .filter(|t| target.tasks.contains_key(t))
+        })
+        .or_else(|| target.initial_task().map(str::to_string));
+    let (file, text) = match &netlist {
+        Some(n) => (Some(n.file.display().to_string()), Some(n.text.clone())),
+        None => (None, None),
+    };
+    // Numbers first, durably: a restarted authority never hands them out again.
+    let id = core.state.next_txn;
+    core.state.next_txn += 1;
+    let revision = if netlist.is_some() {
+        core.state.burned = core.state.burned.max(core.state.revision) + 1;
+        core.state.burned
+    } else {
+        core.state.revision
+    };
+    if let Err(e) = s.store.save_state(&core.state) {
+        return Fate::Refused {
+            reason: format!("the rover could not store the transaction: {e}"),
+        };
+    }
+    let started = Instant::now();
+    let prepare = Request::Prepare {
+        txn: id,
+        revision,
+        task: task.clone(),
+        file,
+        text,
+    };
+    let votes = ask_all(s, &participants, &prepare, id, s.options.prepare_timeout);
+    let refusals: Vec<String> = votes
+        .iter()
+        .filter_map(|(d, r)| match r {
+            Ok(r) if r.ok => None,
+            Ok(r) => Some(r.error.clone().unwrap_or_else(|| format!("DNM `{d}` refused"))),
+            Err(e) => Some(format!("DNM `{d}`: {e}")),
+        })
+        .collect();
+    if !refusals.is_empty() {
+        let decision = DecisionRecord {
+            txn: id,
+            commit: false,
+            at_unix_ns: now_unix_ns(),
+            revision,
+            task: task.clone(),
+        };
+        core.state.decided(decision.clone());
+        let fate = Fate::Refused {
+            reason: format!("nothing changed: {}", refusals.join("; ")),
+        };
+        let _ = finish(core, &fate);
+        let _ = ask_all(s, &participants, &decide(&decision), id, Duration::from_secs(2));
+        tracing::warn!(txn = id, "transaction dropped: {}", refusals.join("; "));
+        return fate;
+    }
+    let at_unix_ns = (now_unix_ns() + s.options.switch_lead.as_nanos() as u64).max(at.unwrap_or(0));
+    let decision = DecisionRecord {
+        txn: id,
+        commit: true,
+        at_unix_ns,
+        revision,
+        task: task.clone(),
+    };
+    let before = (core.state.clone(), core.netlist.clone(), core.digest.clone());
+    core.state.decided(decision.clone());
+    if let Some(n) = netlist {
+        core.state.file = n.file.display().to_string();
+        core.state.text = n.text.clone();
+        core.digest = format!("{:016x}", n.digest());
+        core.netlist = n;
+    }
+    let fate = Fate::Applied {
+        revision,
+        task: task.clone(),
+        at_unix_ns,
+    };
+    if let Err(e) = finish(core, &fate) {
+        // Not decided after all: drop it everywhere.
+        (core.state, core.netlist, core.digest) = before;
+        let abort = DecisionRecord {
+            commit: false,
+            ..decision
+        };
+        let _ = ask_all(s, &participants, &decide(&abort), id, Duration::from_secs(2));
+        return Fate::Refused {
+            reason: format!("the rover could not store the decision: {e}"),
+        };
+    }
+    // Every DNM acknowledges after the instant; those that do not are caught by the
+    // reconciler (the decision is stored).
+    let request = decide(&decision);
+    let mut missing = participants.clone();
+    for _ in 0..3 {
+        let wait = Duration::from_nanos(at_unix_ns.saturating_sub(now_unix_ns()))
+            + Duration::from_secs(2);
+        let acks = ask_all(s, &missing, &request, id, wait);
+        missing = acks
+            .into_iter()
+            .filter(|(_, r)| !r.as_ref().is_ok_and(|r| r.ok))
+            .map(|(d, _)| d)
+            .collect();
+        if missing.is_empty() {
+            break;
+        }
+    }
+    tracing::info!(
+        txn = id,
+        revision,
+        task = ?task,
+        ms = started.elapsed().as_millis() as u64,
+        missing = ?missing,
+        "decided"
+    );
+    fate
+}
+
+fn decide(d: &DecisionRecord) -> Request {
+    Request::Decide {
+        txn: d.txn,
+        commit: d.commit,
+        at_unix_ns: d.at_unix_ns,
+        revision: d.revision,
+        task: d.task.clone(),
+    }
+}
+
+/// Sends `req` to each DNM at once and collects their answers.
+fn ask_all(
+    s: &Shared,
+    dnms: &[String],
+    req: &Request,
+    txn: u64,
+    timeout: Duration,
+) -> Vec<(String, Result<Response, String>)> {
+    let phase = match req {
+        Request::Prepare { .. } => "prepare",
+        Request::Decide { commit: true, .. } => "commit",
+        Request::Decide { .. } => "abort",
+        _ => "adopt",
+    };
+    let cmd = RemoteCommand::new(
+        format!("authority-{}", s.name),
+        format!("{phase}-{txn}"),
+        req.clone(),
+    );
+    let payload = serde_json::to_vec(&cmd).unwrap_or_default();
+    let pending: Vec<_> = dnms
+        .iter()
+        .map(|d| {
+            let r = s
+                .session
+                .get(keys::cmd(&s.system, d))
+                .payload(payload.clone())
+                .target(QueryTarget::BestMatching)
+                .consolidation(ConsolidationMode::None)
+                .priority(Priority::InteractiveHigh)
+                .congestion_control(CongestionControl::Block)
+                .express(true)
+                .timeout(timeout)
+                .wait();
+            (d.clone(), r)
+        })
+        .collect();
+    pending
+        .into_iter()
+        .map(|(d, r)| {
+            let answer = match r {
+                Err(e) => Err(e.to_string()),
+                Ok(rx) => match rx.recv() {
+                    Err(_) => Err(format!("no answer within {} ms", timeout.as_millis())),
+                    Ok(reply) => {
+                        let bytes = match reply.result() {
+                            Ok(sample) => sample.payload().to_bytes().to_vec(),
+                            Err(e) => e.payload().to_bytes().to_vec(),
+                        };
+                        serde_json::from_slice::<Response>(&bytes)
+                            .map_err(|e| format!("unreadable answer: {e}"))
+                    }
+                },
+            };
+            (d, answer)
+        })
+        .collect()
+}
+
+/// Every reachable DNM's report.
+fn reports(session: &zenoh::Session, system: &str, timeout: Duration) -> Vec<DnmReport> {
+    let Ok(replies) = session
+        .get(keys::all_dnms(system))
+        .target(QueryTarget::All)
+        .consolidation(ConsolidationMode::None)
+        .timeout(timeout)
+        .wait()
+    else {
+        return Vec::new();
+    };
+    let mut out = Vec::new();
+    while let Ok(r) = replies.recv() {
+        if let Ok(sample) = r.result() {
+            if let Ok(d) = serde_json::from_slice::<DnmReport>(&sample.payload().to_bytes()) {
+                out.push(d);
+            }
+        }
+    }
+    out
+}
+
+// ---------------------------------------------------------------------------------------------
+// The reconciler: DNMs that missed a decision catch up.
+
+fn reconcile_loop(s: &Shared) {
+    while !s.stop.load(Ordering::Relaxed) {
+        // Radio DNMs answer slowly: wait for them, outside the lock.
+        let found = reports(&s.session, &s.system, Duration::from_millis(1500));
+        if let Ok(core) = s.core.lock() {
+            reconcile(s, &core, &found);
+        }
+        let deadline = Instant::now() + s.options.reconcile_every;
+        while Instant::now() < deadline && !s.stop.load(Ordering::Relaxed) {
+            std::thread::sleep(Duration::from_millis(50).min(s.options.reconcile_every));
+        }
+    }
+}
+
+fn reconcile(s: &Shared, core: &Core, found: &[DnmReport]) {
+    for r in found {
+        if core.netlist.dnm(&r.dnm).is_none() {
+            continue;
+        }
+        if let Some(id) = r.holding {
+            let d = core
+                .state
+                .decisions
+                .iter()
+                .find(|d| d.txn == id)
+                .cloned()
+                .unwrap_or(DecisionRecord {
+                    // Never decided (the authority stopped before it could): dropped.
+                    txn: id,
+                    commit: false,
+                    at_unix_ns: now_unix_ns(),
+                    revision: r.revision,
+                    task: r.active_task.clone(),
+                });
+            tracing::info!(dnm = %r.dnm, txn = id, commit = d.commit, "sending a missed decision");
+            log_answers(ask_all(s, std::slice::from_ref(&r.dnm), &decide(&d), id, Duration::from_secs(2)));
+            continue;
+        }
+        if r.preparing.is_some() {
+            continue;
+        }
+        if r.revision == core.state.revision
+            && r.active_task == core.state.task
+            && r.netlist_digest == core.digest
+        {
+            continue;
+        }
+        tracing::info!(
+            dnm = %r.dnm,
+            from = r.revision,
+            to = core.state.revision,
+            task = ?core.state.task,
+            "DNM adopts the decided revision"
+        );
+        let adopt = Request::Adopt {
+            revision: core.state.revision,
+            task: core.state.task.clone(),
+            file: core.state.file.clone(),
+            text: core.state.text.clone(),
+        };
+        log_answers(ask_all(
+            s,
+            std::slice::from_ref(&r.dnm),
+            &adopt,
+            core.state.revision,
+            s.options.prepare_timeout,
+        ));
+    }
+}
+
+fn log_answers(answers: Vec<(String, Result<Response, String>)>) {
+    for (d, r) in answers {
+        match r {
+            Ok(r) if r.ok => {}
+            Ok(r) => tracing::warn!(dnm = %d, "{}", r.error.unwrap_or_default()),
+            Err(e) => tracing::warn!(dnm = %d, "{e}"),
+        }
+    }
+}

@@ -1,0 +1,313 @@
+//! The authority's durable memory (redb): the decided state, the commands taken from each
+//! station and their fates, time-tagged commands waiting for their time. Every change is one
+//! redb transaction, committed (fsync) before anyone is told about it.
+
+use std::path::Path;
+
+use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
+use serde::{Deserialize, Serialize};
+
+use dnm_proto::station::{Fate, Outcome, RoverEvent, Sent};
+
+use crate::AuthorityError;
+
+const META: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("meta");
+/// Commands taken and not finished, by `station \0 seq`.
+const INBOX: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("inbox");
+/// Fates of commands (final, or scheduled), by `station \0 seq`.
+const FATES: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("fates");
+/// Time-tagged switches waiting, by `station \0 seq`.
+const TIMERS: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("timers");
+
+/// Decisions kept for DNMs that missed them.
+const DECISIONS_KEPT: usize = 64;
+/// Events kept.
+const EVENTS_KEPT: usize = 64;
+
+fn key(station: &str, seq: u64) -> String {
+    format!("{station}\0{seq:020}")
+}
+
+fn split(key: &str) -> Option<(String, u64)> {
+    let (s, n) = key.split_once('\0')?;
+    Some((s.to_string(), n.parse().ok()?))
+}
+
+fn db<E: std::fmt::Display>(e: E) -> AuthorityError {
+    AuthorityError::Store(e.to_string())
+}
+
+/// One decision, as the DNMs are told it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub(crate) struct DecisionRecord {
+    pub(crate) txn: u64,
+    pub(crate) commit: bool,
+    pub(crate) at_unix_ns: u64,
+    pub(crate) revision: u64,
+    pub(crate) task: Option<String>,
+}
+
+/// What the authority decided last, and its counters.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub(crate) struct State {
+    pub(crate) revision: u64,
+    pub(crate) task: Option<String>,
+    pub(crate) file: String,
+    pub(crate) text: String,
+    /// The next transaction id.
+    pub(crate) next_txn: u64,
+    /// The newest revision number handed to any DNM (never used again).
+    pub(crate) burned: u64,
+    pub(crate) decisions: Vec<DecisionRecord>,
+    pub(crate) events: Vec<RoverEvent>,
+    /// Switched away on losing the ground; cleared when a station is heard again.
+    pub(crate) link_lost: bool,
+}
+
+impl State {
+    pub(crate) fn decided(&mut self, d: DecisionRecord) {
+        if d.commit {
+            self.revision = d.revision;
+            self.task = d.task.clone();
+        }
+        self.decisions.push(d);
+        if self.decisions.len() > DECISIONS_KEPT {
+            self.decisions.remove(0);
+        }
+    }
+
+    pub(crate) fn event(&mut self, e: RoverEvent) {
+        self.events.push(e);
+        if self.events.len() > EVENTS_KEPT {
+            self.events.remove(0);
+        }
+    }
+}
+
+/// A time-tagged switch waiting for its time.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub(crate) struct Timer {
+    pub(crate) station: String,
+    pub(crate) seq: u64,
+    pub(crate) id: String,
+    pub(crate) task: String,
+    pub(crate) at_unix_ns: u64,
+}
+
+/// What finishing a command changes, written in one transaction.
+#[derive(Debug, Default)]
+pub(crate) struct Finish<'a> {
+    /// The command (station, seq, id) and its fate.
+    pub(crate) fates: Vec<(&'a str, u64, &'a str, Fate)>,
+    /// Taken out of the inbox.
+    pub(crate) done: Option<(&'a str, u64)>,
+    pub(crate) timer_add: Option<Timer>,
+    pub(crate) timer_remove: Option<(&'a str, u64)>,
+    pub(crate) state: Option<&'a State>,
+}
+
+#[derive(Debug)]
+pub(crate) struct Store {
+    db: Database,
+}
+
+impl Store {
+    pub(crate) fn open(path: &Path) -> Result<Self, AuthorityError> {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| {
+                AuthorityError::Store(format!("creating {}: {e}", dir.display()))
+            })?;
+        }
+        let database = Database::create(path)
+            .map_err(|e| AuthorityError::Store(format!("{}: {e}", path.display())))?;
+        let tx = database.begin_write().map_err(db)?;
+        for t in [META, INBOX, FATES, TIMERS] {
+            tx.open_table(t).map_err(db)?;
+        }
+        tx.commit().map_err(db)?;
+        Ok(Self { db: database })
+    }
+
+    fn meta<T: for<'de> Deserialize<'de>>(&self, name: &str) -> Result<Option<T>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let t = rx.open_table(META).map_err(db)?;
+        let Some(v) = t.get(name).map_err(db)? else {
+            return Ok(None);
+        };
+        serde_json::from_slice(v.value()).map(Some).map_err(db)
+    }
+
+    pub(crate) fn state(&self) -> Result<Option<State>, AuthorityError> {
+        self.meta("state")
+    }
+
+    pub(crate) fn save_state(&self, state: &State) -> Result<(), AuthorityError> {
+        self.finish(Finish {
+            state: Some(state),
+            ..Finish::default()
+        })
+    }
+
+    /// Takes a station's commands in order: each new one goes to the inbox (durably) if it
+    /// follows the last taken; a gap stops the intake. Returns the fates from `pending_from`.
+    pub(crate) fn intake(
+        &self,
+        station: &str,
+        commands: &[Sent],
+        pending_from: u64,
+    ) -> Result<Vec<Outcome>, AuthorityError> {
+        let recv_key = format!("recv\0{station}");
+        let mut received: u64 = self.meta(&recv_key)?.unwrap_or(0);
+        let mut gap = None;
+        let tx = self.db.begin_write().map_err(db)?;
+        {
+            let mut inbox = tx.open_table(INBOX).map_err(db)?;
+            let mut sorted: Vec<&Sent> = commands.iter().collect();
+            sorted.sort_by_key(|c| c.seq);
+            for c in sorted {
+                if c.seq <= received {
+                    continue;
+                }
+                if c.seq != received + 1 {
+                    gap = Some((c.seq, c.id.clone(), received + 1));
+                    break;
+                }
+                let bytes = serde_json::to_vec(c).map_err(db)?;
+                inbox
+                    .insert(key(station, c.seq).as_str(), bytes.as_slice())
+                    .map_err(db)?;
+                received = c.seq;
+            }
+            let mut meta = tx.open_table(META).map_err(db)?;
+            let bytes = serde_json::to_vec(&received).map_err(db)?;
+            meta.insert(recv_key.as_str(), bytes.as_slice()).map_err(db)?;
+        }
+        tx.commit().map_err(db)?;
+        let mut out = self.fates(station, pending_from.max(1), received)?;
+        if let Some((seq, id, expected)) = gap {
+            out.push(Outcome {
+                seq,
+                id,
+                fate: Fate::OutOfOrder { expected },
+            });
+        }
+        Ok(out)
+    }
+
+    /// Fates of a station's commands `from..=to` (at most 256).
+    fn fates(&self, station: &str, from: u64, to: u64) -> Result<Vec<Outcome>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let fates = rx.open_table(FATES).map_err(db)?;
+        let inbox = rx.open_table(INBOX).map_err(db)?;
+        let mut out = Vec::new();
+        let (lo, hi) = (key(station, from), key(station, to));
+        for row in fates.range(lo.as_str()..=hi.as_str()).map_err(db)? {
+            let (k, v) = row.map_err(db)?;
+            let Some((_, seq)) = split(k.value()) else {
+                continue;
+            };
+            let (id, fate): (String, Fate) = serde_json::from_slice(v.value()).map_err(db)?;
+            out.push(Outcome { seq, id, fate });
+            if out.len() >= 256 {
+                break;
+            }
+        }
+        for row in inbox.range(lo.as_str()..=hi.as_str()).map_err(db)? {
+            let (k, v) = row.map_err(db)?;
+            let Some((_, seq)) = split(k.value()) else {
+                continue;
+            };
+            let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
+            if out.iter().all(|o| o.seq != seq) {
+                out.push(Outcome {
+                    seq,
+                    id: sent.id,
+                    fate: Fate::Acknowledged,
+                });
+            }
+        }
+        out.sort_by_key(|o| o.seq);
+        out.truncate(256);
+        Ok(out)
+    }
+
+    /// The fate of one command, if it has one.
+    pub(crate) fn fate(&self, station: &str, seq: u64) -> Result<Option<Fate>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let fates = rx.open_table(FATES).map_err(db)?;
+        let Some(v) = fates.get(key(station, seq).as_str()).map_err(db)? else {
+            return Ok(None);
+        };
+        let (_, fate): (String, Fate) = serde_json::from_slice(v.value()).map_err(db)?;
+        Ok(Some(fate))
+    }
+
+    /// The oldest command in the inbox (stations in name order, each in its order).
+    pub(crate) fn next_command(&self) -> Result<Option<(String, Sent)>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let inbox = rx.open_table(INBOX).map_err(db)?;
+        let Some(row) = inbox.iter().map_err(db)?.next() else {
+            return Ok(None);
+        };
+        let (k, v) = row.map_err(db)?;
+        let Some((station, _)) = split(k.value()) else {
+            return Err(AuthorityError::Store(format!("bad inbox key {:?}", k.value())));
+        };
+        let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
+        Ok(Some((station, sent)))
+    }
+
+    pub(crate) fn timers(&self) -> Result<Vec<Timer>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let t = rx.open_table(TIMERS).map_err(db)?;
+        let mut out = Vec::new();
+        for row in t.iter().map_err(db)? {
+            let (_, v) = row.map_err(db)?;
+            out.push(serde_json::from_slice(v.value()).map_err(db)?);
+        }
+        Ok(out)
+    }
+
+    pub(crate) fn timer(&self, station: &str, seq: u64) -> Result<Option<Timer>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let t = rx.open_table(TIMERS).map_err(db)?;
+        let Some(v) = t.get(key(station, seq).as_str()).map_err(db)? else {
+            return Ok(None);
+        };
+        serde_json::from_slice(v.value()).map(Some).map_err(db)
+    }
+
+    /// Writes everything `f` names in one durable transaction.
+    pub(crate) fn finish(&self, f: Finish<'_>) -> Result<(), AuthorityError> {
+        let tx = self.db.begin_write().map_err(db)?;
+        {
+            let mut fates = tx.open_table(FATES).map_err(db)?;
+            for (station, seq, id, fate) in &f.fates {
+                let bytes = serde_json::to_vec(&(id, fate)).map_err(db)?;
+                fates
+                    .insert(key(station, *seq).as_str(), bytes.as_slice())
+                    .map_err(db)?;
+            }
+            let mut inbox = tx.open_table(INBOX).map_err(db)?;
+            if let Some((station, seq)) = f.done {
+                inbox.remove(key(station, seq).as_str()).map_err(db)?;
+            }
+            let mut timers = tx.open_table(TIMERS).map_err(db)?;
+            if let Some(t) = &f.timer_add {
+                let bytes = serde_json::to_vec(t).map_err(db)?;
+                timers
+                    .insert(key(&t.station, t.seq).as_str(), bytes.as_slice())
+                    .map_err(db)?;
+            }
+            if let Some((station, seq)) = f.timer_remove {
+                timers.remove(key(station, seq).as_str()).map_err(db)?;
+            }
+            if let Some(state) = f.state {
+                let mut meta = tx.open_table(META).map_err(db)?;
+                let bytes = serde_json::to_vec(state).map_err(db)?;
+                meta.insert("state", bytes.as_slice()).map_err(db)?;
+            }
+        }
+        tx.commit().map_err(db)
+    }
+}

@@ -1,0 +1,163 @@
+//! What a ground station and the rover's authority say to each other over the radio link.
+//!
+//! The station sends an [`Uplink`] as a query on [`crate::keys::authority`]: the commands the
+//! rover has not acknowledged yet, oldest first, each with the station's sequence number and a
+//! unique id. The authority stores each durably before it acknowledges it, runs them exactly
+//! once in the station's order, and answers with a [`Downlink`]: the fate of every command the
+//! station asked about and the rover's state. An uplink without commands is a ping.
+
+use serde::{Deserialize, Serialize};
+
+/// An operator's command to the rover.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "cmd", rename_all = "snake_case")]
+pub enum Order {
+    /// Switch every DNM of the rover to `task`, at `at_unix_ns` (rover time) when given.
+    Switch {
+        task: String,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        at_unix_ns: Option<u64>,
+    },
+    /// Apply a netlist; `file` names it in errors.
+    Apply { file: String, text: String },
+    /// Add, replace or remove one module of the netlist in force when the command runs.
+    Module { edit: ModuleEdit },
+    /// Cancel this station's time-tagged command `seq` before it runs.
+    Cancel { seq: u64 },
+}
+
+/// One module changed in the netlist in force.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "op", rename_all = "snake_case")]
+pub enum ModuleEdit {
+    /// A new module; `params` are `key=value` (a TOML value); `links` are
+    /// `TASK:from.port -> to.port` (each takes over the input it feeds).
+    Add {
+        name: String,
+        kind: String,
+        #[serde(default)]
+        dnm: Option<String>,
+        #[serde(default)]
+        params: Vec<String>,
+        #[serde(default)]
+        links: Vec<String>,
+    },
+    /// A module restarted as another kind or with other parameters.
+    Replace {
+        name: String,
+        #[serde(default)]
+        kind: Option<String>,
+        #[serde(default)]
+        params: Vec<String>,
+    },
+    /// A module and every link to or from it removed.
+    Remove { name: String },
+}
+
+/// A command as a station sends it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Sent {
+    /// The station's sequence number: 1, 2, ... in the order the operator gave the commands.
+    pub seq: u64,
+    /// Unique across stations and restarts.
+    pub id: String,
+    pub order: Order,
+}
+
+/// What a station sends the authority.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Uplink {
+    pub station: String,
+    /// Commands not yet acknowledged, oldest first.
+    #[serde(default)]
+    pub commands: Vec<Sent>,
+    /// The oldest of the station's commands whose final fate it does not know yet: the answer
+    /// carries the fates from there on.
+    #[serde(default)]
+    pub pending_from: u64,
+}
+
+/// The fate of one command on the rover.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "state", rename_all = "snake_case")]
+pub enum Fate {
+    /// Stored by the rover; it runs after the station's earlier commands.
+    Acknowledged,
+    /// Not taken: the station's command `expected` must come first (send from there).
+    OutOfOrder { expected: u64 },
+    /// A time-tagged switch that waits for its time.
+    Scheduled { at_unix_ns: u64 },
+    /// In force on every DNM of the rover from `at_unix_ns` (rover time).
+    Applied {
+        revision: u64,
+        task: Option<String>,
+        at_unix_ns: u64,
+    },
+    /// A cancel that took effect: command `seq` will not run.
+    Cancelled { seq: u64 },
+    /// A time-tagged switch cancelled by command `by`.
+    CancelledBy { by: u64 },
+    /// Not run; nothing changed on the rover.
+    Refused { reason: String },
+}
+
+impl Fate {
+    /// Whether the command has reached its end (nothing more will happen to it).
+    pub fn is_final(&self) -> bool {
+        matches!(
+            self,
+            Fate::Applied { .. }
+                | Fate::Cancelled { .. }
+                | Fate::CancelledBy { .. }
+                | Fate::Refused { .. }
+        )
+    }
+}
+
+/// The fate of command `seq`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Outcome {
+    pub seq: u64,
+    pub id: String,
+    #[serde(flatten)]
+    pub fate: Fate,
+}
+
+/// Something the authority did on its own (a switch after losing the ground station).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RoverEvent {
+    /// Rover time, ns since the Unix epoch.
+    pub at_unix_ns: u64,
+    /// `link_loss` (switched to the task the netlist names), `link_back`.
+    pub what: String,
+    pub detail: String,
+    pub revision: u64,
+    pub task: Option<String>,
+}
+
+/// The rover as its authority sees it.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RoverState {
+    /// The authority DNM.
+    pub authority: String,
+    pub revision: u64,
+    pub task: Option<String>,
+    /// The last events, oldest first.
+    #[serde(default)]
+    pub events: Vec<RoverEvent>,
+    /// Time-tagged commands waiting: (station, seq, at).
+    #[serde(default)]
+    pub scheduled: Vec<(String, u64, u64)>,
+}
+
+/// What the authority answers an [`Uplink`].
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Downlink {
+    /// Rover time of the answer, ns since the Unix epoch.
+    pub at_unix_ns: u64,
+    pub outcomes: Vec<Outcome>,
+    pub rover: RoverState,
+    /// Set when the uplink could not be read; nothing was taken.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}

@@ -1,0 +1,324 @@
+//! `dnm ground`: run a ground station, and give it commands through its HTTP/JSON API.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use clap::Subcommand;
+use dnm_ground::{Entry, LinkStatus, Station, StationOptions};
+use dnm_proto::station::{ModuleEdit, Order};
+
+/// The station's API unless `--url` or `$DNM_GROUND_URL` says otherwise.
+pub const DEFAULT_URL: &str = "http://127.0.0.1:7480";
+
+#[derive(Subcommand, Debug)]
+pub enum GroundCmd {
+    /// Run the ground station until Ctrl-C: its outbox, the link to the rover, its API.
+    Serve {
+        #[arg(long)]
+        system: String,
+        /// The station's name, unique among the system's stations.
+        #[arg(long, default_value = "ground-1")]
+        station: String,
+        /// The outbox database (default: <state dir>/<system>-<station>.redb).
+        #[arg(long)]
+        db: Option<PathBuf>,
+        /// Where the operator API listens.
+        #[arg(long, default_value = "127.0.0.1:7480")]
+        http: std::net::SocketAddr,
+    },
+    /// Switch the rover to TASK, now or at a rover time.
+    Switch {
+        task: String,
+        /// `+30s` from now, or seconds since the Unix epoch (rover time).
+        #[arg(long)]
+        at: Option<String>,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Apply a netlist to the rover.
+    Apply {
+        netlist: PathBuf,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Replace a module (another kind or other parameters).
+    Replace {
+        name: String,
+        #[arg(long)]
+        kind: Option<String>,
+        /// `key=value` (repeatable).
+        #[arg(long = "param")]
+        params: Vec<String>,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Remove a module and its links.
+    Remove {
+        name: String,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Cancel a time-tagged switch that has not run yet.
+    Cancel {
+        seq: u64,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// The link, the rover's state and the last commands.
+    Status {
+        #[arg(long)]
+        url: Option<String>,
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(clap::Args, Debug)]
+pub struct Common {
+    /// The station's API (default: $DNM_GROUND_URL, else http://127.0.0.1:7480).
+    #[arg(long)]
+    url: Option<String>,
+    /// Wait up to this many seconds for the command's fate (default: return once queued).
+    #[arg(long)]
+    wait: Option<u64>,
+    #[arg(long)]
+    json: bool,
+}
+
+fn url(u: &Option<String>) -> String {
+    u.clone()
+        .or_else(|| std::env::var("DNM_GROUND_URL").ok())
+        .unwrap_or_else(|| DEFAULT_URL.into())
+}
+
+/// `+30s`, `+500ms`, or seconds since the epoch: rover time in ns.
+pub fn parse_at(at: &str) -> anyhow::Result<u64> {
+    if let Some(rel) = at.strip_prefix('+') {
+        let ms = dnm_netlist::parse_duration_ms(rel)
+            .with_context(|| format!("`{at}`: write e.g. `+30s` or `+2m`"))?;
+        return Ok(dnm_ground::now_unix_ns() + ms * 1_000_000);
+    }
+    let s: f64 = at
+        .parse()
+        .with_context(|| format!("`{at}`: write `+30s` or seconds since the Unix epoch"))?;
+    Ok((s * 1e9) as u64)
+}
+
+fn agent() -> ureq::Agent {
+    ureq::Agent::new_with_config(
+        ureq::Agent::config_builder()
+            .http_status_as_error(false)
+            .timeout_global(Some(Duration::from_secs(330)))
+            .build(),
+    )
+}
+
+fn get(url: &str) -> anyhow::Result<String> {
+    let mut r = agent()
+        .get(url)
+        .call()
+        .with_context(|| format!("is the ground station running? ({url})"))?;
+    let status = r.status().as_u16();
+    let body = r.body_mut().read_to_string()?;
+    if status >= 400 {
+        bail!("{}", error_of(&body));
+    }
+    Ok(body)
+}
+
+fn error_of(body: &str) -> String {
+    serde_json::from_str::<serde_json::Value>(body)
+        .ok()
+        .and_then(|v| v["error"].as_str().map(str::to_string))
+        .unwrap_or_else(|| body.to_string())
+}
+
+/// Queues `order` at the station and, if asked, waits for its fate.
+fn submit(order: &Order, common: &Common) -> anyhow::Result<ExitCode> {
+    let base = url(&common.url);
+    let body = serde_json::to_vec(order)?;
+    let mut r = agent()
+        .post(format!("{base}/commands"))
+        .content_type("application/json")
+        .send(&body[..])
+        .with_context(|| format!("is the ground station running? ({base})"))?;
+    let status = r.status().as_u16();
+    let text = r.body_mut().read_to_string()?;
+    if status >= 400 {
+        bail!("{}", error_of(&text));
+    }
+    let mut entry: Entry = serde_json::from_str(&text)?;
+    if let Some(w) = common.wait {
+        let text = get(&format!("{base}/commands/{}?wait={w}", entry.seq))?;
+        entry = serde_json::from_str(&text)?;
+    }
+    if common.json {
+        println!("{}", serde_json::to_string_pretty(&entry)?);
+    } else {
+        println!("{}", describe(&entry));
+    }
+    Ok(match entry.state {
+        dnm_ground::CommandState::Refused => ExitCode::FAILURE,
+        _ => ExitCode::SUCCESS,
+    })
+}
+
+fn describe(e: &Entry) -> String {
+    use dnm_proto::station::Fate;
+    let what = match &e.order {
+        Order::Switch { task, at_unix_ns } => match at_unix_ns {
+            Some(at) => format!("switch to `{task}` at {:.3}", *at as f64 / 1e9),
+            None => format!("switch to `{task}`"),
+        },
+        Order::Apply { file, .. } => format!("apply {file}"),
+        Order::Module { edit } => match edit {
+            ModuleEdit::Add { name, .. } => format!("add module `{name}`"),
+            ModuleEdit::Replace { name, .. } => format!("replace module `{name}`"),
+            ModuleEdit::Remove { name } => format!("remove module `{name}`"),
+        },
+        Order::Cancel { seq } => format!("cancel command {seq}"),
+    };
+    let fate = match &e.fate {
+        Some(Fate::Applied {
+            revision,
+            task,
+            at_unix_ns,
+        }) => format!(
+            "applied: revision {revision}, task {}, at {:.3}",
+            task.as_deref().unwrap_or("-"),
+            *at_unix_ns as f64 / 1e9
+        ),
+        Some(Fate::Refused { reason }) => format!("refused: {reason}"),
+        Some(Fate::Scheduled { at_unix_ns }) => {
+            format!("scheduled on the rover for {:.3}", *at_unix_ns as f64 / 1e9)
+        }
+        Some(Fate::Cancelled { seq }) => format!("done: command {seq} will not run"),
+        Some(Fate::CancelledBy { by }) => format!("cancelled by command {by}"),
+        _ => format!("{:?}", e.state).to_lowercase(),
+    };
+    format!("#{:<4} {what:<36} {fate}", e.seq)
+}
+
+fn print_link(l: &LinkStatus) {
+    println!(
+        "link {}: rtt {}, last contact {}, loss {:.0}% of the last uplinks, {} commands pending",
+        if l.up { "up" } else { "DOWN" },
+        l.rtt_ms.map_or("-".into(), |r| format!("{r:.0} ms")),
+        l.last_contact_ms
+            .map_or("never".into(), |c| format!("{:.1} s ago", c as f64 / 1e3)),
+        l.loss * 100.0,
+        l.pending
+    );
+    if let Some(r) = &l.rover {
+        println!(
+            "rover: revision {}, task {} (authority `{}`)",
+            r.revision,
+            r.task.as_deref().unwrap_or("-"),
+            r.authority
+        );
+        for (station, seq, at) in &r.scheduled {
+            println!("  scheduled: {station} #{seq} at {:.3}", *at as f64 / 1e9);
+        }
+        for e in &r.events {
+            println!("  event {}: {}", e.what, e.detail);
+        }
+    }
+    if let Some(e) = &l.error {
+        println!("the rover refused the last uplink: {e}");
+    }
+}
+
+pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
+    match cmd {
+        GroundCmd::Serve {
+            system,
+            station,
+            db,
+            http,
+        } => {
+            let db = db.unwrap_or_else(|| {
+                dnm::default_state_dir().join(format!("{system}-{station}.redb"))
+            });
+            let session = z.open()?;
+            let st = Arc::new(Station::start(
+                session,
+                StationOptions::new(&system, &station, &db),
+            )?);
+            let api = dnm_ground::http::Api::serve(st.clone(), http).map_err(anyhow::Error::msg)?;
+            println!(
+                "ground station `{station}` of `{system}`: outbox {}, API http://{}; Ctrl-C to stop",
+                db.display(),
+                api.addr()
+            );
+            wait_for_signal();
+            drop(api);
+            Ok(ExitCode::SUCCESS)
+        }
+        GroundCmd::Switch { task, at, common } => {
+            let at_unix_ns = at.as_deref().map(parse_at).transpose()?;
+            submit(&Order::Switch { task, at_unix_ns }, &common)
+        }
+        GroundCmd::Apply { netlist, common } => {
+            let text = std::fs::read_to_string(&netlist)
+                .with_context(|| format!("reading {}", netlist.display()))?;
+            // Refused here already if it does not validate on this machine.
+            dnm::parse_netlist_text(&netlist, &text).map_err(anyhow::Error::msg)?;
+            let order = Order::Apply {
+                file: netlist.display().to_string(),
+                text,
+            };
+            submit(&order, &common)
+        }
+        GroundCmd::Replace {
+            name,
+            kind,
+            params,
+            common,
+        } => {
+            let edit = ModuleEdit::Replace { name, kind, params };
+            submit(&Order::Module { edit }, &common)
+        }
+        GroundCmd::Remove { name, common } => {
+            submit(&Order::Module { edit: ModuleEdit::Remove { name } }, &common)
+        }
+        GroundCmd::Cancel { seq, common } => submit(&Order::Cancel { seq }, &common),
+        GroundCmd::Status { url: u, json } => {
+            let base = url(&u);
+            let link: LinkStatus = serde_json::from_str(&get(&format!("{base}/link"))?)?;
+            let entries: Vec<Entry> = serde_json::from_str(&get(&format!("{base}/commands"))?)?;
+            if json {
+                println!(
+                    "{}",
+                    serde_json::to_string_pretty(
+                        &serde_json::json!({ "link": link, "commands": entries })
+                    )?
+                );
+            } else {
+                print_link(&link);
+                for e in entries.iter().rev().take(20).rev() {
+                    println!("{}", describe(e));
+                }
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}
+
+/// Blocks until SIGINT or SIGTERM.
+pub fn wait_for_signal() {
+    static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+    extern "C" fn on_signal(_: libc::c_int) {
+        STOP.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+    // SAFETY: the handler only stores into an atomic, which is async-signal-safe.
+    unsafe {
+        libc::signal(libc::SIGINT, on_signal as *const () as libc::sighandler_t);
+        libc::signal(libc::SIGTERM, on_signal as *const () as libc::sighandler_t);
+    }
+    while !STOP.load(std::sync::atomic::Ordering::Relaxed) {
+        std::thread::sleep(Duration::from_millis(200));
+    }
+}

@@ -1,0 +1,306 @@
+//! `dnm linksim`: a radio link between the ground's and the rover's Zenoh endpoints, on one
+//! machine and without root: a proxy that delays, caps the bandwidth, loses (seeded) and drops
+//! out on a schedule, both ways.
+//!
+//! TCP: the proxy cannot drop bytes of a stream, so a lost segment costs what TCP pays for
+//! it: the segment and everything behind it wait a retransmission timeout (doubling while the
+//! retransmission is lost too). During an outage nothing passes and new connections wait; a
+//! Zenoh session whose lease runs out closes its connection, as over a real radio.
+//! UDP: each datagram is lost with the given probability, or dropped in an outage.
+
+use std::collections::HashMap;
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpListener, TcpStream, UdpSocket};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+
+#[derive(clap::Args, Debug, Clone)]
+pub struct LinkArgs {
+    /// Where the proxy listens (the side that connects uses this address).
+    #[arg(long)]
+    pub listen: SocketAddr,
+    /// Where it forwards to (the side that listens).
+    #[arg(long)]
+    pub to: SocketAddr,
+    /// Carry UDP datagrams instead of TCP streams.
+    #[arg(long)]
+    pub udp: bool,
+    /// One-way delay, e.g. `300ms`.
+    #[arg(long, default_value = "0ms")]
+    pub delay: String,
+    /// Bandwidth each way, e.g. `256kbit`, `2mbit` (default: unlimited).
+    #[arg(long)]
+    pub rate: Option<String>,
+    /// Probability that a packet is lost, each way (0 to 1).
+    #[arg(long, default_value_t = 0.0)]
+    pub loss: f64,
+    /// Outages: `10s/30s` is up 20 s, then down 10 s, every 30 s.
+    #[arg(long)]
+    pub outage: Option<String>,
+    /// Seed of the losses.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+}
+
+/// The link's behaviour, parsed.
+#[derive(Debug, Clone, Copy)]
+pub struct Link {
+    pub delay: Duration,
+    /// Bytes per second; 0: unlimited.
+    pub rate: f64,
+    pub loss: f64,
+    /// (down, period).
+    pub outage: Option<(Duration, Duration)>,
+    pub seed: u64,
+    pub start: Instant,
+}
+
+impl Link {
+    pub fn parse(a: &LinkArgs) -> anyhow::Result<Self> {
+        let ms = |s: &str| {
+            dnm_netlist::parse_duration_ms(s)
+                .with_context(|| format!("`{s}` is not a duration (e.g. `300ms`, `10s`)"))
+        };
+        let rate = match &a.rate {
+            None => 0.0,
+            Some(r) => {
+                let r = r.to_ascii_lowercase();
+                let (num, unit) = r.split_at(r.find(|c: char| c.is_ascii_alphabetic()).unwrap_or(r.len()));
+                let n: f64 = num.parse().with_context(|| format!("rate `{r}`: e.g. `256kbit`"))?;
+                let bits = match unit {
+                    "bit" | "" => n,
+                    "kbit" => n * 1e3,
+                    "mbit" => n * 1e6,
+                    _ => anyhow::bail!("rate `{r}`: use bit, kbit or mbit"),
+                };
+                bits / 8.0
+            }
+        };
+        if !(0.0..1.0).contains(&a.loss) {
+            anyhow::bail!("--loss {} must be from 0 up to (not including) 1", a.loss);
+        }
+        let outage = match &a.outage {
+            None => None,
+            Some(o) => {
+                let (down, period) = o
+                    .split_once('/')
+                    .with_context(|| format!("--outage `{o}`: write DOWN/PERIOD, e.g. `10s/30s`"))?;
+                let (down, period) = (ms(down)?, ms(period)?);
+                if down >= period || period == 0 {
+                    anyhow::bail!("--outage `{o}`: the outage must be shorter than its period");
+                }
+                Some((Duration::from_millis(down), Duration::from_millis(period)))
+            }
+        };
+        Ok(Self {
+            delay: Duration::from_millis(ms(&a.delay)?),
+            rate,
+            loss: a.loss,
+            outage,
+            seed: a.seed,
+            start: Instant::now(),
+        })
+    }
+
+    /// The end of the outage `t` falls in, if it falls in one.
+    fn outage_end(&self, t: Instant) -> Option<Instant> {
+        let (down, period) = self.outage?;
+        let since = t.duration_since(self.start);
+        let phase = Duration::from_nanos((since.as_nanos() % period.as_nanos()) as u64);
+        (phase >= period - down).then(|| t + (period - phase))
+    }
+}
+
+/// splitmix64: small, seeded, good enough for losses.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// When a packet of `len` bytes handed over at `now` arrives, or `None` if it is lost for good
+/// (UDP). `free` is when the sender's side of the link is free again.
+fn schedule(link: &Link, rng: &mut Rng, free: &mut Instant, len: usize, stream: bool) -> Option<Instant> {
+    let now = Instant::now();
+    let mut tx = (*free).max(now);
+    if let Some(end) = link.outage_end(tx) {
+        if !stream {
+            return None;
+        }
+        tx = end;
+    }
+    if link.rate > 0.0 {
+        tx += Duration::from_secs_f64(len as f64 / link.rate);
+    }
+    if stream {
+        // Lost segments are sent again after a timeout that doubles.
+        let mut rto = (link.delay * 2).max(Duration::from_millis(200));
+        while link.loss > 0.0 && rng.next() < link.loss {
+            tx += rto;
+            rto *= 2;
+            if let Some(end) = link.outage_end(tx) {
+                tx = end;
+            }
+        }
+    } else if link.loss > 0.0 && rng.next() < link.loss {
+        *free = tx;
+        return None;
+    }
+    *free = tx;
+    Some(tx + link.delay)
+}
+
+pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
+    let link = Link::parse(args)?;
+    println!(
+        "link {} -> {} ({}): delay {:?}, rate {}, loss {:.0}%, outage {:?}, seed {}; Ctrl-C to stop",
+        args.listen,
+        args.to,
+        if args.udp { "udp" } else { "tcp" },
+        link.delay,
+        args.rate.as_deref().unwrap_or("unlimited"),
+        link.loss * 100.0,
+        args.outage,
+        link.seed
+    );
+    if args.udp {
+        udp(link, args.listen, args.to)
+    } else {
+        tcp(link, args.listen, args.to)
+    }
+}
+
+fn tcp(link: Link, listen: SocketAddr, to: SocketAddr) -> anyhow::Result<()> {
+    let listener = TcpListener::bind(listen).with_context(|| format!("listening on {listen}"))?;
+    let n = AtomicU64::new(0);
+    for client in listener.incoming() {
+        let Ok(client) = client else { continue };
+        let k = n.fetch_add(1, Ordering::Relaxed);
+        std::thread::spawn(move || {
+            // A connection made during an outage waits for the link (SYNs are retried).
+            if let Some(end) = link.outage_end(Instant::now()) {
+                std::thread::sleep(end.saturating_duration_since(Instant::now()));
+            }
+            std::thread::sleep(link.delay * 2);
+            let Ok(server) = TcpStream::connect(to) else {
+                return;
+            };
+            let _ = client.set_nodelay(true);
+            let _ = server.set_nodelay(true);
+            let (Ok(c2), Ok(s2)) = (client.try_clone(), server.try_clone()) else {
+                return;
+            };
+            let up = std::thread::spawn(move || pump(link, client, server, link.seed ^ (k << 1)));
+            pump(link, s2, c2, link.seed ^ (k << 1) ^ 1);
+            let _ = up.join();
+        });
+    }
+    Ok(())
+}
+
+/// Carries one direction of a TCP connection through the link.
+fn pump(link: Link, mut from: TcpStream, mut to: TcpStream, seed: u64) {
+    let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>();
+    let writer = std::thread::spawn(move || {
+        for (at, bytes) in rx {
+            let wait = at.saturating_duration_since(Instant::now());
+            if !wait.is_zero() {
+                std::thread::sleep(wait);
+            }
+            if to.write_all(&bytes).is_err() {
+                break;
+            }
+        }
+        let _ = to.shutdown(std::net::Shutdown::Both);
+    });
+    let mut rng = Rng(seed);
+    let mut free = Instant::now();
+    let mut buf = vec![0u8; 1400];
+    loop {
+        match from.read(&mut buf) {
+            Ok(0) | Err(_) => break,
+            Ok(n) => {
+                if let Some(at) = schedule(&link, &mut rng, &mut free, n, true) {
+                    if tx.send((at, buf[..n].to_vec())).is_err() {
+                        break;
+                    }
+                }
+            }
+        }
+    }
+    drop(tx);
+    let _ = writer.join();
+    let _ = from.shutdown(std::net::Shutdown::Both);
+}
+
+fn udp(link: Link, listen: SocketAddr, to: SocketAddr) -> anyhow::Result<()> {
+    let front = Arc::new(UdpSocket::bind(listen).with_context(|| format!("binding {listen}"))?);
+    let (tx, rx) = mpsc::channel::<(Instant, Arc<UdpSocket>, SocketAddr, Vec<u8>)>();
+    // One sender delivers every datagram at its time (they are ordered by departure per way).
+    std::thread::spawn(move || {
+        let mut queue: Vec<(Instant, Arc<UdpSocket>, SocketAddr, Vec<u8>)> = Vec::new();
+        loop {
+            let next = queue.iter().map(|q| q.0).min();
+            let item = match next {
+                None => rx.recv().ok(),
+                Some(at) => match rx.recv_timeout(at.saturating_duration_since(Instant::now())) {
+                    Ok(i) => Some(i),
+                    Err(mpsc::RecvTimeoutError::Timeout) => None,
+                    Err(mpsc::RecvTimeoutError::Disconnected) => return,
+                },
+            };
+            if let Some(i) = item {
+                queue.push(i);
+            }
+            let now = Instant::now();
+            queue.sort_by_key(|q| q.0);
+            while queue.first().is_some_and(|q| q.0 <= now) {
+                let (_, sock, dest, bytes) = queue.remove(0);
+                let _ = sock.send_to(&bytes, dest);
+            }
+        }
+    });
+    let backs: Arc<Mutex<HashMap<SocketAddr, Arc<UdpSocket>>>> = Arc::default();
+    let mut rng = Rng(link.seed);
+    let mut free = Instant::now();
+    let mut buf = vec![0u8; 65536];
+    loop {
+        let (n, client) = front.recv_from(&mut buf).context("receiving")?;
+        let back = {
+            let Ok(mut b) = backs.lock() else { break };
+            if let Some(s) = b.get(&client) {
+                s.clone()
+            } else {
+                let s = Arc::new(UdpSocket::bind("0.0.0.0:0").context("binding")?);
+                b.insert(client, s.clone());
+                // Answers from the far side come back through the link too.
+                let (front, s2, tx) = (front.clone(), s.clone(), tx.clone());
+                std::thread::spawn(move || {
+                    let mut rng = Rng(link.seed ^ 0x5555);
+                    let mut free = Instant::now();
+                    let mut buf = vec![0u8; 65536];
+                    while let Ok((n, _)) = s2.recv_from(&mut buf) {
+                        if let Some(at) = schedule(&link, &mut rng, &mut free, n, false) {
+                            let _ = tx.send((at, front.clone(), client, buf[..n].to_vec()));
+                        }
+                    }
+                });
+                s
+            }
+        };
+        if let Some(at) = schedule(&link, &mut rng, &mut free, n, false) {
+            let _ = tx.send((at, back, to, buf[..n].to_vec()));
+        }
+    }
+    Ok(())
+}

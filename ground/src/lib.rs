@@ -1,0 +1,541 @@
+//! The ground station: where operators command the rover from, across a radio link that loses
+//! packets, delays them and drops out.
+//!
+//! Every command an operator gives gets the station's next sequence number and a unique id and
+//! is stored durably (redb, fsync) before the operator is told it is queued. One thread sends
+//! the commands the rover has not acknowledged, oldest first, in one query to the rover's
+//! authority, again and again until it acknowledges them, across outages of any length and
+//! restarts of the station; the same query is the station's ping when there is nothing to
+//! send, and measures the link. The HTTP/JSON API ([`http`]) is what scripts, `dnm ground`
+//! and the web interface use.
+//!
+//! ```no_run
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! # let session: zenoh::Session = unimplemented!();
+//! use dnm_ground::{Station, StationOptions};
+//! use dnm_proto::station::Order;
+//! let station = Station::start(session, StationOptions::new("beetle", "ground-1", "ground-1.redb"))?;
+//! let entry = station.submit(Order::Switch { task: "auto".into(), at_unix_ns: None })?;
+//! let done = station.wait(entry.seq, std::time::Duration::from_secs(60));
+//! # Ok(()) }
+//! ```
+
+pub mod http;
+
+use std::collections::{BTreeMap, VecDeque};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
+use serde::{Deserialize, Serialize};
+use zenoh::Wait;
+use zenoh::qos::{CongestionControl, Priority};
+
+use dnm_proto::keys;
+use dnm_proto::station::{Downlink, Fate, Order, RoverState, Sent, Uplink};
+
+const OUTBOX: TableDefinition<'_, u64, &[u8]> = TableDefinition::new("outbox");
+const META: TableDefinition<'_, &str, u64> = TableDefinition::new("meta");
+
+/// Uplinks remembered for the loss estimate.
+const LOSS_WINDOW: usize = 50;
+
+#[derive(Debug, thiserror::Error)]
+pub enum StationError {
+    #[error("the station's outbox: {0}")]
+    Store(String),
+    #[error("{0}")]
+    Invalid(String),
+}
+
+fn store<E: std::fmt::Display>(e: E) -> StationError {
+    StationError::Store(e.to_string())
+}
+
+pub fn now_unix_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// How a station works.
+#[derive(Debug, Clone)]
+pub struct StationOptions {
+    pub system: String,
+    /// The station's name, unique among the system's stations.
+    pub name: String,
+    /// The outbox database (created if missing).
+    pub db: PathBuf,
+    /// Between two uplinks when there is nothing to send.
+    pub ping_every: Duration,
+    /// How long an uplink waits for its answer (beyond it, it counts as lost).
+    pub answer_timeout: Duration,
+    /// Commands in one uplink, at most.
+    pub batch: usize,
+    /// Silence after which the link counts as down.
+    pub down_after: Duration,
+}
+
+impl StationOptions {
+    pub fn new(system: &str, name: &str, db: impl Into<PathBuf>) -> Self {
+        Self {
+            system: system.into(),
+            name: name.into(),
+            db: db.into(),
+            ping_every: Duration::from_secs(1),
+            answer_timeout: Duration::from_secs(5),
+            batch: 32,
+            down_after: Duration::from_secs(3),
+        }
+    }
+}
+
+/// Where a command is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CommandState {
+    /// Stored here, not sent yet.
+    Queued,
+    /// Sent, not acknowledged yet (sent again until it is).
+    Sent,
+    /// Stored by the rover; it runs after the station's earlier commands.
+    Acknowledged,
+    /// A time-tagged switch waiting on the rover for its time.
+    Scheduled,
+    /// In force on the rover (see the fate for revision and instant).
+    Applied,
+    /// Refused by the rover (see the fate for the reason); nothing changed.
+    Refused,
+    /// Cancelled before it ran.
+    Cancelled,
+}
+
+impl CommandState {
+    pub fn is_final(self) -> bool {
+        matches!(self, Self::Applied | Self::Refused | Self::Cancelled)
+    }
+}
+
+/// One command in the outbox.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Entry {
+    pub seq: u64,
+    pub id: String,
+    pub order: Order,
+    pub state: CommandState,
+    /// What the rover said last.
+    pub fate: Option<Fate>,
+    pub queued_unix_ns: u64,
+    pub sends: u32,
+    pub acknowledged_unix_ns: Option<u64>,
+    pub done_unix_ns: Option<u64>,
+}
+
+/// The radio link as the station sees it.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct LinkStatus {
+    pub up: bool,
+    /// Round-trip time of the last answered uplink, ms.
+    pub rtt_ms: Option<f64>,
+    /// Since the rover was last heard, ms.
+    pub last_contact_ms: Option<u64>,
+    /// Share of the last uplinks that got no answer.
+    pub loss: f64,
+    pub uplinks: u64,
+    pub answered: u64,
+    /// Commands not yet final.
+    pub pending: usize,
+    /// The rover as its authority last reported it.
+    pub rover: Option<RoverState>,
+    /// Why the rover refused the last uplink, if it did.
+    pub error: Option<String>,
+}
+
+struct Inner {
+    entries: BTreeMap<u64, Entry>,
+    next_seq: u64,
+    link: LinkStatus,
+    contact: Option<Instant>,
+    history: VecDeque<bool>,
+}
+
+struct Shared {
+    options: StationOptions,
+    session: zenoh::Session,
+    db: Database,
+    inner: Mutex<Inner>,
+    changed: Condvar,
+    wake: (Mutex<bool>, Condvar),
+    stop: AtomicBool,
+}
+
+/// A running ground station.
+pub struct Station {
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for Station {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Station")
+            .field("name", &self.shared.options.name)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Station {
+    /// Opens the outbox (commands stored by an earlier run are sent on) and starts the link.
+    pub fn start(session: zenoh::Session, options: StationOptions) -> Result<Self, StationError> {
+        if let Some(dir) = options.db.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(store)?;
+        }
+        let db = Database::create(&options.db)
+            .map_err(|e| StationError::Store(format!("{}: {e}", options.db.display())))?;
+        let mut entries = BTreeMap::new();
+        let mut next_seq = 1;
+        {
+            let tx = db.begin_write().map_err(store)?;
+            tx.open_table(OUTBOX).map_err(store)?;
+            tx.open_table(META).map_err(store)?;
+            tx.commit().map_err(store)?;
+            let rx = db.begin_read().map_err(store)?;
+            let t = rx.open_table(OUTBOX).map_err(store)?;
+            for row in t.iter().map_err(store)? {
+                let (_, v) = row.map_err(store)?;
+                let e: Entry = serde_json::from_slice(v.value()).map_err(store)?;
+                next_seq = next_seq.max(e.seq + 1);
+                entries.insert(e.seq, e);
+            }
+            let meta = rx.open_table(META).map_err(store)?;
+            if let Some(v) = meta.get("next_seq").map_err(store)? {
+                next_seq = next_seq.max(v.value());
+            }
+        }
+        tracing::info!(
+            station = %options.name,
+            commands = entries.len(),
+            pending = entries.values().filter(|e| !e.state.is_final()).count(),
+            "outbox open"
+        );
+        let shared = Arc::new(Shared {
+            options,
+            session,
+            db,
+            inner: Mutex::new(Inner {
+                entries,
+                next_seq,
+                link: LinkStatus::default(),
+                contact: None,
+                history: VecDeque::new(),
+            }),
+            changed: Condvar::new(),
+            wake: (Mutex::new(true), Condvar::new()),
+            stop: AtomicBool::new(false),
+        });
+        let thread = {
+            let s = shared.clone();
+            std::thread::Builder::new()
+                .name("ground-link".into())
+                .spawn(move || link_loop(&s))
+                .map_err(store)?
+        };
+        Ok(Self {
+            shared,
+            thread: Some(thread),
+        })
+    }
+
+    pub fn name(&self) -> &str {
+        &self.shared.options.name
+    }
+
+    pub fn system(&self) -> &str {
+        &self.shared.options.system
+    }
+
+    /// Queues a command: stored durably, then sent. The entry comes back `queued`.
+    pub fn submit(&self, order: Order) -> Result<Entry, StationError> {
+        check(&order)?;
+        let mut inner = self
+            .shared
+            .inner
+            .lock()
+            .map_err(|_| StationError::Store("lock poisoned".into()))?;
+        let seq = inner.next_seq;
+        let entry = Entry {
+            seq,
+            id: format!("{}-{seq}-{:x}", self.shared.options.name, now_unix_ns()),
+            order,
+            state: CommandState::Queued,
+            fate: None,
+            queued_unix_ns: now_unix_ns(),
+            sends: 0,
+            acknowledged_unix_ns: None,
+            done_unix_ns: None,
+        };
+        persist(&self.shared.db, &[&entry], Some(seq + 1))?;
+        inner.next_seq = seq + 1;
+        inner.entries.insert(seq, entry.clone());
+        drop(inner);
+        tracing::info!(seq, "command queued");
+        wake(&self.shared);
+        Ok(entry)
+    }
+
+    pub fn entry(&self, seq: u64) -> Option<Entry> {
+        self.shared.inner.lock().ok()?.entries.get(&seq).cloned()
+    }
+
+    /// Commands from `since` on, oldest first.
+    pub fn entries(&self, since: u64) -> Vec<Entry> {
+        self.shared
+            .inner
+            .lock()
+            .map(|i| i.entries.range(since..).map(|(_, e)| e.clone()).collect())
+            .unwrap_or_default()
+    }
+
+    pub fn link(&self) -> LinkStatus {
+        let Ok(i) = self.shared.inner.lock() else {
+            return LinkStatus::default();
+        };
+        let mut l = i.link.clone();
+        l.last_contact_ms = i.contact.map(|c| c.elapsed().as_millis() as u64);
+        l.up = i
+            .contact
+            .is_some_and(|c| c.elapsed() < self.shared.options.down_after);
+        l.pending = i.entries.values().filter(|e| !e.state.is_final()).count();
+        l
+    }
+
+    /// Waits until command `seq` is final (or `timeout` passes) and returns it.
+    pub fn wait(&self, seq: u64, timeout: Duration) -> Option<Entry> {
+        let deadline = Instant::now() + timeout;
+        let mut inner = self.shared.inner.lock().ok()?;
+        loop {
+            let e = inner.entries.get(&seq)?.clone();
+            let left = deadline.saturating_duration_since(Instant::now());
+            if e.state.is_final() || left.is_zero() {
+                return Some(e);
+            }
+            inner = self.shared.changed.wait_timeout(inner, left).ok()?.0;
+        }
+    }
+
+    /// Stops the link thread; the outbox stays on disk.
+    pub fn stop(mut self) {
+        self.halt();
+    }
+
+    fn halt(&mut self) {
+        self.shared.stop.store(true, Ordering::Relaxed);
+        wake(&self.shared);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl Drop for Station {
+    fn drop(&mut self) {
+        self.halt();
+    }
+}
+
+/// Refuses what can never be sent.
+fn check(order: &Order) -> Result<(), StationError> {
+    match order {
+        Order::Switch { task, .. } if task.is_empty() => {
+            Err(StationError::Invalid("a switch needs a task".into()))
+        }
+        Order::Apply { text, .. } if text.len() > 1 << 20 => Err(StationError::Invalid(
+            "netlist larger than 1 MiB; the radio link would carry it for minutes".into(),
+        )),
+        _ => Ok(()),
+    }
+}
+
+fn wake(s: &Shared) {
+    if let Ok(mut w) = s.wake.0.lock() {
+        *w = true;
+        s.wake.1.notify_all();
+    }
+}
+
+fn persist(db: &Database, entries: &[&Entry], next_seq: Option<u64>) -> Result<(), StationError> {
+    let tx = db.begin_write().map_err(store)?;
+    {
+        let mut t = tx.open_table(OUTBOX).map_err(store)?;
+        for e in entries {
+            let bytes = serde_json::to_vec(e).map_err(store)?;
+            t.insert(e.seq, bytes.as_slice()).map_err(store)?;
+        }
+        if let Some(n) = next_seq {
+            let mut meta = tx.open_table(META).map_err(store)?;
+            meta.insert("next_seq", n).map_err(store)?;
+        }
+    }
+    tx.commit().map_err(store)
+}
+
+fn link_loop(s: &Shared) {
+    let key = keys::authority(&s.options.system);
+    while !s.stop.load(Ordering::Relaxed) {
+        let (uplink, has_commands) = {
+            let Ok(inner) = s.inner.lock() else {
+                return;
+            };
+            let commands: Vec<Sent> = inner
+                .entries
+                .values()
+                .filter(|e| matches!(e.state, CommandState::Queued | CommandState::Sent))
+                .take(s.options.batch)
+                .map(|e| Sent {
+                    seq: e.seq,
+                    id: e.id.clone(),
+                    order: e.order.clone(),
+                })
+                .collect();
+            let pending_from = inner
+                .entries
+                .values()
+                .find(|e| !e.state.is_final())
+                .map_or(inner.next_seq, |e| e.seq);
+            let has = !commands.is_empty() || pending_from < inner.next_seq;
+            (
+                Uplink {
+                    station: s.options.name.clone(),
+                    commands,
+                    pending_from,
+                },
+                has,
+            )
+        };
+        let sent_seqs: Vec<u64> = uplink.commands.iter().map(|c| c.seq).collect();
+        mark_sent(s, &sent_seqs);
+        let payload = serde_json::to_vec(&uplink).unwrap_or_default();
+        let start = Instant::now();
+        let answer = s
+            .session
+            .get(&key)
+            .payload(payload)
+            .priority(Priority::InteractiveHigh)
+            .congestion_control(CongestionControl::Block)
+            .express(true)
+            .timeout(s.options.answer_timeout)
+            .wait()
+            .ok()
+            .and_then(|rx| rx.recv().ok())
+            .and_then(|r| r.result().ok().map(|s| s.payload().to_bytes().to_vec()))
+            .and_then(|b| serde_json::from_slice::<Downlink>(&b).ok());
+        let rtt = start.elapsed();
+        let answered = answer.is_some();
+        if let Some(d) = answer {
+            take_downlink(s, d, rtt);
+        }
+        if let Ok(mut i) = s.inner.lock() {
+            i.link.uplinks += 1;
+            i.history.push_back(answered);
+            if i.history.len() > LOSS_WINDOW {
+                i.history.pop_front();
+            }
+            let lost = i.history.iter().filter(|a| !**a).count();
+            i.link.loss = lost as f64 / i.history.len() as f64;
+        }
+        // With commands waiting, send again at once (the query's own timeout paced it);
+        // otherwise ping.
+        let pause = if has_commands && answered {
+            Duration::from_millis(20)
+        } else if has_commands {
+            Duration::from_millis(200)
+        } else {
+            s.options.ping_every
+        };
+        if let Ok(w) = s.wake.0.lock() {
+            if let Ok((mut w, _)) = s.wake.1.wait_timeout_while(w, pause, |w| !*w) {
+                *w = false;
+            }
+        }
+    }
+}
+
+fn mark_sent(s: &Shared, seqs: &[u64]) {
+    let Ok(mut inner) = s.inner.lock() else {
+        return;
+    };
+    let mut changed = Vec::new();
+    for seq in seqs {
+        if let Some(e) = inner.entries.get_mut(seq) {
+            e.sends += 1;
+            if e.state == CommandState::Queued {
+                e.state = CommandState::Sent;
+            }
+            changed.push(e.clone());
+        }
+    }
+    let refs: Vec<&Entry> = changed.iter().collect();
+    if let Err(e) = persist(&s.db, &refs, None) {
+        tracing::error!("outbox: {e}");
+    }
+}
+
+fn take_downlink(s: &Shared, d: Downlink, rtt: Duration) {
+    let Ok(mut inner) = s.inner.lock() else {
+        return;
+    };
+    inner.contact = Some(Instant::now());
+    inner.link.answered += 1;
+    inner.link.rtt_ms = Some(rtt.as_secs_f64() * 1e3);
+    inner.link.error = d.error.clone();
+    if let Some(e) = &d.error {
+        tracing::warn!("the rover refused the uplink: {e}");
+    }
+    let old_events = inner.link.rover.as_ref().map_or(0, |r| r.events.len());
+    if d.rover.events.len() != old_events {
+        for e in &d.rover.events {
+            tracing::info!(what = %e.what, "rover: {}", e.detail);
+        }
+    }
+    inner.link.rover = Some(d.rover);
+    let now = now_unix_ns();
+    let mut changed = Vec::new();
+    for o in d.outcomes {
+        let Some(e) = inner.entries.get_mut(&o.seq) else {
+            continue;
+        };
+        if e.id != o.id {
+            tracing::error!(seq = o.seq, "the rover holds another command under this number");
+            continue;
+        }
+        let state = match &o.fate {
+            Fate::Acknowledged => CommandState::Acknowledged,
+            Fate::OutOfOrder { .. } => CommandState::Sent,
+            Fate::Scheduled { .. } => CommandState::Scheduled,
+            Fate::Applied { .. } | Fate::Cancelled { .. } => CommandState::Applied,
+            Fate::CancelledBy { .. } => CommandState::Cancelled,
+            Fate::Refused { .. } => CommandState::Refused,
+        };
+        if e.state == state && e.fate.as_ref() == Some(&o.fate) {
+            continue;
+        }
+        if e.acknowledged_unix_ns.is_none() && state != CommandState::Sent {
+            e.acknowledged_unix_ns = Some(now);
+        }
+        if state.is_final() {
+            e.done_unix_ns = Some(now);
+            tracing::info!(seq = o.seq, ?state, "command done");
+        }
+        e.state = state;
+        e.fate = Some(o.fate);
+        changed.push(e.clone());
+    }
+    let refs: Vec<&Entry> = changed.iter().collect();
+    if let Err(e) = persist(&s.db, &refs, None) {
+        tracing::error!("outbox: {e}");
+    }
+    drop(inner);
+    s.changed.notify_all();
+}
