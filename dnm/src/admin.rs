@@ -242,7 +242,9 @@ fn start(
             .name(format!("dnm-{name}"))
             .spawn(move || {
                 let joined = joined.as_ref().map(|(r, t)| (*r, t.as_deref()));
-                run_dnm(&netlist, &dnm_name, options, session, joined, follow, &ready_tx)
+                run_dnm(
+                    &netlist, &dnm_name, options, session, joined, follow, &ready_tx,
+                )
             })
             .context("spawning DNM thread")?;
         let commander = match ready_rx.recv() {
@@ -283,7 +285,10 @@ fn start(
         UnixListener::bind(&path).with_context(|| format!("binding {}", path.display()))?;
     tracing::info!(socket = %path.display(), "admin socket ready");
 
-    let authority = match netlist.authority().filter(|a| follow && dnms.iter().any(|d| d == a)) {
+    let authority = match netlist
+        .authority()
+        .filter(|a| follow && dnms.iter().any(|d| d == a))
+    {
         None => None,
         Some(_) => {
             let db = options
@@ -311,9 +316,12 @@ fn start(
     };
     let commanders: Vec<Commander> = handles.iter().map(|h| h.commander.clone()).collect();
     let system = netlist.system.clone();
+    let follows = follow
+        .then(|| netlist.authority().map(str::to_string))
+        .flatten();
     std::thread::Builder::new()
         .name("dnm-admin".into())
-        .spawn(move || serve(&listener, &system, &commanders))
+        .spawn(move || serve(&listener, &system, follows.as_deref(), &commanders))
         .context("spawning admin thread")?;
     Ok(Host {
         authority,
@@ -345,6 +353,10 @@ fn run_dnm(
             parse,
         )
         .map_err(dnm_core::DnmError::Refused)?;
+        let bridge = match netlist.authority().filter(|_| follow) {
+            Some(a) => bridge.follow_authority(a),
+            None => bridge,
+        };
         dnm.add_plugin(Box::new(bridge));
         if let Some(r) = options.record {
             let recorder = crate::record::Recorder::start(name, dnm.prefix(), r)
@@ -405,7 +417,7 @@ fn adopt(
 const ADMIN_CONNECTIONS: usize = 16;
 
 /// Serves each connection on its own thread, so a long apply never holds up a switch.
-fn serve(listener: &UnixListener, system: &str, dnms: &[Commander]) {
+fn serve(listener: &UnixListener, system: &str, authority: Option<&str>, dnms: &[Commander]) {
     let busy = Arc::new(std::sync::atomic::AtomicUsize::new(0));
     for stream in listener.incoming() {
         let Ok(stream) = stream else { continue };
@@ -424,10 +436,11 @@ fn serve(listener: &UnixListener, system: &str, dnms: &[Commander]) {
             continue;
         }
         let (system, dnms, slot) = (system.to_string(), dnms.to_vec(), busy.clone());
+        let authority = authority.map(str::to_string);
         let spawned = std::thread::Builder::new()
             .name("dnm-admin-conn".into())
             .spawn(move || {
-                serve_one(&stream, &system, &dnms);
+                serve_one(&stream, &system, authority.as_deref(), &dnms);
                 slot.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
             });
         if let Err(e) = spawned {
@@ -437,7 +450,7 @@ fn serve(listener: &UnixListener, system: &str, dnms: &[Commander]) {
     }
 }
 
-fn serve_one(stream: &UnixStream, system: &str, dnms: &[Commander]) {
+fn serve_one(stream: &UnixStream, system: &str, authority: Option<&str>, dnms: &[Commander]) {
     let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
     let mut reader = BufReader::new(stream);
     let mut line = String::new();
@@ -445,6 +458,13 @@ fn serve_one(stream: &UnixStream, system: &str, dnms: &[Commander]) {
         return;
     }
     let response = match serde_json::from_str::<Request>(&line) {
+        Ok(Request::Switch { .. } | Request::Apply { .. }) if authority.is_some() => {
+            Response::error(format!(
+                "system `{system}` is commanded through its authority, DNM `{}`: send switches \
+                 and applies through a ground station (`dnm ground switch TASK`)",
+                authority.unwrap_or_default()
+            ))
+        }
         Ok(req) => dispatch(req, system, dnms),
         Err(e) => Response::error(format!(
             "bad request `{}`: {e}; send e.g. {{\"cmd\":\"status\"}}",

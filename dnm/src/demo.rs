@@ -1,7 +1,8 @@
 //! `dnm demo`: the whole simulated Beetle-One on this machine, and a scripted mission driven
-//! the way an operator would drive it, over Zenoh: joystick driving, a switch to the autopilot
-//! to reach the waypoints, a module replaced while the rover runs, a switch back, then a
-//! summary.
+//! the way an operator would drive it: through a ground station (its outbox, the rover's
+//! authority, every DNM switching at one instant) and over Zenoh: joystick driving, a switch to
+//! the autopilot to reach the waypoints, a module replaced while the rover runs, a switch back,
+//! then a summary.
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -113,6 +114,10 @@ struct SwitchSummary {
     revision: u64,
     slowest_ns: u64,
     per_dnm_ns: Vec<(String, u64)>,
+    /// From the operator's command to the decided instant, ms.
+    command_to_switch_ms: f64,
+    /// Between the first and the last DNM of the rover to switch, µs.
+    spread_us: f64,
 }
 
 #[derive(Debug, Serialize)]
@@ -142,6 +147,7 @@ struct Summary {
 
 struct Mission<'a> {
     probe: Probe<'a>,
+    station: &'a dnm_ground::Station,
     start: Instant,
     json: bool,
     tty: bool,
@@ -224,26 +230,69 @@ impl Mission<'_> {
         last
     }
 
+    /// Gives the ground station `order` and waits until the rover applied it.
+    fn command(&mut self, order: dnm_proto::station::Order) -> anyhow::Result<(u64, u64)> {
+        use dnm_proto::station::Fate;
+        let entry = self.station.submit(order)?;
+        let done = self
+            .station
+            .wait(entry.seq, Duration::from_secs(60))
+            .context("the command vanished from the outbox")?;
+        match done.fate {
+            Some(Fate::Applied {
+                revision,
+                at_unix_ns,
+                ..
+            }) => Ok((revision, at_unix_ns)),
+            Some(Fate::Refused { reason }) => {
+                bail!("the rover refused command {}: {reason}", entry.seq)
+            }
+            other => bail!("command {} not applied within 60 s: {other:?}", entry.seq),
+        }
+    }
+
     fn switch(&mut self, task: &str) -> anyhow::Result<()> {
-        let r = self.probe.request(&Request::Switch { task: task.into() })?;
-        let records: &[SwitchRecord] = &r.switches;
+        let asked = dnm_ground::now_unix_ns();
+        let (revision, at) = self.command(dnm_proto::station::Order::Switch {
+            task: task.into(),
+            at_unix_ns: None,
+        })?;
+        // Each DNM of the rover recorded its switch; those across the radio follow later.
+        let status = self.probe.request(&Request::Status)?;
+        let records: Vec<SwitchRecord> = status
+            .dnms
+            .iter()
+            .filter(|d| self.probe.netlist.dnm(&d.dnm).is_some_and(|n| !n.radio))
+            .filter_map(|d| {
+                d.switches
+                    .iter()
+                    .rev()
+                    .find(|s| s.to == task && s.revision == revision)
+                    .cloned()
+            })
+            .collect();
         let slowest = records.iter().map(|s| s.duration_ns).max().unwrap_or(0);
+        let stamps = records.iter().map(|s| s.at_ns);
+        let spread = stamps.clone().max().unwrap_or(0) - stamps.min().unwrap_or(0);
         let summary = SwitchSummary {
             from: records.first().and_then(|s| s.from.clone()),
             to: task.to_string(),
             at_s: self.t(),
-            revision: r.revision.unwrap_or(0),
+            revision,
             slowest_ns: slowest,
             per_dnm_ns: records
                 .iter()
                 .map(|s| (s.dnm.clone(), s.duration_ns))
                 .collect(),
+            command_to_switch_ms: at.saturating_sub(asked) as f64 / 1e6,
+            spread_us: spread as f64 / 1e3,
         };
         self.say(&format!(
-            "switched {} -> {task} on {} DNMs (revision {}); slowest switch inside a DNM {:.2} µs",
+            "switched {} -> {task} through the ground station: {:.0} ms from command to the instant, {} rover DNMs within {:.0} µs of each other; slowest switch inside a DNM {:.2} µs",
             summary.from.as_deref().unwrap_or("?"),
+            summary.command_to_switch_ms,
             records.len(),
-            summary.revision,
+            summary.spread_us,
             slowest as f64 / 1000.0
         ));
         self.switches.push(summary);
@@ -274,28 +323,13 @@ fn load(args: &DemoArgs) -> anyhow::Result<Netlist> {
             bail!("{}: the demo needs task `{task}`", netlist.file.display());
         }
     }
+    if !dnm::commanded_by_authority(&netlist) {
+        bail!(
+            "{}: the demo commands the rover through a ground station and needs `authority` in [system]",
+            netlist.file.display()
+        );
+    }
     Ok(netlist)
-}
-
-/// The running netlist with `camera`'s field of view changed: a module replaced live.
-fn with_camera_fov(text: &str, fov_deg: f64) -> anyhow::Result<String> {
-    let mut doc: toml::Table = text.parse().context("parsing the running netlist")?;
-    let modules = doc
-        .get_mut("module")
-        .and_then(|m| m.as_array_mut())
-        .context("netlist has no modules")?;
-    let camera = modules
-        .iter_mut()
-        .filter_map(|m| m.as_table_mut())
-        .find(|m| m.get("name").and_then(|n| n.as_str()) == Some("camera"))
-        .context("netlist has no module `camera`")?;
-    let params = camera
-        .entry("params")
-        .or_insert_with(|| toml::Value::Table(toml::Table::new()))
-        .as_table_mut()
-        .context("camera params are not a table")?;
-    params.insert("fov_deg".into(), toml::Value::Float(fov_deg));
-    Ok(toml::to_string(&doc)?)
 }
 
 pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCode> {
@@ -319,12 +353,29 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
             );
         }
     }
+    // A fresh rover and ground station each run: the authority's and the outbox's databases
+    // live in a folder of their own.
+    let state = std::env::temp_dir().join(format!("dnm-demo-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&state);
+    options.state_dir = state.clone();
     let host = Host::start(netlist.clone(), &dnms, options, zenoh.config()?)?;
-    let result = mission(&host, &netlist, args, tty);
-    let summary = match result {
+    let station = match dnm_ground::Station::start(
+        host.session().clone(),
+        dnm_ground::StationOptions::new(&netlist.system, "demo-station", state.join("ground.redb")),
+    ) {
         Ok(s) => s,
         Err(e) => {
             host.stop();
+            return Err(e.into());
+        }
+    };
+    let result = mission(&host, &station, &netlist, args, tty);
+    let summary = match result {
+        Ok(s) => s,
+        Err(e) => {
+            station.stop();
+            host.stop();
+            let _ = std::fs::remove_dir_all(&state);
             return Err(e);
         }
     };
@@ -344,6 +395,8 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
     } else {
         host.stop();
     }
+    station.stop();
+    let _ = std::fs::remove_dir_all(&state);
     Ok(if summary.ok {
         ExitCode::SUCCESS
     } else {
@@ -351,12 +404,19 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
     })
 }
 
-fn mission(host: &Host, netlist: &Netlist, args: &DemoArgs, tty: bool) -> anyhow::Result<Summary> {
+fn mission(
+    host: &Host,
+    station: &dnm_ground::Station,
+    netlist: &Netlist,
+    args: &DemoArgs,
+    tty: bool,
+) -> anyhow::Result<Summary> {
     let mut m = Mission {
         probe: Probe {
             session: host.session(),
             netlist,
         },
+        station,
         start: Instant::now(),
         json: args.json,
         tty,
@@ -388,13 +448,14 @@ fn mission(host: &Host, netlist: &Netlist, args: &DemoArgs, tty: bool) -> anyhow
     let reached_all = |s: &Snapshot| s.progress.total > 0 && s.progress.reached == s.progress.total;
     let first = m.watch(60.0, |s| s.progress.reached >= 1 || reached_all(s));
     if first.is_some() {
-        let current = m.probe.request(&Request::Netlist)?;
-        let text = with_camera_fov(current.netlist.as_deref().unwrap_or_default(), 60.0)?;
-        let r = m.probe.request(&Request::Apply {
-            file: netlist.file.display().to_string(),
-            text,
+        let (r, _) = m.command(dnm_proto::station::Order::Module {
+            edit: dnm_proto::station::ModuleEdit::Replace {
+                name: "camera".into(),
+                kind: None,
+                params: vec!["fov_deg=60.0".into()],
+            },
         })?;
-        revision = r.revision.unwrap_or(0);
+        revision = r;
         replaced = format!("camera: field of view 70° -> 60° (revision {revision})");
         m.say(&format!("replaced module {replaced} while driving"));
     }
@@ -502,11 +563,13 @@ fn print_summary(s: &Summary) {
     );
     for sw in &s.switches {
         println!(
-            "  switch            {} -> {} at {:.1} s on {} DNMs, slowest {:.2} µs inside a DNM",
+            "  switch            {} -> {} at {:.1} s: {:.0} ms from command to instant; {} rover DNMs within {:.0} µs; slowest {:.2} µs inside a DNM",
             sw.from.as_deref().unwrap_or("?"),
             sw.to,
             sw.at_s,
+            sw.command_to_switch_ms,
             sw.per_dnm_ns.len(),
+            sw.spread_us,
             sw.slowest_ns as f64 / 1000.0
         );
     }

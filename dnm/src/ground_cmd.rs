@@ -195,7 +195,7 @@ fn describe(e: &Entry) -> String {
         Some(Fate::Scheduled { at_unix_ns }) => {
             format!("scheduled on the rover for {:.3}", *at_unix_ns as f64 / 1e9)
         }
-        Some(Fate::Cancelled { seq }) => format!("done: command {seq} will not run"),
+        Some(Fate::Cancelled { target }) => format!("done: command {target} will not run"),
         Some(Fate::CancelledBy { by }) => format!("cancelled by command {by}"),
         _ => format!("{:?}", e.state).to_lowercase(),
     };
@@ -281,9 +281,12 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             let edit = ModuleEdit::Replace { name, kind, params };
             submit(&Order::Module { edit }, &common)
         }
-        GroundCmd::Remove { name, common } => {
-            submit(&Order::Module { edit: ModuleEdit::Remove { name } }, &common)
-        }
+        GroundCmd::Remove { name, common } => submit(
+            &Order::Module {
+                edit: ModuleEdit::Remove { name },
+            },
+            &common,
+        ),
         GroundCmd::Cancel { seq, common } => submit(&Order::Cancel { seq }, &common),
         GroundCmd::Status { url: u, json } => {
             let base = url(&u);

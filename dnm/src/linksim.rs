@@ -22,7 +22,7 @@ use anyhow::Context;
 pub struct LinkArgs {
     /// Where the proxy listens (the side that connects uses this address).
     #[arg(long)]
-    pub listen: SocketAddr,
+    pub bind: SocketAddr,
     /// Where it forwards to (the side that listens).
     #[arg(long)]
     pub to: SocketAddr,
@@ -44,6 +44,10 @@ pub struct LinkArgs {
     /// Seed of the losses.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Bytes a TCP direction holds in flight before the sender has to wait, as a socket buffer
+    /// does: a slow link pushes back on its sender instead of queueing without end.
+    #[arg(long, default_value_t = 64 * 1024)]
+    pub buffer: usize,
 }
 
 /// The link's behaviour, parsed.
@@ -56,6 +60,7 @@ pub struct Link {
     /// (down, period).
     pub outage: Option<(Duration, Duration)>,
     pub seed: u64,
+    pub buffer: usize,
     pub start: Instant,
 }
 
@@ -69,8 +74,11 @@ impl Link {
             None => 0.0,
             Some(r) => {
                 let r = r.to_ascii_lowercase();
-                let (num, unit) = r.split_at(r.find(|c: char| c.is_ascii_alphabetic()).unwrap_or(r.len()));
-                let n: f64 = num.parse().with_context(|| format!("rate `{r}`: e.g. `256kbit`"))?;
+                let (num, unit) =
+                    r.split_at(r.find(|c: char| c.is_ascii_alphabetic()).unwrap_or(r.len()));
+                let n: f64 = num
+                    .parse()
+                    .with_context(|| format!("rate `{r}`: e.g. `256kbit`"))?;
                 let bits = match unit {
                     "bit" | "" => n,
                     "kbit" => n * 1e3,
@@ -86,9 +94,9 @@ impl Link {
         let outage = match &a.outage {
             None => None,
             Some(o) => {
-                let (down, period) = o
-                    .split_once('/')
-                    .with_context(|| format!("--outage `{o}`: write DOWN/PERIOD, e.g. `10s/30s`"))?;
+                let (down, period) = o.split_once('/').with_context(|| {
+                    format!("--outage `{o}`: write DOWN/PERIOD, e.g. `10s/30s`")
+                })?;
                 let (down, period) = (ms(down)?, ms(period)?);
                 if down >= period || period == 0 {
                     anyhow::bail!("--outage `{o}`: the outage must be shorter than its period");
@@ -102,6 +110,7 @@ impl Link {
             loss: a.loss,
             outage,
             seed: a.seed,
+            buffer: a.buffer.max(1500),
             start: Instant::now(),
         })
     }
@@ -128,43 +137,68 @@ impl Rng {
     }
 }
 
-/// When a packet of `len` bytes handed over at `now` arrives, or `None` if it is lost for good
-/// (UDP). `free` is when the sender's side of the link is free again.
-fn schedule(link: &Link, rng: &mut Rng, free: &mut Instant, len: usize, stream: bool) -> Option<Instant> {
-    let now = Instant::now();
-    let mut tx = (*free).max(now);
+/// One direction of the link: when it is free to send again, and when the last packet of a
+/// stream arrived (a stream delivers in order).
+#[derive(Debug, Clone, Copy)]
+struct Way {
+    free: Instant,
+    last: Instant,
+}
+
+impl Way {
+    fn new() -> Self {
+        let now = Instant::now();
+        Self {
+            free: now,
+            last: now,
+        }
+    }
+}
+
+/// When a packet of `len` bytes handed over now arrives, or `None` if it is lost for good
+/// (datagrams). A lost segment of a stream arrives a retransmission timeout later (doubling
+/// while the retransmission is lost too), and holds up what follows it, as in TCP; losses of
+/// packets in flight together overlap.
+fn schedule(
+    link: &Link,
+    rng: &mut Rng,
+    way: &mut Way,
+    len: usize,
+    stream: bool,
+) -> Option<Instant> {
+    let mut tx = way.free.max(Instant::now());
+    if link.rate > 0.0 {
+        tx += Duration::from_secs_f64(len as f64 / link.rate);
+    }
+    way.free = tx;
+    let mut arrive = tx + link.delay;
     if let Some(end) = link.outage_end(tx) {
         if !stream {
             return None;
         }
-        tx = end;
+        arrive = end + link.delay;
     }
-    if link.rate > 0.0 {
-        tx += Duration::from_secs_f64(len as f64 / link.rate);
+    if !stream {
+        return (link.loss == 0.0 || rng.next() >= link.loss).then_some(arrive);
     }
-    if stream {
-        // Lost segments are sent again after a timeout that doubles.
-        let mut rto = (link.delay * 2).max(Duration::from_millis(200));
-        while link.loss > 0.0 && rng.next() < link.loss {
-            tx += rto;
-            rto *= 2;
-            if let Some(end) = link.outage_end(tx) {
-                tx = end;
-            }
+    let mut rto = (link.delay * 2).max(Duration::from_millis(200));
+    while link.loss > 0.0 && rng.next() < link.loss {
+        arrive += rto;
+        rto *= 2;
+        if let Some(end) = link.outage_end(arrive - link.delay) {
+            arrive = end + link.delay;
         }
-    } else if link.loss > 0.0 && rng.next() < link.loss {
-        *free = tx;
-        return None;
     }
-    *free = tx;
-    Some(tx + link.delay)
+    arrive = arrive.max(way.last);
+    way.last = arrive;
+    Some(arrive)
 }
 
 pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
     let link = Link::parse(args)?;
     println!(
         "link {} -> {} ({}): delay {:?}, rate {}, loss {:.0}%, outage {:?}, seed {}; Ctrl-C to stop",
-        args.listen,
+        args.bind,
         args.to,
         if args.udp { "udp" } else { "tcp" },
         link.delay,
@@ -174,9 +208,9 @@ pub fn run(args: &LinkArgs) -> anyhow::Result<()> {
         link.seed
     );
     if args.udp {
-        udp(link, args.listen, args.to)
+        udp(link, args.bind, args.to)
     } else {
-        tcp(link, args.listen, args.to)
+        tcp(link, args.bind, args.to)
     }
 }
 
@@ -211,26 +245,48 @@ fn tcp(link: Link, listen: SocketAddr, to: SocketAddr) -> anyhow::Result<()> {
 /// Carries one direction of a TCP connection through the link.
 fn pump(link: Link, mut from: TcpStream, mut to: TcpStream, seed: u64) {
     let (tx, rx) = mpsc::channel::<(Instant, Vec<u8>)>();
-    let writer = std::thread::spawn(move || {
-        for (at, bytes) in rx {
-            let wait = at.saturating_duration_since(Instant::now());
-            if !wait.is_zero() {
-                std::thread::sleep(wait);
+    // Bytes taken from the sender and not yet delivered.
+    let in_flight = Arc::new((Mutex::new(0usize), std::sync::Condvar::new()));
+    let writer = {
+        let in_flight = in_flight.clone();
+        std::thread::spawn(move || {
+            for (at, bytes) in rx {
+                let wait = at.saturating_duration_since(Instant::now());
+                if !wait.is_zero() {
+                    std::thread::sleep(wait);
+                }
+                let ok = to.write_all(&bytes).is_ok();
+                if let Ok(mut n) = in_flight.0.lock() {
+                    *n = n.saturating_sub(bytes.len());
+                    in_flight.1.notify_all();
+                }
+                if !ok {
+                    break;
+                }
             }
-            if to.write_all(&bytes).is_err() {
-                break;
-            }
-        }
-        let _ = to.shutdown(std::net::Shutdown::Both);
-    });
+            let _ = to.shutdown(std::net::Shutdown::Both);
+        })
+    };
     let mut rng = Rng(seed);
-    let mut free = Instant::now();
+    let mut way = Way::new();
     let mut buf = vec![0u8; 1400];
     loop {
+        // A full buffer stops reading: the sender's socket fills and it has to wait.
+        if let Ok(mut n) = in_flight.0.lock() {
+            while *n >= link.buffer {
+                match in_flight.1.wait_timeout(n, Duration::from_secs(1)) {
+                    Ok((g, _)) => n = g,
+                    Err(_) => return,
+                }
+            }
+        }
         match from.read(&mut buf) {
             Ok(0) | Err(_) => break,
             Ok(n) => {
-                if let Some(at) = schedule(&link, &mut rng, &mut free, n, true) {
+                if let Some(at) = schedule(&link, &mut rng, &mut way, n, true) {
+                    if let Ok(mut f) = in_flight.0.lock() {
+                        *f += n;
+                    }
                     if tx.send((at, buf[..n].to_vec())).is_err() {
                         break;
                     }
@@ -272,7 +328,7 @@ fn udp(link: Link, listen: SocketAddr, to: SocketAddr) -> anyhow::Result<()> {
     });
     let backs: Arc<Mutex<HashMap<SocketAddr, Arc<UdpSocket>>>> = Arc::default();
     let mut rng = Rng(link.seed);
-    let mut free = Instant::now();
+    let mut way = Way::new();
     let mut buf = vec![0u8; 65536];
     loop {
         let (n, client) = front.recv_from(&mut buf).context("receiving")?;
@@ -287,10 +343,10 @@ fn udp(link: Link, listen: SocketAddr, to: SocketAddr) -> anyhow::Result<()> {
                 let (front, s2, tx) = (front.clone(), s.clone(), tx.clone());
                 std::thread::spawn(move || {
                     let mut rng = Rng(link.seed ^ 0x5555);
-                    let mut free = Instant::now();
+                    let mut way = Way::new();
                     let mut buf = vec![0u8; 65536];
                     while let Ok((n, _)) = s2.recv_from(&mut buf) {
-                        if let Some(at) = schedule(&link, &mut rng, &mut free, n, false) {
+                        if let Some(at) = schedule(&link, &mut rng, &mut way, n, false) {
                             let _ = tx.send((at, front.clone(), client, buf[..n].to_vec()));
                         }
                     }
@@ -298,7 +354,7 @@ fn udp(link: Link, listen: SocketAddr, to: SocketAddr) -> anyhow::Result<()> {
                 s
             }
         };
-        if let Some(at) = schedule(&link, &mut rng, &mut free, n, false) {
+        if let Some(at) = schedule(&link, &mut rng, &mut way, n, false) {
             let _ = tx.send((at, back, to, buf[..n].to_vec()));
         }
     }

@@ -701,26 +701,10 @@ fn print_stats(file: &Path, s: &dnm::stats::Stats) {
     }
 }
 
-/// Parses `key=value` into a TOML value (number, boolean, else string).
-fn param_value(kv: &str) -> anyhow::Result<(String, toml::Value)> {
-    let (k, v) = kv
-        .split_once('=')
-        .with_context(|| format!("parameter `{kv}` must be `key=value`"))?;
-    let value = if let Ok(i) = v.parse::<i64>() {
-        toml::Value::Integer(i)
-    } else if let Ok(f) = v.parse::<f64>() {
-        toml::Value::Float(f)
-    } else if let Ok(b) = v.parse::<bool>() {
-        toml::Value::Boolean(b)
-    } else {
-        toml::Value::String(v.to_string())
-    };
-    Ok((k.to_string(), value))
-}
-
 /// Module operations are edits of the running netlist, applied like any netlist: validated
 /// first, refused with the errors if invalid, nothing running lost.
 fn module_op(z: &ZenohArgs, op: ModuleOp) -> anyhow::Result<ExitCode> {
+    use dnm::proto::station::ModuleEdit;
     let (system, json) = match &op {
         ModuleOp::Add { system, json, .. }
         | ModuleOp::Remove { system, json, .. }
@@ -728,13 +712,7 @@ fn module_op(z: &ZenohArgs, op: ModuleOp) -> anyhow::Result<ExitCode> {
     };
     let current = send(z, &system, &Request::Netlist)?;
     let text = current.netlist.context("the system sent no netlist")?;
-    let mut doc: toml::Table = text.parse().context("parsing the running netlist")?;
-    let modules = doc
-        .entry("module")
-        .or_insert_with(|| toml::Value::Array(Vec::new()))
-        .as_array_mut()
-        .context("`module` is not an array")?;
-    let what = match op {
+    let edit = match op {
         ModuleOp::Add {
             name,
             kind,
@@ -742,99 +720,20 @@ fn module_op(z: &ZenohArgs, op: ModuleOp) -> anyhow::Result<ExitCode> {
             params,
             links,
             ..
-        } => {
-            let mut m = toml::Table::new();
-            m.insert("name".into(), name.clone().into());
-            m.insert("kind".into(), kind.into());
-            if let Some(d) = dnm {
-                m.insert("dnm".into(), d.into());
-            }
-            let mut p = toml::Table::new();
-            for kv in &params {
-                let (k, v) = param_value(kv)?;
-                p.insert(k, v);
-            }
-            if !p.is_empty() {
-                m.insert("params".into(), p.into());
-            }
-            modules.push(m.into());
-            for l in links {
-                let (task, link) = l
-                    .split_once(':')
-                    .with_context(|| format!("link `{l}` must be `TASK:from.port -> to.port`"))?;
-                let to = link
-                    .split_once("->")
-                    .map(|(_, t)| t.trim().to_string())
-                    .unwrap_or_default();
-                let tasks = doc
-                    .entry("task")
-                    .or_insert_with(|| toml::Value::Table(toml::Table::new()))
-                    .as_table_mut()
-                    .context("`task` is not a table")?;
-                let t = tasks
-                    .entry(task)
-                    .or_insert_with(|| toml::Value::Table(toml::Table::new()))
-                    .as_table_mut()
-                    .context("task is not a table")?;
-                let list = t
-                    .entry("links")
-                    .or_insert_with(|| toml::Value::Array(Vec::new()))
-                    .as_array_mut()
-                    .context("links is not an array")?;
-                // The new link takes over the input it feeds.
-                list.retain(|x| {
-                    x.as_str()
-                        .and_then(|s| s.split_once("->"))
-                        .is_none_or(|(_, t)| t.trim() != to)
-                });
-                list.push(link.trim().into());
-            }
-            format!("added module `{name}`")
-        }
-        ModuleOp::Remove { name, .. } => {
-            let before = modules.len();
-            modules.retain(|m| m.get("name").and_then(|n| n.as_str()) != Some(name.as_str()));
-            if modules.len() == before {
-                bail!("system `{system}` has no module `{name}`");
-            }
-            if let Some(tasks) = doc.get_mut("task").and_then(|t| t.as_table_mut()) {
-                let prefix = format!("{name}.");
-                for (_, t) in tasks.iter_mut() {
-                    if let Some(list) = t.get_mut("links").and_then(|l| l.as_array_mut()) {
-                        list.retain(|x| {
-                            x.as_str().is_none_or(|s| {
-                                !s.split("->").any(|side| side.trim().starts_with(&prefix))
-                            })
-                        });
-                    }
-                }
-            }
-            format!("removed module `{name}`")
-        }
+        } => ModuleEdit::Add {
+            name,
+            kind,
+            dnm,
+            params,
+            links,
+        },
+        ModuleOp::Remove { name, .. } => ModuleEdit::Remove { name },
         ModuleOp::Replace {
             name, kind, params, ..
-        } => {
-            let m = modules
-                .iter_mut()
-                .find(|m| m.get("name").and_then(|n| n.as_str()) == Some(name.as_str()))
-                .and_then(|m| m.as_table_mut())
-                .with_context(|| format!("system `{system}` has no module `{name}`"))?;
-            if let Some(k) = kind {
-                m.insert("kind".into(), k.into());
-                m.remove("params");
-            }
-            if !params.is_empty() {
-                let mut p = toml::Table::new();
-                for kv in &params {
-                    let (k, v) = param_value(kv)?;
-                    p.insert(k, v);
-                }
-                m.insert("params".into(), p.into());
-            }
-            format!("replaced module `{name}`")
-        }
+        } => ModuleEdit::Replace { name, kind, params },
     };
-    let text = toml::to_string(&doc).context("writing the edited netlist")?;
+    let (text, what) = dnm_authority::edit_netlist(&text, &edit)
+        .map_err(|e| anyhow::anyhow!("system `{system}`: {e}"))?;
     let r = send(
         z,
         &system,

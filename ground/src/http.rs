@@ -135,7 +135,10 @@ fn handle(station: &Station, mut request: tiny_http::Request) {
                 },
             }
         }
-        (Method::Get, "/commands") => json(200, &station.entries(query_u64(query, "since").unwrap_or(1))),
+        (Method::Get, "/commands") => json(
+            200,
+            &station.entries(query_u64(query, "since").unwrap_or(1)),
+        ),
         (Method::Get, "/link") => json(200, &station.link()),
         (Method::Get, p) if p.starts_with("/commands/") => {
             match p["/commands/".len()..].parse::<u64>() {

@@ -71,10 +71,13 @@ pub struct StationOptions {
     pub db: PathBuf,
     /// Between two uplinks when there is nothing to send.
     pub ping_every: Duration,
-    /// How long an uplink waits for its answer (beyond it, it counts as lost).
+    /// How long an uplink waits for its answer at least (it grows with the measured round
+    /// trip; beyond it, the uplink counts as lost).
     pub answer_timeout: Duration,
     /// Commands in one uplink, at most.
     pub batch: usize,
+    /// Bytes of commands in one uplink, about (at least one command goes).
+    pub batch_bytes: usize,
     /// Silence after which the link counts as down.
     pub down_after: Duration,
 }
@@ -88,6 +91,7 @@ impl StationOptions {
             ping_every: Duration::from_secs(1),
             answer_timeout: Duration::from_secs(5),
             batch: 32,
+            batch_bytes: 8 * 1024,
             down_after: Duration::from_secs(3),
         }
     }
@@ -381,13 +385,25 @@ fn persist(db: &Database, entries: &[&Entry], next_seq: Option<u64>) -> Result<(
     tx.commit().map_err(store)
 }
 
+/// Longest pause after uplinks that got no answer.
+const MAX_BACKOFF: Duration = Duration::from_secs(4);
+/// Longest wait for an answer.
+const MAX_ANSWER_WAIT: Duration = Duration::from_secs(60);
+/// An uplink that fails faster than this found no route to the rover.
+const NO_ROUTE: Duration = Duration::from_millis(50);
+
 fn link_loop(s: &Shared) {
     let key = keys::authority(&s.options.system);
+    // Smoothed round trip, and uplinks lost in a row: a link that does not answer is not
+    // flooded with more (each answer would queue behind the last on a slow radio).
+    let mut srtt: Option<Duration> = None;
+    let mut lost_in_row: u32 = 0;
     while !s.stop.load(Ordering::Relaxed) {
         let (uplink, has_commands) = {
             let Ok(inner) = s.inner.lock() else {
                 return;
             };
+            let mut bytes = 0;
             let commands: Vec<Sent> = inner
                 .entries
                 .values()
@@ -397,6 +413,11 @@ fn link_loop(s: &Shared) {
                     seq: e.seq,
                     id: e.id.clone(),
                     order: e.order.clone(),
+                })
+                .take_while(|c| {
+                    let first = bytes == 0;
+                    bytes += serde_json::to_vec(c).map_or(0, |b| b.len());
+                    first || bytes <= s.options.batch_bytes
                 })
                 .collect();
             let pending_from = inner
@@ -418,23 +439,56 @@ fn link_loop(s: &Shared) {
         mark_sent(s, &sent_seqs);
         let payload = serde_json::to_vec(&uplink).unwrap_or_default();
         let start = Instant::now();
+        // Three round trips, and twice as long after each uplink lost in a row (as TCP's
+        // retransmission timer): a link slower than the last guess is not asked again and
+        // again before its answer can arrive.
+        let timeout = srtt
+            .map_or(s.options.answer_timeout, |r| {
+                (r * 3).max(s.options.answer_timeout)
+            })
+            .saturating_mul(2u32.saturating_pow(lost_in_row.min(4)))
+            .min(MAX_ANSWER_WAIT);
         let answer = s
             .session
             .get(&key)
             .payload(payload)
+            // First on the link, and never dropped on the way: the routers of the radio wait
+            // out a stalled link (configs/zenoh/*-router.json5) instead of closing it.
             .priority(Priority::InteractiveHigh)
             .congestion_control(CongestionControl::Block)
             .express(true)
-            .timeout(s.options.answer_timeout)
+            .timeout(timeout)
             .wait()
             .ok()
             .and_then(|rx| rx.recv().ok())
             .and_then(|r| r.result().ok().map(|s| s.payload().to_bytes().to_vec()))
-            .and_then(|b| serde_json::from_slice::<Downlink>(&b).ok());
+            .and_then(|b| match serde_json::from_slice::<Downlink>(&b) {
+                Ok(d) => Some(d),
+                Err(e) => {
+                    tracing::error!(
+                        "unreadable answer from the rover ({e}); is it another version?"
+                    );
+                    None
+                }
+            });
         let rtt = start.elapsed();
         let answered = answer.is_some();
+        tracing::debug!(
+            commands = sent_seqs.len(),
+            answered,
+            ms = rtt.as_millis() as u64,
+            timeout_ms = timeout.as_millis() as u64,
+            "uplink"
+        );
+        // No route to the rover at all (the routers lost each other): it cost nothing on the
+        // link, so it is not a reason to back off.
+        let unreachable = !answered && rtt < NO_ROUTE;
         if let Some(d) = answer {
             take_downlink(s, d, rtt);
+            srtt = Some(srtt.map_or(rtt, |r| (r * 7 + rtt) / 8));
+            lost_in_row = 0;
+        } else if !unreachable {
+            lost_in_row = lost_in_row.saturating_add(1);
         }
         if let Ok(mut i) = s.inner.lock() {
             i.link.uplinks += 1;
@@ -445,12 +499,14 @@ fn link_loop(s: &Shared) {
             let lost = i.history.iter().filter(|a| !**a).count();
             i.link.loss = lost as f64 / i.history.len() as f64;
         }
-        // With commands waiting, send again at once (the query's own timeout paced it);
+        // With commands waiting, send again at once; after losses, back off (doubling);
         // otherwise ping.
-        let pause = if has_commands && answered {
-            Duration::from_millis(20)
+        let pause = if unreachable {
+            s.options.ping_every
+        } else if !answered {
+            (Duration::from_millis(250) * 2u32.saturating_pow(lost_in_row.min(6))).min(MAX_BACKOFF)
         } else if has_commands {
-            Duration::from_millis(200)
+            Duration::from_millis(20)
         } else {
             s.options.ping_every
         };
@@ -507,7 +563,10 @@ fn take_downlink(s: &Shared, d: Downlink, rtt: Duration) {
             continue;
         };
         if e.id != o.id {
-            tracing::error!(seq = o.seq, "the rover holds another command under this number");
+            tracing::error!(
+                seq = o.seq,
+                "the rover holds another command under this number"
+            );
             continue;
         }
         let state = match &o.fate {

@@ -2,6 +2,7 @@
 
 #![allow(dead_code)] // each test file uses its own subset
 
+pub mod ground;
 pub mod system;
 
 use std::net::TcpListener;

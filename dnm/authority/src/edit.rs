@@ -162,7 +162,10 @@ links = ["a.out -> b.in"]
     fn remove_drops_the_module_and_its_links() {
         let (text, what) = edit_netlist(TEXT, &ModuleEdit::Remove { name: "a".into() }).unwrap();
         assert_eq!(what, "removed module `a`");
-        assert!(!text.contains("counter") && !text.contains("a.out"), "{text}");
+        assert!(
+            !text.contains("counter") && !text.contains("a.out"),
+            "{text}"
+        );
     }
 
     #[test]
@@ -173,7 +176,10 @@ links = ["a.out -> b.in"]
             params: vec!["level=2".into(), "tag=x".into()],
         };
         let (text, _) = edit_netlist(TEXT, &edit).unwrap();
-        assert!(text.contains("logger") && text.contains("level = 2"), "{text}");
+        assert!(
+            text.contains("logger") && text.contains("level = 2"),
+            "{text}"
+        );
         assert!(text.contains(r#"tag = "x""#), "{text}");
         let e = edit_netlist(TEXT, &ModuleEdit::Remove { name: "z".into() }).unwrap_err();
         assert!(e.contains("no module `z`"), "{e}");

@@ -45,7 +45,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use dnm_netlist::Netlist;
 use dnm_proto::station::{Downlink, Fate, Order, RoverEvent, RoverState, Sent, Uplink};
-use dnm_proto::{DnmReport, RemoteCommand, Request, Response, keys};
+use dnm_proto::{DnmBrief, RemoteCommand, Request, Response, keys};
 use zenoh::Wait;
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::{ConsolidationMode, Query, QueryTarget};
@@ -109,7 +109,30 @@ struct Core {
     digest: String,
 }
 
+/// What the lead of a decision must cover, as measured: a round trip to the slowest DNM and
+/// a durable write (smoothed, the worst recent value weighing most).
+#[derive(Debug, Default)]
+struct Timing {
+    round_trip: Duration,
+    store: Duration,
+}
+
+impl Timing {
+    fn round_trip(&mut self, d: Duration) {
+        self.round_trip = (self.round_trip * 7 / 8 + d / 8).max(d);
+    }
+
+    fn store(&mut self, d: Duration) {
+        self.store = (self.store * 7 / 8 + d / 8).max(d);
+    }
+
+    fn lead(&self, least: Duration) -> Duration {
+        least.max(self.round_trip * 2 + self.store * 2)
+    }
+}
+
 struct Shared {
+    timing: Mutex<Timing>,
     system: String,
     name: String,
     session: zenoh::Session,
@@ -214,6 +237,7 @@ impl Authority {
         })?;
         let digest = format!("{:016x}", current.digest());
         let shared = Arc::new(Shared {
+            timing: Mutex::new(Timing::default()),
             system: system.clone(),
             name,
             session: session.clone(),
@@ -234,6 +258,8 @@ impl Authority {
         if let Ok(core) = shared.core.lock() {
             publish_rover(&shared, &core);
         }
+        // Transactions a stopped authority left undecided are dropped before any new one.
+        reconcile(&shared);
         let (tx, rx) = mpsc::sync_channel::<Query>(UPLINK_QUEUE);
         let queryable = session
             .declare_queryable(keys::authority(&system))
@@ -309,7 +335,9 @@ fn take_uplink(s: &Shared, q: &Query) -> Downlink {
         error: Some(e),
     };
     let Some(payload) = q.payload() else {
-        return refuse("empty uplink; send JSON {\"station\":\"ground-1\",\"commands\":[...]}".into());
+        return refuse(
+            "empty uplink; send JSON {\"station\":\"ground-1\",\"commands\":[...]}".into(),
+        );
     };
     let up: Uplink = match serde_json::from_slice(&payload.to_bytes()) {
         Ok(u) => u,
@@ -361,7 +389,15 @@ fn publish_rover(s: &Shared, core: &Core) {
         .into_iter()
         .map(|t| (t.station, t.seq, t.at_unix_ns))
         .collect();
-    let events = core.state.events.iter().rev().take(STATE_EVENTS).rev().cloned().collect();
+    let events = core
+        .state
+        .events
+        .iter()
+        .rev()
+        .take(STATE_EVENTS)
+        .rev()
+        .cloned()
+        .collect();
     if let Ok(mut r) = s.rover.lock() {
         *r = RoverState {
             authority: s.name.clone(),
@@ -377,78 +413,69 @@ fn publish_rover(s: &Shared, core: &Core) {
 // The worker: commands in order, time tags, loss of signal.
 
 fn worker_loop(s: &Shared) {
+    // The job waiting for the rover's DNMs to be in step, and since when.
+    let mut gate: Option<(String, Instant)> = None;
     while !s.stop.load(Ordering::Relaxed) {
-        let mut next_wait = Duration::from_millis(100);
-        match work_once(s) {
-            Ok(true) => continue,
-            Ok(false) => {}
+        match work_once(s, &mut gate) {
+            Ok(true) => {}
+            Ok(false) => s.sleep(Duration::from_millis(100)),
             Err(e) => {
                 tracing::error!("authority: {e}");
-                next_wait = Duration::from_secs(1);
+                s.sleep(Duration::from_secs(1));
             }
         }
-        s.sleep(next_wait);
     }
 }
 
-/// Does one piece of work if there is one; returns whether it did.
-fn work_once(s: &Shared) -> Result<bool, AuthorityError> {
-    let Ok(mut core) = s.core.lock() else {
-        return Err(AuthorityError::Store("the authority's state lock is poisoned".into()));
-    };
-    let core = &mut *core;
-    // A station heard after the link was lost.
-    if s.heard.load(Ordering::Relaxed) && core.state.link_lost {
-        core.state.link_lost = false;
-        let e = RoverEvent {
-            at_unix_ns: now_unix_ns(),
-            what: "link_back".into(),
-            detail: "a ground station was heard again; the rover stays in its task".into(),
-            revision: core.state.revision,
-            task: core.state.task.clone(),
-        };
-        tracing::info!("ground station heard again");
-        core.state.event(e);
-        s.store.save_state(&core.state)?;
-        publish_rover(s, core);
+/// What the worker does next.
+enum Job {
+    /// A station was heard again after the link was lost.
+    LinkBack,
+    LinkLoss {
+        task: String,
+        silent: Duration,
+    },
+    Timer(Timer),
+    Command(String, Sent),
+}
+
+impl Job {
+    fn key(&self) -> String {
+        match self {
+            Job::LinkBack => "link-back".into(),
+            Job::LinkLoss { .. } => "link-loss".into(),
+            Job::Timer(t) => format!("timer {} {}", t.station, t.seq),
+            Job::Command(st, c) => format!("command {st} {}", c.seq),
+        }
     }
-    // Loss of signal.
-    if let Some(l) = core.netlist.on_link_loss.clone() {
+
+    /// Whether it changes what the DNMs run (and so needs them all in step first).
+    fn transacts(&self, core: &Core) -> bool {
+        match self {
+            Job::LinkBack => false,
+            Job::LinkLoss { task, .. } => core.state.task.as_ref() != Some(task),
+            Job::Timer(_) => true,
+            Job::Command(_, c) => !matches!(c.order, Order::Cancel { .. }),
+        }
+    }
+}
+
+fn next_job(s: &Shared, core: &Core) -> Result<Option<Job>, AuthorityError> {
+    if s.heard.load(Ordering::Relaxed) && core.state.link_lost {
+        return Ok(Some(Job::LinkBack));
+    }
+    if let Some(l) = &core.netlist.on_link_loss {
         let silent = s.contact.lock().map(|c| c.elapsed()).unwrap_or_default();
         if silent >= Duration::from_millis(l.after_ms) && !core.state.link_lost {
-            s.heard.store(false, Ordering::Relaxed);
-            core.state.link_lost = true;
-            let detail = format!(
-                "no ground station heard for {:.1} s: switching to `{}`",
-                silent.as_secs_f64(),
-                l.task
-            );
-            tracing::warn!("{detail}");
-            let fate = if core.state.task.as_deref() == Some(l.task.as_str()) {
-                s.store.save_state(&core.state)?;
-                None
-            } else {
-                Some(transact(s, core, None, Some(l.task.clone()), None, None, None))
-            };
-            let e = RoverEvent {
-                at_unix_ns: now_unix_ns(),
-                what: "link_loss".into(),
-                detail: match &fate {
-                    Some(Fate::Refused { reason }) => format!("{detail}; refused: {reason}"),
-                    _ => detail,
-                },
-                revision: core.state.revision,
-                task: core.state.task.clone(),
-            };
-            core.state.event(e);
-            s.store.save_state(&core.state)?;
-            publish_rover(s, core);
-            return Ok(true);
+            return Ok(Some(Job::LinkLoss {
+                task: l.task.clone(),
+                silent,
+            }));
         }
     }
     // Time-tagged switches whose time has come (prepared a little ahead).
-    let now = now_unix_ns();
     let margin = (s.options.switch_lead * 4).as_nanos() as u64;
+    let now = now_unix_ns();
     if let Some(t) = s
         .store
         .timers()?
@@ -456,26 +483,170 @@ fn work_once(s: &Shared) -> Result<bool, AuthorityError> {
         .filter(|t| t.at_unix_ns <= now + margin)
         .min_by_key(|t| t.at_unix_ns)
     {
-        let cmd = (t.station.clone(), t.seq, t.id.clone());
-        transact(
-            s,
-            core,
-            None,
-            Some(t.task.clone()),
-            Some(t.at_unix_ns),
-            Some(cmd),
-            Some((t.station.clone(), t.seq)),
-        );
-        publish_rover(s, core);
-        return Ok(true);
+        return Ok(Some(Job::Timer(t)));
     }
-    // The next command.
-    let Some((station, sent)) = s.store.next_command()? else {
-        return Ok(false);
+    Ok(s.store
+        .next_command()?
+        .map(|(station, sent)| Job::Command(station, sent)))
+}
+
+/// Longest wait for the rover's DNMs to be in step before a transaction is tried anyway (and
+/// refused with what the DNMs say).
+const READY_WAIT: Duration = Duration::from_secs(30);
+
+/// Does one piece of work if there is one; returns whether it did.
+fn work_once(s: &Shared, gate: &mut Option<(String, Instant)>) -> Result<bool, AuthorityError> {
+    let lock = || {
+        s.core
+            .lock()
+            .map_err(|_| AuthorityError::Store("the authority's state lock is poisoned".into()))
     };
-    run_command(s, core, &station, sent)?;
+    let (job, snapshot) = {
+        let core = lock()?;
+        let Some(job) = next_job(s, &core)? else {
+            *gate = None;
+            return Ok(false);
+        };
+        let snapshot = job.transacts(&core).then(|| Snapshot::of(&core));
+        (job, snapshot)
+    };
+    if let Some(snap) = snapshot {
+        // A DNM that restarted or missed a decision is brought in step by the reconciler
+        // first: a transaction now would only be refused by it.
+        let key = job.key();
+        let since = match gate.as_ref() {
+            Some((k, t)) if *k == key => *t,
+            _ => Instant::now(),
+        };
+        *gate = Some((key, since));
+        if since.elapsed() < READY_WAIT {
+            if let Some(why) = out_of_step(s, &snap) {
+                tracing::debug!("waiting for the rover's DNMs: {why}");
+                return Ok(false);
+            }
+        }
+    }
+    *gate = None;
+    let mut core = lock()?;
+    let core = &mut *core;
+    match job {
+        Job::LinkBack => {
+            core.state.link_lost = false;
+            let e = RoverEvent {
+                at_unix_ns: now_unix_ns(),
+                what: "link_back".into(),
+                detail: "a ground station was heard again; the rover stays in its task".into(),
+                revision: core.state.revision,
+                task: core.state.task.clone(),
+            };
+            tracing::info!("ground station heard again");
+            core.state.event(e);
+            s.store.save_state(&core.state)?;
+        }
+        Job::LinkLoss { task, silent } => {
+            s.heard.store(false, Ordering::Relaxed);
+            core.state.link_lost = true;
+            let detail = format!(
+                "no ground station heard for {:.1} s: switching to `{task}`",
+                silent.as_secs_f64()
+            );
+            tracing::warn!("{detail}");
+            let fate = if core.state.task.as_ref() == Some(&task) {
+                None
+            } else {
+                Some(transact(s, core, None, Some(task), None, None, None))
+            };
+            let e = RoverEvent {
+                at_unix_ns: now_unix_ns(),
+                what: "link_loss".into(),
+                detail: match &fate {
+                    Some(Fate::Refused { reason }) => format!("{detail}; refused: {reason}"),
+                    None => format!(
+                        "no ground station heard for {:.1} s; already in `{}`",
+                        silent.as_secs_f64(),
+                        core.state.task.as_deref().unwrap_or("-")
+                    ),
+                    _ => detail,
+                },
+                revision: core.state.revision,
+                task: core.state.task.clone(),
+            };
+            core.state.event(e);
+            s.store.save_state(&core.state)?;
+        }
+        Job::Timer(t) => {
+            let cmd = (t.station.clone(), t.seq, t.id.clone());
+            transact(
+                s,
+                core,
+                None,
+                Some(t.task.clone()),
+                Some(t.at_unix_ns),
+                Some(cmd),
+                Some((t.station.clone(), t.seq)),
+            );
+        }
+        Job::Command(station, sent) => run_command(s, core, &station, sent)?,
+    }
     publish_rover(s, core);
     Ok(true)
+}
+
+/// What the DNMs are checked against, copied out of the lock.
+struct Snapshot {
+    revision: u64,
+    task: Option<String>,
+    digest: String,
+    next_txn: u64,
+    file: String,
+    text: String,
+    decisions: Vec<DecisionRecord>,
+    participants: Vec<String>,
+    radio: Vec<String>,
+}
+
+impl Snapshot {
+    fn of(core: &Core) -> Self {
+        let (radio, participants): (Vec<_>, Vec<_>) =
+            core.netlist.dnms.iter().partition(|d| d.radio);
+        Self {
+            revision: core.state.revision,
+            task: core.state.task.clone(),
+            digest: core.digest.clone(),
+            next_txn: core.state.next_txn,
+            file: core.state.file.clone(),
+            text: core.state.text.clone(),
+            decisions: core.state.decisions.clone(),
+            participants: participants.into_iter().map(|d| d.name.clone()).collect(),
+            radio: radio.into_iter().map(|d| d.name.clone()).collect(),
+        }
+    }
+
+    fn in_step(&self, r: &DnmBrief) -> bool {
+        r.holding.is_none()
+            && r.preparing.is_none()
+            && r.revision == self.revision
+            && r.active_task == self.task
+            && r.netlist_digest == self.digest
+    }
+}
+
+/// Why the rover's DNMs are not all in step with what was decided, if they are not.
+fn out_of_step(s: &Shared, snap: &Snapshot) -> Option<String> {
+    let found = reports_of(s, &snap.participants, Duration::from_secs(1));
+    for (d, r) in snap.participants.iter().zip(found) {
+        match r {
+            None => return Some(format!("DNM `{d}` does not answer")),
+            Some(r) if !snap.in_step(&r) => {
+                return Some(format!(
+                    "DNM `{d}` is on revision {} task {:?}, holding {:?}",
+                    r.revision, r.active_task, r.holding
+                ));
+            }
+            Some(_) => {}
+        }
+    }
+    None
 }
 
 fn refuse(s: &Shared, station: &str, sent: &Sent, reason: String) -> Result<(), AuthorityError> {
@@ -507,9 +678,20 @@ fn run_command(
             }
             let lead = s.options.switch_lead.as_nanos() as u64 * 4;
             if let Some(at) = at_unix_ns.filter(|at| *at > now_unix_ns() + lead) {
-                tracing::info!(station, seq = sent.seq, task, at, "time-tagged switch scheduled");
+                tracing::info!(
+                    station,
+                    seq = sent.seq,
+                    task,
+                    at,
+                    "time-tagged switch scheduled"
+                );
                 return s.store.finish(Finish {
-                    fates: vec![(station, sent.seq, &sent.id, Fate::Scheduled { at_unix_ns: at })],
+                    fates: vec![(
+                        station,
+                        sent.seq,
+                        &sent.id,
+                        Fate::Scheduled { at_unix_ns: at },
+                    )],
                     done: Some((station, sent.seq)),
                     timer_add: Some(Timer {
                         station: station.to_string(),
@@ -525,12 +707,20 @@ fn run_command(
             Ok(())
         }
         Order::Apply { file, text } => match (s.parse)(Path::new(file), text) {
-            Err(e) => refuse(s, station, &sent, format!("netlist refused, nothing changed:\n{e}")),
+            Err(e) => refuse(
+                s,
+                station,
+                &sent,
+                format!("netlist refused, nothing changed:\n{e}"),
+            ),
             Ok(n) if n.system != s.system => refuse(
                 s,
                 station,
                 &sent,
-                format!("netlist is for system `{}`, this is `{}`", n.system, s.system),
+                format!(
+                    "netlist is for system `{}`, this is `{}`",
+                    n.system, s.system
+                ),
             ),
             Ok(n) => {
                 transact(s, core, Some(n), None, None, cmd, None);
@@ -557,7 +747,12 @@ fn run_command(
                 return s.store.finish(Finish {
                     fates: vec![
                         (station, *seq, &t.id, Fate::CancelledBy { by: sent.seq }),
-                        (station, sent.seq, &sent.id, Fate::Cancelled { seq: *seq }),
+                        (
+                            station,
+                            sent.seq,
+                            &sent.id,
+                            Fate::Cancelled { target: *seq },
+                        ),
                     ],
                     done: Some((station, sent.seq)),
                     timer_remove: Some((station, *seq)),
@@ -567,7 +762,11 @@ fn run_command(
             let why = match s.store.fate(station, *seq)? {
                 None if *seq >= sent.seq => format!("command {seq} comes after this cancel"),
                 None => format!("command {seq} is not a time-tagged switch waiting for its time"),
-                Some(Fate::Applied { revision, at_unix_ns, .. }) => format!(
+                Some(Fate::Applied {
+                    revision,
+                    at_unix_ns,
+                    ..
+                }) => format!(
                     "command {seq} already ran (revision {revision}, at {at_unix_ns} ns rover time)"
                 ),
                 Some(f) => format!("command {seq} is not waiting: {}", describe(&f)),
@@ -660,11 +859,22 @@ fn transact(
         text,
     };
     let votes = ask_all(s, &participants, &prepare, id, s.options.prepare_timeout);
+    if netlist.is_none() {
+        // A switch prepares at once: its prepare is one round trip to the slowest DNM.
+        s.timing
+            .lock()
+            .map(|mut t| t.round_trip(started.elapsed()))
+            .ok();
+    }
     let refusals: Vec<String> = votes
         .iter()
         .filter_map(|(d, r)| match r {
             Ok(r) if r.ok => None,
-            Ok(r) => Some(r.error.clone().unwrap_or_else(|| format!("DNM `{d}` refused"))),
+            Ok(r) => Some(
+                r.error
+                    .clone()
+                    .unwrap_or_else(|| format!("DNM `{d}` refused")),
+            ),
             Err(e) => Some(format!("DNM `{d}`: {e}")),
         })
         .collect();
@@ -681,11 +891,24 @@ fn transact(
             reason: format!("nothing changed: {}", refusals.join("; ")),
         };
         let _ = finish(core, &fate);
-        let _ = ask_all(s, &participants, &decide(&decision), id, Duration::from_secs(2));
+        let _ = ask_all(
+            s,
+            &participants,
+            &decide(&decision),
+            id,
+            Duration::from_secs(2),
+        );
         tracing::warn!(txn = id, "transaction dropped: {}", refusals.join("; "));
         return fate;
     }
-    let at_unix_ns = (now_unix_ns() + s.options.switch_lead.as_nanos() as u64).max(at.unwrap_or(0));
+    // The instant leaves time to store the decision and for it to reach every DNM (both as
+    // measured lately), so every DNM holds it before the instant and they switch together.
+    let lead = s
+        .timing
+        .lock()
+        .map(|t| t.lead(s.options.switch_lead))
+        .unwrap_or(s.options.switch_lead);
+    let at_unix_ns = (now_unix_ns() + lead.as_nanos() as u64).max(at.unwrap_or(0));
     let decision = DecisionRecord {
         txn: id,
         commit: true,
@@ -693,7 +916,11 @@ fn transact(
         revision,
         task: task.clone(),
     };
-    let before = (core.state.clone(), core.netlist.clone(), core.digest.clone());
+    let before = (
+        core.state.clone(),
+        core.netlist.clone(),
+        core.digest.clone(),
+    );
     core.state.decided(decision.clone());
     if let Some(n) = netlist {
         core.state.file = n.file.display().to_string();
@@ -706,14 +933,23 @@ fn transact(
         task: task.clone(),
         at_unix_ns,
     };
-    if let Err(e) = finish(core, &fate) {
+    let storing = Instant::now();
+    let stored = finish(core, &fate);
+    s.timing.lock().map(|mut t| t.store(storing.elapsed())).ok();
+    if let Err(e) = stored {
         // Not decided after all: drop it everywhere.
         (core.state, core.netlist, core.digest) = before;
         let abort = DecisionRecord {
             commit: false,
             ..decision
         };
-        let _ = ask_all(s, &participants, &decide(&abort), id, Duration::from_secs(2));
+        let _ = ask_all(
+            s,
+            &participants,
+            &decide(&abort),
+            id,
+            Duration::from_secs(2),
+        );
         return Fate::Refused {
             reason: format!("the rover could not store the decision: {e}"),
         };
@@ -723,8 +959,8 @@ fn transact(
     let request = decide(&decision);
     let mut missing = participants.clone();
     for _ in 0..3 {
-        let wait = Duration::from_nanos(at_unix_ns.saturating_sub(now_unix_ns()))
-            + Duration::from_secs(2);
+        let wait =
+            Duration::from_nanos(at_unix_ns.saturating_sub(now_unix_ns())) + Duration::from_secs(2);
         let acks = ask_all(s, &missing, &request, id, wait);
         missing = acks
             .into_iter()
@@ -815,10 +1051,34 @@ fn ask_all(
         .collect()
 }
 
-/// Every reachable DNM's report.
-fn reports(session: &zenoh::Session, system: &str, timeout: Duration) -> Vec<DnmReport> {
+/// What the DNMs named run, asked all at once (`None`: no answer in time).
+fn reports_of(s: &Shared, dnms: &[String], timeout: Duration) -> Vec<Option<DnmBrief>> {
+    let pending: Vec<_> = dnms
+        .iter()
+        .map(|d| {
+            s.session
+                .get(format!("{}?brief", keys::dnm(&s.system, d)))
+                .priority(Priority::InteractiveHigh)
+                .express(true)
+                .timeout(timeout)
+                .wait()
+                .ok()
+        })
+        .collect();
+    pending
+        .into_iter()
+        .map(|rx| {
+            let reply = rx?.recv().ok()?;
+            let sample = reply.result().ok()?;
+            serde_json::from_slice(&sample.payload().to_bytes()).ok()
+        })
+        .collect()
+}
+
+/// What every reachable DNM runs.
+fn reports(session: &zenoh::Session, system: &str, timeout: Duration) -> Vec<DnmBrief> {
     let Ok(replies) = session
-        .get(keys::all_dnms(system))
+        .get(format!("{}?brief", keys::all_dnms(system)))
         .target(QueryTarget::All)
         .consolidation(ConsolidationMode::None)
         .timeout(timeout)
@@ -829,7 +1089,7 @@ fn reports(session: &zenoh::Session, system: &str, timeout: Duration) -> Vec<Dnm
     let mut out = Vec::new();
     while let Ok(r) = replies.recv() {
         if let Ok(sample) = r.result() {
-            if let Ok(d) = serde_json::from_slice::<DnmReport>(&sample.payload().to_bytes()) {
+            if let Ok(d) = serde_json::from_slice::<DnmBrief>(&sample.payload().to_bytes()) {
                 out.push(d);
             }
         }
@@ -842,11 +1102,7 @@ fn reports(session: &zenoh::Session, system: &str, timeout: Duration) -> Vec<Dnm
 
 fn reconcile_loop(s: &Shared) {
     while !s.stop.load(Ordering::Relaxed) {
-        // Radio DNMs answer slowly: wait for them, outside the lock.
-        let found = reports(&s.session, &s.system, Duration::from_millis(1500));
-        if let Ok(core) = s.core.lock() {
-            reconcile(s, &core, &found);
-        }
+        reconcile(s);
         let deadline = Instant::now() + s.options.reconcile_every;
         while Instant::now() < deadline && !s.stop.load(Ordering::Relaxed) {
             std::thread::sleep(Duration::from_millis(50).min(s.options.reconcile_every));
@@ -854,57 +1110,80 @@ fn reconcile_loop(s: &Shared) {
     }
 }
 
-fn reconcile(s: &Shared, core: &Core, found: &[DnmReport]) {
-    for r in found {
-        if core.netlist.dnm(&r.dnm).is_none() {
-            continue;
-        }
-        if let Some(id) = r.holding {
-            let d = core
-                .state
-                .decisions
+/// One pass: every DNM that holds a transaction gets its decision (or the order to drop it),
+/// every DNM out of step adopts what was decided. Nothing waits under the state lock.
+fn reconcile(s: &Shared) {
+    let (names, before) = match s.core.lock() {
+        Ok(core) => (
+            core.netlist
+                .dnms
                 .iter()
-                .find(|d| d.txn == id)
-                .cloned()
-                .unwrap_or(DecisionRecord {
-                    // Never decided (the authority stopped before it could): dropped.
+                .map(|d| d.name.clone())
+                .collect::<Vec<_>>(),
+            core.state.next_txn,
+        ),
+        Err(_) => return,
+    };
+    // Rover DNMs answer at once; those across the radio may take a while.
+    let found = reports_of(s, &names, Duration::from_millis(1500));
+    // Taken after the reports: a report is never newer than the decisions it is judged by.
+    let snap = match s.core.lock() {
+        Ok(core) => Snapshot::of(&core),
+        Err(_) => return,
+    };
+    if snap.next_txn != before {
+        // A transaction ran meanwhile: the reports may show it half done. Look again later.
+        return;
+    }
+    for r in found.into_iter().flatten() {
+        if let Some(id) = r.holding {
+            let d = match snap.decisions.iter().find(|d| d.txn == id) {
+                Some(d) => d.clone(),
+                // Handed out after the snapshot: the worker is running it.
+                None if id >= snap.next_txn => continue,
+                // Never decided (the authority stopped before it could): dropped.
+                None => DecisionRecord {
                     txn: id,
                     commit: false,
                     at_unix_ns: now_unix_ns(),
                     revision: r.revision,
                     task: r.active_task.clone(),
-                });
+                },
+            };
             tracing::info!(dnm = %r.dnm, txn = id, commit = d.commit, "sending a missed decision");
-            log_answers(ask_all(s, std::slice::from_ref(&r.dnm), &decide(&d), id, Duration::from_secs(2)));
+            log_answers(ask_all(
+                s,
+                std::slice::from_ref(&r.dnm),
+                &decide(&d),
+                id,
+                Duration::from_secs(2),
+            ));
             continue;
         }
-        if r.preparing.is_some() {
+        if r.preparing.is_some() || snap.in_step(&r) {
             continue;
         }
-        if r.revision == core.state.revision
-            && r.active_task == core.state.task
-            && r.netlist_digest == core.digest
-        {
-            continue;
-        }
+        // A rover DNM behind is only ever one that restarted (the others hold what they
+        // prepared until decided); a radio DNM follows whenever it is reachable.
         tracing::info!(
             dnm = %r.dnm,
             from = r.revision,
-            to = core.state.revision,
-            task = ?core.state.task,
+            to = snap.revision,
+            task = ?snap.task,
+            radio = snap.radio.contains(&r.dnm),
             "DNM adopts the decided revision"
         );
         let adopt = Request::Adopt {
-            revision: core.state.revision,
-            task: core.state.task.clone(),
-            file: core.state.file.clone(),
-            text: core.state.text.clone(),
+            revision: snap.revision,
+            task: snap.task.clone(),
+            file: snap.file.clone(),
+            text: snap.text.clone(),
         };
         log_answers(ask_all(
             s,
             std::slice::from_ref(&r.dnm),
             &adopt,
-            core.state.revision,
+            snap.revision,
             s.options.prepare_timeout,
         ));
     }

@@ -19,6 +19,9 @@ const FATES: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("fates");
 /// Time-tagged switches waiting, by `station \0 seq`.
 const TIMERS: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("timers");
 
+/// Fates in one answer to a station, besides those of the commands it sent.
+pub(crate) const ANSWER_FATES: usize = 32;
+
 /// Decisions kept for DNMs that missed them.
 const DECISIONS_KEPT: usize = 64;
 /// Events kept.
@@ -114,9 +117,8 @@ pub(crate) struct Store {
 impl Store {
     pub(crate) fn open(path: &Path) -> Result<Self, AuthorityError> {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| {
-                AuthorityError::Store(format!("creating {}: {e}", dir.display()))
-            })?;
+            std::fs::create_dir_all(dir)
+                .map_err(|e| AuthorityError::Store(format!("creating {}: {e}", dir.display())))?;
         }
         let database = Database::create(path)
             .map_err(|e| AuthorityError::Store(format!("{}: {e}", path.display())))?;
@@ -149,7 +151,10 @@ impl Store {
     }
 
     /// Takes a station's commands in order: each new one goes to the inbox (durably) if it
-    /// follows the last taken; a gap stops the intake. Returns the fates from `pending_from`.
+    /// follows the last taken; a gap stops the intake. Returns the fates of the commands sent,
+    /// then news from `pending_from` on (final or scheduled fates), at most [`ANSWER_FATES`]
+    /// in all: the answer crosses a slow link, and only what the station does not know yet
+    /// is worth its bandwidth.
     pub(crate) fn intake(
         &self,
         station: &str,
@@ -180,10 +185,20 @@ impl Store {
             }
             let mut meta = tx.open_table(META).map_err(db)?;
             let bytes = serde_json::to_vec(&received).map_err(db)?;
-            meta.insert(recv_key.as_str(), bytes.as_slice()).map_err(db)?;
+            meta.insert(recv_key.as_str(), bytes.as_slice())
+                .map_err(db)?;
         }
         tx.commit().map_err(db)?;
-        let mut out = self.fates(station, pending_from.max(1), received)?;
+        let sent: std::collections::BTreeSet<u64> = commands.iter().map(|c| c.seq).collect();
+        let all = self.fates(station, pending_from.max(1), received)?;
+        let (mut out, news): (Vec<Outcome>, Vec<Outcome>) =
+            all.into_iter().partition(|o| sent.contains(&o.seq));
+        out.extend(
+            news.into_iter()
+                .filter(|o| o.fate != Fate::Acknowledged)
+                .take(ANSWER_FATES.saturating_sub(out.len())),
+        );
+        out.sort_by_key(|o| o.seq);
         if let Some((seq, id, expected)) = gap {
             out.push(Outcome {
                 seq,
@@ -251,7 +266,10 @@ impl Store {
         };
         let (k, v) = row.map_err(db)?;
         let Some((station, _)) = split(k.value()) else {
-            return Err(AuthorityError::Store(format!("bad inbox key {:?}", k.value())));
+            return Err(AuthorityError::Store(format!(
+                "bad inbox key {:?}",
+                k.value()
+            )));
         };
         let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
         Ok(Some((station, sent)))

@@ -23,13 +23,13 @@ use dnm_proto::{
 };
 
 use crate::command::{Command, CommandKey, Reply};
-use crate::txn::{Decided, HeldSwitch, Scheduled};
 use crate::error::{DnmError, ipc};
 use crate::options::DnmOptions;
 use crate::pending::{Outcome, PendingApply, QueuedApply};
 use crate::plugin::{Plugin, Snapshot};
 use crate::procfs::CpuMeter;
 use crate::slot::{ModuleSlot, PortServices, Stopping, Svc};
+use crate::txn::{Decided, HeldSwitch, Scheduled};
 
 type TsSvc = ipc_threadsafe::Service;
 
@@ -153,6 +153,9 @@ pub struct Dnm {
     pub(crate) held_switch: Option<HeldSwitch>,
     pub(crate) scheduled: Option<Scheduled>,
     pub(crate) decided: Decided,
+    /// At real-time priority until a decision is in force.
+    pub(crate) hurried: bool,
+    pub(crate) warned_realtime: bool,
     commands: Receiver<Command>,
     command_tx: Option<SyncSender<Command>>,
     supervision: SupervisionReport,
@@ -259,6 +262,8 @@ impl Dnm {
             held_switch: None,
             scheduled: None,
             decided: Decided::new(),
+            hurried: false,
+            warned_realtime: false,
             commands,
             command_tx: Some(command_tx),
             supervision: SupervisionReport::default(),
@@ -494,8 +499,9 @@ impl Dnm {
         self.pass();
         loop {
             let result = match self.until_due() {
-                Some(t) => waitset
-                    .wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, t),
+                Some(t) => {
+                    waitset.wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, t)
+                }
                 None => waitset.wait_and_process_once(|_| CallbackProgression::Continue),
             }
             .map_err(ipc("wait"))?;
@@ -513,6 +519,13 @@ impl Dnm {
                 break;
             }
             events.try_wait(|_| ()).map_err(ipc("events"))?;
+            self.run_due();
+            if self.until_due().is_some_and(|d| d < crate::txn::NEAR) {
+                // A decided instant is near: nothing else may hold up the store, so commands
+                // and supervision wait until it is done.
+                self.hurry();
+                continue;
+            }
             loop {
                 match self.commands.try_recv() {
                     Ok(cmd) => self.handle(cmd),
@@ -520,7 +533,9 @@ impl Dnm {
                     Err(std::sync::mpsc::TryRecvError::Disconnected) => return Ok(()),
                 }
             }
-            self.run_due();
+            if self.quiet() {
+                continue;
+            }
             self.read_statuses();
             self.progress_apply();
             // Exits are noticed within a few milliseconds (their shared memory is cleaned up by

@@ -21,6 +21,7 @@ use crate::node::Dnm;
 pub(crate) struct HeldSwitch {
     pub(crate) id: u64,
     pub(crate) task: String,
+    pub(crate) since: Instant,
 }
 
 /// A committed decision waiting for its instant.
@@ -35,17 +36,26 @@ pub(crate) type DecideResult = Result<Option<SwitchRecord>, String>;
 /// Decisions remembered for retries.
 const DECIDED: usize = 256;
 
+/// How long a prepared switch keeps the loop quiet while it waits for the decision.
+const QUIET_HOLD: Duration = Duration::from_secs(1);
+
+/// From this long before a decided instant the DNM's loop does nothing but wait for it.
+pub(crate) const NEAR: Duration = Duration::from_millis(25);
+
 /// The loop sleeps out the last this much before a decided instant instead of waiting on its
 /// wait set, so the store lands within the timer's slack of the instant on every DNM.
 const FINE_WAIT: Duration = Duration::from_millis(2);
 
+fn now_unix_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
 /// The local instant of a wall-clock time (now if it has passed).
 fn due_instant(at_unix_ns: u64) -> Instant {
     let now = Instant::now();
-    let wall = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64);
-    now + Duration::from_nanos(at_unix_ns.saturating_sub(wall))
+    now + Duration::from_nanos(at_unix_ns.saturating_sub(now_unix_ns()))
 }
 
 impl Dnm {
@@ -80,7 +90,10 @@ impl Dnm {
     pub(crate) fn prepare_txn(&mut self, txn: Txn, reply: Reply<Result<(), String>>) {
         // A retried prepare of what is held, scheduled or done already.
         if self.held_switch.as_ref().is_some_and(|h| h.id == txn.id)
-            || self.scheduled.as_ref().is_some_and(|s| s.decision.id == txn.id)
+            || self
+                .scheduled
+                .as_ref()
+                .is_some_and(|s| s.decision.id == txn.id)
             || self.decided(txn.id).is_some()
         {
             return reply.send(Ok(()));
@@ -117,7 +130,11 @@ impl Dnm {
                 }
                 .to_string()));
             }
-            self.held_switch = Some(HeldSwitch { id: txn.id, task });
+            self.held_switch = Some(HeldSwitch {
+                id: txn.id,
+                task,
+                since: Instant::now(),
+            });
             self.publish();
             return reply.send(Ok(()));
         };
@@ -149,11 +166,7 @@ impl Dnm {
         if let Some(r) = self.decided(d.id) {
             return reply.send(r);
         }
-        if let Some(s) = self
-            .scheduled
-            .as_mut()
-            .filter(|s| s.decision.id == d.id)
-        {
+        if let Some(s) = self.scheduled.as_mut().filter(|s| s.decision.id == d.id) {
             s.replies.push(reply);
             return;
         }
@@ -190,12 +203,71 @@ impl Dnm {
             return reply.send(Ok(None));
         }
         let due = due_instant(d.at_unix_ns);
+        let late = now_unix_ns().saturating_sub(d.at_unix_ns);
+        if late > 0 {
+            tracing::warn!(
+                dnm = %self.name,
+                txn = d.id,
+                late_ms = late as f64 / 1e6,
+                "the decision arrived after its instant: switching now"
+            );
+        }
         self.scheduled = Some(Scheduled {
             decision: d,
             due,
             replies: vec![reply],
         });
         self.run_due();
+    }
+
+    /// Runs the DNM's thread at real-time priority until the scheduled decision is in force
+    /// (if the system allows it: root, or `CAP_SYS_NICE`, or an `RLIMIT_RTPRIO`), so a loaded
+    /// machine does not make this DNM switch later than the others. Module processes started
+    /// meanwhile do not inherit it.
+    pub(crate) fn hurry(&mut self) {
+        if self.hurried || self.scheduled.is_none() {
+            return;
+        }
+        self.hurried = true;
+        let param = libc::sched_param { sched_priority: 10 };
+        // SAFETY: sets this thread's own scheduling policy; the parameter outlives the call.
+        let r = unsafe {
+            libc::pthread_setschedparam(
+                libc::pthread_self(),
+                libc::SCHED_FIFO | libc::SCHED_RESET_ON_FORK,
+                &param,
+            )
+        };
+        if r != 0 && !self.warned_realtime {
+            self.warned_realtime = true;
+            tracing::info!(
+                dnm = %self.name,
+                "no real-time priority for the moment of a switch (error {r}); on a loaded \
+                 machine this DNM may switch a little later than the others"
+            );
+        }
+    }
+
+    fn calm(&mut self) {
+        if !self.hurried {
+            return;
+        }
+        self.hurried = false;
+        let param = libc::sched_param { sched_priority: 0 };
+        // SAFETY: as in `hurry`.
+        unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_OTHER, &param) };
+    }
+
+    /// Whether a switch is about to be decided or put in force: the loop then leaves what can
+    /// wait (supervision, starting processes) until it is done, so it never holds up the
+    /// store. A prepared switch counts for a short while only: an authority that went away
+    /// must not stop supervision.
+    pub(crate) fn quiet(&self) -> bool {
+        self.scheduled.is_some()
+            || self
+                .held_switch
+                .as_ref()
+                .is_some_and(|h| h.since.elapsed() < QUIET_HOLD)
     }
 
     /// How long the loop may wait before it must call [`Dnm::run_due`].
@@ -225,6 +297,7 @@ impl Dnm {
             return;
         };
         let r = self.put_in_force(&s.decision).map(Some);
+        self.calm();
         if let Err(e) = &r {
             tracing::error!(dnm = %self.name, txn = s.decision.id, "decision not put in force: {e}");
         }

@@ -455,7 +455,9 @@ fn validate(
                     span_of(l),
                     format!("dnm[{i}].link"),
                     format!("link `{}` is not known", l.get_ref()),
-                    Some("use `link = \"radio\"` for a DNM across the radio, or leave it out".into()),
+                    Some(
+                        "use `link = \"radio\"` for a DNM across the radio, or leave it out".into(),
+                    ),
                 );
                 false
             }

@@ -210,6 +210,42 @@ pub struct DnmReport {
     pub recording: Option<RecordReport>,
 }
 
+/// What a DNM runs, in brief: `<system>/dnm/<dnm>?brief` answers it (a few hundred bytes
+/// instead of the whole report, for checks across a slow link).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DnmBrief {
+    pub dnm: String,
+    pub pid: u32,
+    pub revision: u64,
+    pub netlist_digest: String,
+    pub active_task: Option<String>,
+    pub preparing: Option<u64>,
+    pub last_attempt: u64,
+    pub holding: Option<u64>,
+    /// Modules not running (starting, failed, hung, stopped).
+    pub modules_down: u32,
+}
+
+impl DnmBrief {
+    pub fn of(r: &DnmReport) -> Self {
+        Self {
+            dnm: r.dnm.clone(),
+            pid: r.pid,
+            revision: r.revision,
+            netlist_digest: r.netlist_digest.clone(),
+            active_task: r.active_task.clone(),
+            preparing: r.preparing,
+            last_attempt: r.last_attempt,
+            holding: r.holding,
+            modules_down: r
+                .modules
+                .iter()
+                .filter(|m| m.state != ModuleRunState::Running)
+                .count() as u32,
+        }
+    }
+}
+
 /// The netlist a DNM has committed, as `<system>/dnm/<dnm>/netlist` answers it.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct NetlistState {

@@ -93,8 +93,8 @@ pub enum Fate {
         task: Option<String>,
         at_unix_ns: u64,
     },
-    /// A cancel that took effect: command `seq` will not run.
-    Cancelled { seq: u64 },
+    /// A cancel that took effect: command `target` will not run.
+    Cancelled { target: u64 },
     /// A time-tagged switch cancelled by command `by`.
     CancelledBy { by: u64 },
     /// Not run; nothing changed on the rover.
@@ -160,4 +160,42 @@ pub struct Downlink {
     /// Set when the uplink could not be read; nothing was taken.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every fate survives the trip inside an outcome (its fields sit beside the outcome's).
+    #[test]
+    fn every_fate_reads_back_inside_an_outcome() {
+        let fates = [
+            Fate::Acknowledged,
+            Fate::OutOfOrder { expected: 3 },
+            Fate::Scheduled {
+                at_unix_ns: u64::MAX,
+            },
+            Fate::Applied {
+                revision: 4,
+                task: Some("a".into()),
+                at_unix_ns: 1_795_303_481_369_000_000,
+            },
+            Fate::Cancelled { target: 2 },
+            Fate::CancelledBy { by: 9 },
+            Fate::Refused {
+                reason: "no".into(),
+            },
+        ];
+        for fate in fates {
+            let o = Outcome {
+                seq: 7,
+                id: "g-7".into(),
+                fate,
+            };
+            let json = serde_json::to_string(&o).unwrap();
+            let back: Outcome =
+                serde_json::from_str(&json).unwrap_or_else(|e| panic!("{json}: {e}"));
+            assert_eq!(back, o);
+        }
+    }
 }

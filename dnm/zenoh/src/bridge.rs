@@ -48,6 +48,7 @@ use zenoh::Wait;
 use zenoh::bytes::Encoding;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Subscriber as ZSubscriber;
+use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Sample, SampleKind};
 
@@ -130,6 +131,9 @@ struct Shared {
     answered: AtomicU64,
     /// Set when the bridge is dropped: its threads end.
     stop: std::sync::atomic::AtomicBool,
+    /// The system's authority, when it has one: switches and applies then come only from it
+    /// (as transactions); a direct one would put this DNM on a task the others are not on.
+    authority: std::sync::OnceLock<String>,
 }
 
 impl Shared {
@@ -175,6 +179,13 @@ enum CommandJob {
 }
 
 impl Bridge {
+    /// Takes switches and applies only from the system's authority `dnm` (see
+    /// `dnm-authority`); other clients are told to go through a ground station.
+    pub fn follow_authority(self, dnm: &str) -> Self {
+        let _ = self.shared.authority.set(dnm.to_string());
+        self
+    }
+
     /// Declares the DNM on `session`: its liveliness token, queryables, the watch on the other
     /// DNMs, and the threads that answer queries and commands. `commander` reaches the DNM;
     /// `parse` validates netlists sent in `apply` commands.
@@ -755,7 +766,17 @@ fn answer(
     match target {
         Target::Dnm => {
             if let Some(s) = snapshot {
-                reply_json(query, keys::dnm(system, dnm), &s.report);
+                // `?brief`: only what a DNM is running, for the authority's checks across a
+                // slow link.
+                if query.parameters().contains_key("brief") {
+                    reply_json(
+                        query,
+                        keys::dnm(system, dnm),
+                        &dnm_proto::DnmBrief::of(&s.report),
+                    );
+                } else {
+                    reply_json(query, keys::dnm(system, dnm), &s.report);
+                }
             }
         }
         Target::Netlist => {
@@ -888,6 +909,22 @@ fn command_loop(
                 continue;
             }
         };
+        if let Some(authority) = shared.authority.get() {
+            let from_authority = cmd.client.as_deref() == Some(&format!("authority-{authority}"));
+            if matches!(cmd.request, Request::Switch { .. } | Request::Apply { .. })
+                && !from_authority
+            {
+                finish(
+                    query,
+                    &Response::error(format!(
+                        "system `{system}` is commanded through its authority, DNM `{authority}`: \
+                         send switches and applies through a ground station (`dnm ground switch TASK`), \
+                         which has every DNM take them together"
+                    )),
+                );
+                continue;
+            }
+        }
         let key = cmd.id.map(|id| CommandKey {
             client: cmd.client.unwrap_or_default(),
             id,
@@ -1134,6 +1171,20 @@ fn command_loop(
     }
 }
 
+/// The Zenoh priority of a port's samples: they never hold up commands (which go at
+/// interactive-high and block), and large payloads (camera frames) go last. Every sample is
+/// dropped rather than queued when the link is congested: a newer one follows.
+pub fn traffic_class(message: &dnm_netlist::MessageType) -> Priority {
+    if message.payload.max_bytes() > LARGE_SAMPLE {
+        Priority::Background
+    } else {
+        Priority::Data
+    }
+}
+
+/// Samples larger than this are bulk (images, point clouds).
+const LARGE_SAMPLE: usize = 16 * 1024;
+
 /// A reply for the DNM that hands the query back to the command thread with the response. The
 /// query waits in a slot, so it can be answered here if the DNM never takes the command.
 #[allow(clippy::type_complexity)]
@@ -1267,6 +1318,8 @@ impl OpenRoute {
         let publisher = session
             .declare_publisher(r.key.clone())
             .encoding(encoding(&r.message))
+            .priority(traffic_class(&r.message))
+            .congestion_control(CongestionControl::Drop)
             .express(true)
             .wait()
             .map_err(err("declaring publisher"))?;

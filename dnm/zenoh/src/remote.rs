@@ -96,9 +96,9 @@ pub fn request(
             })
         }
         Request::Switch { .. } | Request::Apply { .. } => command(session, system, req, timeout),
-        Request::Prepare { .. } | Request::Decide { .. } | Request::Adopt { .. } => Err(
-            "transactions go to one DNM at a time, from the system's authority".to_string(),
-        ),
+        Request::Prepare { .. } | Request::Decide { .. } | Request::Adopt { .. } => {
+            Err("transactions go to one DNM at a time, from the system's authority".to_string())
+        }
     }
 }
 

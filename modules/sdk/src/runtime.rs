@@ -949,3 +949,54 @@ fn retire(
         *s = s.and_then(|(c, g)| remap[c].map(|c| (c, g)));
     }
 }
+
+/// A DNM's task word read from outside the DNM, as its modules read it: for tools and tests
+/// that watch several DNMs switch (each read is two loads from shared memory).
+pub struct TaskWatch {
+    word: iceoryx2::port::reader::EntryHandle<Svc, u64, u64>,
+    at: iceoryx2::port::reader::EntryHandle<Svc, u64, u64>,
+    _reader: iceoryx2::port::reader::Reader<Svc, u64>,
+    _board: BlackboardFactory<Svc, u64>,
+    _node: Node<Svc>,
+}
+
+impl std::fmt::Debug for TaskWatch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("TaskWatch")
+    }
+}
+
+impl TaskWatch {
+    /// Opens the task word of DNM `dnm` of `system` on this machine (it must be running).
+    pub fn open(system: &str, dnm: &str) -> Result<Self, ModuleError> {
+        let config = dnm_config(&dnm_prefix(system, dnm)).map_err(ModuleError::Launch)?;
+        let node = NodeBuilder::new()
+            .config(&config)
+            .create::<Svc>()
+            .map_err(ipc("node"))?;
+        let board = task_board(&node)?;
+        let reader = board
+            .reader_builder()
+            .create()
+            .map_err(ipc("blackboard reader"))?;
+        let word = reader
+            .entry::<u64>(&TASK_WORD_KEY)
+            .map_err(ipc("blackboard entry"))?;
+        let at = reader
+            .entry::<u64>(&SWITCHED_AT_KEY)
+            .map_err(ipc("blackboard entry"))?;
+        Ok(Self {
+            word,
+            at,
+            _reader: reader,
+            _board: board,
+            _node: node,
+        })
+    }
+
+    /// (revision, task slot, CLOCK_MONOTONIC ns of the store).
+    pub fn read(&self) -> (u64, u16, u64) {
+        let (revision, slot) = split_task_word(*self.word.get());
+        (revision, slot, *self.at.get())
+    }
+}

@@ -1,0 +1,576 @@
+//! The ground station and the rover's authority, end to end with real processes: commands
+//! through an emulated radio link (delay, bandwidth, loss, outages), the ground station and the
+//! authority killed mid-run, loss of signal, bad commands.
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests: failing loudly is right
+
+mod support;
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::Duration;
+
+use dnm_ground::CommandState;
+use dnm_proto::station::{Fate, ModuleEdit, Order};
+use support::ground::{Api, Poller, Proc, report, wait_in_step, zenoh_args};
+use support::{eventually, free_port, zenoh_client};
+
+/// One of these tests at a time: each runs a whole rover on a small machine.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+const NETLIST: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "a"
+authority = "rover"
+LOSS
+
+[[dnm]]
+name = "rover"
+
+[[dnm]]
+name = "drive"
+parent = "rover"
+
+[[dnm]]
+name = "vision"
+parent = "rover"
+
+[[dnm]]
+name = "ground"
+parent = "rover"
+link = "radio"
+
+[[module]]
+name = "src_a"
+kind = "ticker"
+dnm = "rover"
+rate_hz = 20
+params = { origin = 1 }
+
+[[module]]
+name = "src_b"
+kind = "ticker"
+dnm = "drive"
+rate_hz = 20
+params = { origin = ORIGIN }
+
+[[module]]
+name = "relay"
+kind = "relay"
+dnm = "vision"
+
+[[module]]
+name = "pair"
+kind = "pair"
+dnm = "drive"
+
+[[module]]
+name = "watch"
+kind = "relay"
+dnm = "ground"
+
+[task.a]
+links = ["src_a.out -> relay.in", "src_a.out -> pair.a", "src_b.out -> pair.b", "relay.out -> watch.in"]
+
+[task.b]
+links = ["src_b.out -> relay.in", "src_b.out -> pair.a", "src_a.out -> pair.b", "relay.out -> watch.in"]
+
+[task.c]
+links = ["src_a.out -> pair.a", "src_b.out -> pair.b"]
+"#;
+
+const TASKS: [&str; 3] = ["a", "b", "c"];
+const ROVER: [&str; 3] = ["rover", "drive", "vision"];
+
+struct Rig {
+    system: String,
+    dir: PathBuf,
+    netlist: PathBuf,
+    rover_port: u16,
+    radio_port: u16,
+    ground_port: u16,
+    http: String,
+}
+
+impl Rig {
+    fn new(tag: &str, loss_line: &str) -> Self {
+        let system = format!("g{tag}{}", std::process::id());
+        let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let netlist = dir.join("netlist.toml");
+        std::fs::write(&netlist, text(&system, loss_line, 2)).unwrap();
+        Self {
+            system,
+            dir,
+            netlist,
+            rover_port: free_port(),
+            radio_port: free_port(),
+            ground_port: free_port(),
+            http: format!("127.0.0.1:{}", free_port()),
+        }
+    }
+
+    /// The rover's router, and the ground's, which reaches it across the radio.
+    fn routers(&self) -> (Proc, Proc) {
+        let config = |side: &str| {
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join(format!("../configs/zenoh/{side}-router.json5"))
+                .display()
+                .to_string()
+        };
+        let rover = vec![
+            "--zenoh-config".into(),
+            config("rover"),
+            "--listen".into(),
+            support::endpoint(self.rover_port),
+            "router".into(),
+        ];
+        let ground = vec![
+            "--zenoh-config".into(),
+            config("ground"),
+            "--listen".into(),
+            support::endpoint(self.ground_port),
+            "--connect".into(),
+            support::endpoint(self.radio_port),
+            "router".into(),
+        ];
+        (
+            Proc::dnm(&self.dir, "rover-router", &rover),
+            Proc::dnm(&self.dir, "ground-router", &ground),
+        )
+    }
+
+    /// `dnm up` of some DNMs: rover side as peers of the rover's router, ground side as a
+    /// client of the ground's router.
+    fn up(&self, dnms: &[&str], ground_side: bool) -> Proc {
+        let mut args = if ground_side {
+            zenoh_args("client", self.ground_port)
+        } else {
+            zenoh_args("peer", self.rover_port)
+        };
+        args.push("up".into());
+        args.push(self.netlist.display().to_string());
+        for d in dnms {
+            args.push("--dnm".into());
+            args.push(d.to_string());
+        }
+        args.extend([
+            "--no-record".into(),
+            "--state-dir".into(),
+            self.dir.join("state").display().to_string(),
+        ]);
+        Proc::dnm(&self.dir, &dnms.join("-"), &args)
+    }
+
+    fn linksim(&self, extra: &[&str]) -> Proc {
+        let mut args: Vec<String> = vec![
+            "linksim".into(),
+            "--bind".into(),
+            format!("127.0.0.1:{}", self.radio_port),
+            "--to".into(),
+            format!("127.0.0.1:{}", self.rover_port),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        Proc::dnm(&self.dir, "linksim", &args)
+    }
+
+    fn station(&self) -> (Proc, Api) {
+        let mut args = zenoh_args("client", self.ground_port);
+        args.extend([
+            "ground".into(),
+            "serve".into(),
+            "--system".into(),
+            self.system.clone(),
+            "--db".into(),
+            self.dir.join("ground-1.redb").display().to_string(),
+            "--http".into(),
+            self.http.clone(),
+        ]);
+        let p = Proc::dnm(&self.dir, "station", &args);
+        let api = Api(format!("http://{}", self.http));
+        eventually("the station's API", || api.up().then_some(()));
+        (p, api)
+    }
+}
+
+fn text(system: &str, loss_line: &str, origin: u32) -> String {
+    NETLIST
+        .replace("SYSTEM", system)
+        .replace("LOSS", loss_line)
+        .replace("ORIGIN", &origin.to_string())
+}
+
+fn slot(task: &str) -> u16 {
+    TASKS.iter().position(|t| *t == task).unwrap() as u16
+}
+
+#[test]
+fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let rig = Rig::new("hundred", "");
+    let _routers = rig.routers();
+    let mut authority = Some(rig.up(&["rover"], false));
+    let _others = rig.up(&["drive", "vision"], false);
+    // 300 ms each way, 256 kbit/s, a fifth of the packets lost each way, 10 s out every 30 s.
+    let _radio = rig.linksim(&[
+        "--delay", "300ms", "--rate", "256kbit", "--loss", "0.2", "--outage", "10s/30s", "--seed",
+        "7",
+    ]);
+    let _ground_dnm = rig.up(&["ground"], true);
+    let session = zenoh_client(rig.rover_port);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    let poller = Poller::start(&rig.system, &ROVER);
+    let (station, api) = rig.station();
+    let mut station = Some(station);
+
+    let mut sent = Vec::new();
+    let mut cancelled_target = None;
+    for i in 0..100u64 {
+        let order = match i {
+            // A time tag far enough ahead to be cancelled, and its cancel.
+            58 => Order::Switch {
+                task: "b".into(),
+                at_unix_ns: Some(dnm_ground::now_unix_ns() + 40_000_000_000),
+            },
+            60 => Order::Cancel {
+                seq: cancelled_target.unwrap(),
+            },
+            _ if i % 10 == 3 => {
+                let origin = 2 + (i / 10) % 2 * 5;
+                Order::Apply {
+                    file: format!("variant-{origin}.toml"),
+                    text: text(&rig.system, "", origin as u32),
+                }
+            }
+            _ if i % 10 == 7 => Order::Module {
+                edit: ModuleEdit::Replace {
+                    name: "src_a".into(),
+                    kind: None,
+                    params: vec![format!("origin={}", 10 + i)],
+                },
+            },
+            _ if i % 10 == 5 => Order::Switch {
+                task: TASKS[(i as usize / 10) % 3].into(),
+                at_unix_ns: Some(dnm_ground::now_unix_ns() + 2_000_000_000 + i * 30_000_000),
+            },
+            _ => Order::Switch {
+                task: TASKS[i as usize % 3].into(),
+                at_unix_ns: None,
+            },
+        };
+        let e = api.submit(&order);
+        assert_eq!(e.seq, i + 1);
+        if i == 58 {
+            cancelled_target = Some(e.seq);
+        }
+        sent.push(order);
+        if i == 30 {
+            // The ground station dies (power cut) and comes back: its outbox is on disk.
+            station.take().unwrap().kill();
+            let (p, _) = rig.station();
+            station = Some(p);
+        }
+        if i == 70 {
+            // The authority dies with its DNM, mid-run, and comes back.
+            poller.set_down("rover", true);
+            authority.take().unwrap().kill();
+            std::thread::sleep(Duration::from_secs(1));
+            let p = rig.up(&["rover"], false);
+            let pid = p.pid();
+            authority = Some(p);
+            eventually("the authority's DNM back", || {
+                report(&session, &rig.system, "rover").filter(|r| r.pid == pid)
+            });
+            poller.set_down("rover", false);
+        }
+        std::thread::sleep(Duration::from_millis(350));
+    }
+    let entries = api.all_final();
+    let (seen, splits) = poller.finish();
+    assert_eq!(entries.len(), 100);
+
+    // Every command has the fate it should: applied, or the cancel and what it cancelled.
+    let mut decided: Vec<(u64, u64, String)> = Vec::new();
+    for e in &entries {
+        match &e.fate {
+            Some(Fate::Applied {
+                revision,
+                task,
+                at_unix_ns,
+            }) => decided.push((*at_unix_ns, *revision, task.clone().unwrap())),
+            Some(Fate::CancelledBy { by }) => {
+                assert_eq!((e.seq, *by), (59, 61), "{e:?}");
+            }
+            Some(Fate::Cancelled { target }) => assert_eq!((e.seq, *target), (61, 59)),
+            other => panic!("command {} ended {other:?}: {e:?}", e.seq),
+        }
+    }
+    // In the station's order (time tags run at their time).
+    let immediate: Vec<(u64, u64)> = entries
+        .iter()
+        .filter(|e| {
+            !matches!(
+                e.order,
+                Order::Switch {
+                    at_unix_ns: Some(_),
+                    ..
+                } | Order::Cancel { .. }
+            )
+        })
+        .filter_map(|e| match e.fate {
+            Some(Fate::Applied {
+                revision,
+                at_unix_ns,
+                ..
+            }) => Some((at_unix_ns, revision)),
+            _ => None,
+        })
+        .collect();
+    assert!(
+        immediate
+            .windows(2)
+            .all(|w| w[0].0 < w[1].0 && w[0].1 <= w[1].1),
+        "{immediate:?}"
+    );
+
+    // What every rover DNM went through is exactly what was decided, in order, once each.
+    decided.sort();
+    // Revision 1 in task `a` is where the authority started; each decision after it.
+    let mut expected: Vec<(u64, u16)> = vec![(1, 0)];
+    for (_, rev, task) in &decided {
+        let s = (*rev, slot(task));
+        if expected.last() != Some(&s) {
+            expected.push(s);
+        }
+    }
+    for d in ROVER {
+        let states: Vec<(u64, u16)> = seen[d].states.iter().map(|s| (s.0, s.1)).collect();
+        if d == "rover" {
+            // It died once: what it went through is a part of the decisions, in order.
+            let mut it = expected.iter();
+            for s in &states {
+                assert!(
+                    it.any(|w| w == s),
+                    "{d} went to {s:?}, not next in {expected:?}"
+                );
+            }
+        } else {
+            assert_eq!(states, expected, "{d}");
+        }
+    }
+
+    // Never two rover DNMs on different revisions or tasks, except at a commanded instant.
+    let worst = splits.iter().map(|s| s.since_switch_ns).max().unwrap_or(0);
+    println!(
+        "{} samples with DNMs apart, the longest {:.2} ms after a switch",
+        splits.len(),
+        worst as f64 / 1e6
+    );
+    let late: Vec<_> = splits
+        .iter()
+        .filter(|s| s.since_switch_ns > 20_000_000)
+        .collect();
+    assert!(late.is_empty(), "DNMs apart outside a switch: {late:?}");
+
+    // The ground's DNM follows across the radio.
+    let last = decided.last().unwrap();
+    eventually("the ground's DNM follows", || {
+        report(&session, &rig.system, "ground")
+            .filter(|r| r.revision == last.1 && r.active_task.as_deref() == Some(&last.2))
+    });
+    drop(authority);
+}
+
+#[test]
+fn the_rover_goes_safe_when_the_ground_is_lost_and_the_station_shows_it() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let rig = Rig::new("los", r#"on_link_loss = { after = "2s", task = "c" }"#);
+    let _routers = rig.routers();
+    let radio = rig.linksim(&["--delay", "50ms"]);
+    // The station is heard from the start (else the rover would go safe 2 s after it starts).
+    let (_station, api) = rig.station();
+    let _rover = rig.up(&ROVER, false);
+    let session = zenoh_client(rig.rover_port);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    let e = api.submit(&Order::Switch {
+        task: "b".into(),
+        at_unix_ns: None,
+    });
+    assert_eq!(api.entry(e.seq, 60).state, CommandState::Applied);
+    wait_in_step(&session, &rig.system, &ROVER, "b");
+
+    // The radio goes dead: the rover stops on its own, every DNM together.
+    radio.kill();
+    let cut = std::time::Instant::now();
+    let revision = wait_in_step(&session, &rig.system, &ROVER, "c");
+    assert!(
+        cut.elapsed() >= Duration::from_secs(2),
+        "switched before the deadline"
+    );
+    eventually("the station sees the link down", || {
+        (!api.link().up).then_some(())
+    });
+
+    // The radio comes back: the station shows what the rover did, and why.
+    let _radio = rig.linksim(&["--delay", "50ms"]);
+    let rover = eventually("the station hears the rover again", || {
+        let l = api.link();
+        l.rover
+            .filter(|r| l.up && r.events.iter().any(|e| e.what == "link_back"))
+    });
+    assert_eq!(rover.task.as_deref(), Some("c"));
+    assert_eq!(rover.revision, revision);
+    let loss = rover.events.iter().find(|e| e.what == "link_loss").unwrap();
+    assert!(loss.detail.contains("switching to `c`"), "{loss:?}");
+    assert_eq!(loss.task.as_deref(), Some("c"));
+    // The rover stays safe until an operator says otherwise.
+    std::thread::sleep(Duration::from_secs(1));
+    wait_in_step(&session, &rig.system, &ROVER, "c");
+}
+
+#[test]
+fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
+    use zenoh::Wait;
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let rig = Rig::new("bad", "");
+    let _routers = rig.routers();
+    let _radio = rig.linksim(&[]);
+    let _rover = rig.up(&ROVER, false);
+    let session = zenoh_client(rig.rover_port);
+    let revision = wait_in_step(&session, &rig.system, &ROVER, "a");
+    let running = |session: &zenoh::Session| {
+        ROVER
+            .iter()
+            .map(|d| {
+                let r = report(session, &rig.system, d).unwrap();
+                let pids: Vec<Option<u32>> = r.modules.iter().map(|m| m.pid).collect();
+                (r.revision, r.active_task, r.netlist_digest, pids)
+            })
+            .collect::<Vec<_>>()
+    };
+    let before = running(&session);
+    let (station, api) = rig.station();
+
+    let bad = [
+        (
+            Order::Switch {
+                task: "nope".into(),
+                at_unix_ns: None,
+            },
+            "unknown task `nope`; the tasks are a, b, c",
+        ),
+        (
+            Order::Apply {
+                file: "broken.toml".into(),
+                text: text(&rig.system, "", 2).replace("kind = \"pair\"", "kind = \"pear\""),
+            },
+            "netlist refused, nothing changed",
+        ),
+        (
+            Order::Apply {
+                file: "other.toml".into(),
+                text: text("elsewhere", "", 2),
+            },
+            "netlist is for system `elsewhere`",
+        ),
+        (
+            Order::Module {
+                edit: ModuleEdit::Replace {
+                    name: "ghost".into(),
+                    kind: None,
+                    params: vec![],
+                },
+            },
+            "no module `ghost`",
+        ),
+        (
+            Order::Module {
+                edit: ModuleEdit::Replace {
+                    name: "src_a".into(),
+                    kind: Some("no_such_kind".into()),
+                    params: vec![],
+                },
+            },
+            "would not validate",
+        ),
+        (Order::Cancel { seq: 1 }, "nothing to cancel"),
+        (Order::Cancel { seq: 99 }, "comes after this cancel"),
+    ];
+    for (order, why) in &bad {
+        let e = api.submit(order);
+        let done = api.entry(e.seq, 120);
+        match &done.fate {
+            Some(Fate::Refused { reason }) => assert!(reason.contains(why), "{reason}"),
+            other => panic!("{order:?} ended {other:?}"),
+        }
+    }
+    // Malformed input from the operator or the network is refused at the door.
+    let (status, body) = api.post_raw(b"{not json");
+    assert_eq!(status, 400, "{body}");
+    assert!(
+        body["error"]
+            .as_str()
+            .unwrap()
+            .contains("unreadable command"),
+        "{body}"
+    );
+    let (status, body) = api.post_raw(br#"{"cmd":"switch"}"#);
+    assert_eq!(status, 400, "{body}");
+    let reply = |payload: &[u8]| -> dnm_proto::station::Downlink {
+        let replies = session
+            .get(format!("{}/authority", rig.system))
+            .payload(payload.to_vec())
+            .timeout(Duration::from_secs(10))
+            .wait()
+            .unwrap();
+        let r = replies.recv().unwrap();
+        serde_json::from_slice(&r.result().unwrap().payload().to_bytes()).unwrap()
+    };
+    let d = reply(b"\xff garbage");
+    assert!(d.error.unwrap().contains("unreadable uplink"));
+    let d = reply(br#"{"station":"a/b","commands":[]}"#);
+    assert!(d.error.unwrap().contains("not usable"));
+    let gap = dnm_proto::station::Uplink {
+        station: "late".into(),
+        commands: vec![dnm_proto::station::Sent {
+            seq: 5,
+            id: "late-5".into(),
+            order: Order::Switch {
+                task: "b".into(),
+                at_unix_ns: None,
+            },
+        }],
+        pending_from: 1,
+    };
+    let d = reply(&serde_json::to_vec(&gap).unwrap());
+    assert_eq!(d.outcomes[0].fate, Fate::OutOfOrder { expected: 1 });
+
+    // Nothing running changed: same revision, task, netlist, processes.
+    assert_eq!(running(&session), before);
+    assert_eq!(before[0].0, revision);
+
+    // A cancel of a command that already ran is refused too, and says when it ran.
+    let e = api.submit(&Order::Switch {
+        task: "b".into(),
+        at_unix_ns: None,
+    });
+    assert_eq!(api.entry(e.seq, 120).state, CommandState::Applied);
+    let c = api.submit(&Order::Cancel { seq: e.seq });
+    match api.entry(c.seq, 120).fate {
+        Some(Fate::Refused { reason }) => assert!(reason.contains("already ran"), "{reason}"),
+        other => panic!("{other:?}"),
+    }
+
+    // The refusals are stored with the commands: a restarted station still shows them.
+    station.kill();
+    let (_station, api) = rig.station();
+    let entries = api.entries();
+    assert_eq!(entries.len(), bad.len() + 2);
+    for (e, (_, why)) in entries.iter().zip(&bad) {
+        match &e.fate {
+            Some(Fate::Refused { reason }) => assert!(reason.contains(why), "{reason}"),
+            other => panic!("{other:?}"),
+        }
+    }
+}
