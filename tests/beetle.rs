@@ -26,9 +26,12 @@ fn netlist(tag: &str) -> (String, PathBuf) {
     let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("beetle.toml");
+    // No ground station takes part here: the rover must not go safe for the lack of one.
     std::fs::write(
         &path,
-        BEETLE.replace("name = \"beetle\"", &format!("name = \"{system}\"")),
+        BEETLE
+            .replace("name = \"beetle\"", &format!("name = \"{system}\""))
+            .replace("after = \"5s\"", "after = \"1h\""),
     )
     .unwrap();
     (system, path)
@@ -80,12 +83,16 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
         s["final_heading_error_deg"].as_f64().unwrap() < 5.0,
         "{s:#}"
     );
-    // teleop -> auto -> teleop on all four DNMs; a module replaced in between.
+    // teleop -> auto -> teleop through the ground station, on the rover's three DNMs at one
+    // instant (the ground's DNM, across the radio, follows); a module replaced in between.
     let switches = s["switches"].as_array().unwrap();
     let tos: Vec<&str> = switches.iter().map(|w| w["to"].as_str().unwrap()).collect();
     assert_eq!(tos, ["auto", "teleop"]);
     for w in switches {
-        assert_eq!(w["per_dnm_ns"].as_array().unwrap().len(), 4, "{w}");
+        assert_eq!(w["per_dnm_ns"].as_array().unwrap().len(), 3, "{w}");
+        assert!(w["command_to_switch_ms"].as_f64().unwrap() > 0.0, "{w}");
+        // A loaded test machine: the benchmark measures the spread on a quiet one.
+        assert!(w["spread_us"].as_f64().unwrap() < 20_000.0, "{w}");
     }
     assert!(s["replaced"].as_str().unwrap().starts_with("camera"));
     assert!(s["zenoh_messages"].as_u64().unwrap() > 1000);
@@ -143,6 +150,8 @@ fn watchdog_stops_the_motors_when_the_joystick_dies() {
             "up",
         ])
         .arg(&path)
+        .arg("--state-dir")
+        .arg(path.parent().unwrap().join("state"))
         .env("DNM_RUN_DIR", path.parent().unwrap())
         .env("DNM_RECORD_DIR", path.parent().unwrap().join("recordings"))
         .env("RUST_LOG", "warn")

@@ -243,7 +243,12 @@ impl Mission<'_> {
                 revision,
                 at_unix_ns,
                 ..
-            }) => Ok((revision, at_unix_ns)),
+            }) => {
+                // Decided for an instant that may still be a few milliseconds ahead.
+                let ahead = at_unix_ns.saturating_sub(dnm_ground::now_unix_ns());
+                std::thread::sleep(Duration::from_nanos(ahead) + Duration::from_millis(20));
+                Ok((revision, at_unix_ns))
+            }
             Some(Fate::Refused { reason }) => {
                 bail!("the rover refused command {}: {reason}", entry.seq)
             }

@@ -640,7 +640,7 @@ fn validate(
                         span_of(h),
                         format!("{field}.hung_after"),
                         format!("`{}` is not a duration", h.get_ref()),
-                        Some("write a number and a unit: `500ms`, `2s`, `1.5s`, `1m`".into()),
+                        Some("write a number and a unit: `500ms`, `2s`, `1.5s`, `1m`, `1h`".into()),
                     );
                     None
                 }
@@ -998,6 +998,8 @@ pub fn parse_duration_ms(text: &str) -> Option<u64> {
         (n, 1_000.0)
     } else if let Some(n) = t.strip_suffix('m') {
         (n, 60_000.0)
+    } else if let Some(n) = t.strip_suffix('h') {
+        (n, 3_600_000.0)
     } else {
         return None;
     };
@@ -1008,6 +1010,16 @@ pub fn parse_duration_ms(text: &str) -> Option<u64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn parses_durations() {
+        assert_eq!(parse_duration_ms("250ms"), Some(250));
+        assert_eq!(parse_duration_ms("1.5s"), Some(1500));
+        assert_eq!(parse_duration_ms("2m"), Some(120_000));
+        assert_eq!(parse_duration_ms("1h"), Some(3_600_000));
+        assert_eq!(parse_duration_ms("5"), None);
+        assert_eq!(parse_duration_ms("-1s"), None);
+    }
 
     #[test]
     fn parses_links() {
