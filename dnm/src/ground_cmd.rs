@@ -94,12 +94,14 @@ fn url(u: &Option<String>) -> String {
         .unwrap_or_else(|| DEFAULT_URL.into())
 }
 
-/// `+30s`, `+500ms`, or seconds since the epoch: rover time in ns.
-pub fn parse_at(at: &str) -> anyhow::Result<u64> {
+/// `+30s`, `+500ms` (from now, on the rover's clock as the station last measured it), or
+/// seconds since the epoch (rover time): rover time in ns.
+pub fn parse_at(at: &str, rover_clock_offset_ms: f64) -> anyhow::Result<u64> {
     if let Some(rel) = at.strip_prefix('+') {
         let ms = dnm_netlist::parse_duration_ms(rel)
             .with_context(|| format!("`{at}`: write e.g. `+30s` or `+2m`"))?;
-        return Ok(dnm_ground::now_unix_ns() + ms * 1_000_000);
+        let now = dnm_ground::now_unix_ns() as i128 + (rover_clock_offset_ms * 1e6) as i128;
+        return Ok((now + i128::from(ms) * 1_000_000).max(0) as u64);
     }
     let s: f64 = at
         .parse()
@@ -226,6 +228,9 @@ fn print_link(l: &LinkStatus) {
             println!("  event {}: {}", e.what, e.detail);
         }
     }
+    if let Some(o) = l.rover_clock_offset_ms {
+        println!("rover clock {o:+.0} ms from this station's (relative time tags use it)");
+    }
     if let Some(e) = &l.error {
         println!("the rover refused the last uplink: {e}");
     }
@@ -242,7 +247,16 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             let db = db.unwrap_or_else(|| {
                 dnm::default_state_dir().join(format!("{system}-{station}.redb"))
             });
-            let session = z.open()?;
+            // The ground router may come up after the station: wait for it.
+            let session = loop {
+                match z.open() {
+                    Ok(s) => break s,
+                    Err(e) => {
+                        tracing::warn!("no Zenoh yet ({e}); trying again in 1 s");
+                        std::thread::sleep(Duration::from_secs(1));
+                    }
+                }
+            };
             let st = Arc::new(Station::start(
                 session,
                 StationOptions::new(&system, &station, &db),
@@ -258,7 +272,15 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         GroundCmd::Switch { task, at, common } => {
-            let at_unix_ns = at.as_deref().map(parse_at).transpose()?;
+            let offset = match &at {
+                Some(a) if a.starts_with('+') => {
+                    let link: LinkStatus =
+                        serde_json::from_str(&get(&format!("{}/link", url(&common.url)))?)?;
+                    link.rover_clock_offset_ms.unwrap_or(0.0)
+                }
+                _ => 0.0,
+            };
+            let at_unix_ns = at.as_deref().map(|a| parse_at(a, offset)).transpose()?;
             submit(&Order::Switch { task, at_unix_ns }, &common)
         }
         GroundCmd::Apply { netlist, common } => {

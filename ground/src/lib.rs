@@ -156,6 +156,10 @@ pub struct LinkStatus {
     pub rover: Option<RoverState>,
     /// Why the rover refused the last uplink, if it did.
     pub error: Option<String>,
+    /// The rover's clock minus this station's, estimated from the last answer (its rover time
+    /// against the middle of the round trip), ms: relative time tags are turned into rover time
+    /// with it.
+    pub rover_clock_offset_ms: Option<f64>,
 }
 
 struct Inner {
@@ -542,6 +546,8 @@ fn take_downlink(s: &Shared, d: Downlink, rtt: Duration) {
     let Ok(mut inner) = s.inner.lock() else {
         return;
     };
+    let middle = now_unix_ns() as f64 - rtt.as_nanos() as f64 / 2.0;
+    inner.link.rover_clock_offset_ms = Some((d.at_unix_ns as f64 - middle) / 1e6);
     inner.contact = Some(Instant::now());
     inner.link.answered += 1;
     inner.link.rtt_ms = Some(rtt.as_secs_f64() * 1e3);

@@ -306,3 +306,199 @@ pub fn wait_in_step(session: &zenoh::Session, system: &str, dnms: &[&str], task:
             .then_some(rev)
     })
 }
+
+/// The test system: a rover of three DNMs (`rover` the authority, `drive`, `vision`) and one
+/// across the radio (`ground`), with ticker sources, a relay and a pair reader.
+const NETLIST: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "a"
+authority = "rover"
+LOSS
+
+[[dnm]]
+name = "rover"
+
+[[dnm]]
+name = "drive"
+parent = "rover"
+
+[[dnm]]
+name = "vision"
+parent = "rover"
+
+[[dnm]]
+name = "ground"
+parent = "rover"
+link = "radio"
+
+[[module]]
+name = "src_a"
+kind = "ticker"
+dnm = "rover"
+rate_hz = 20
+params = { origin = 1 }
+
+[[module]]
+name = "src_b"
+kind = "ticker"
+dnm = "drive"
+rate_hz = 20
+params = { origin = ORIGIN }
+
+[[module]]
+name = "relay"
+kind = "relay"
+dnm = "vision"
+
+[[module]]
+name = "pair"
+kind = "pair"
+dnm = "drive"
+
+[[module]]
+name = "watch"
+kind = "relay"
+dnm = "ground"
+
+[task.a]
+links = ["src_a.out -> relay.in", "src_a.out -> pair.a", "src_b.out -> pair.b", "relay.out -> watch.in"]
+
+[task.b]
+links = ["src_b.out -> relay.in", "src_b.out -> pair.a", "src_a.out -> pair.b", "relay.out -> watch.in"]
+
+[task.c]
+links = ["src_a.out -> pair.a", "src_b.out -> pair.b"]
+"#;
+
+pub const TASKS: [&str; 3] = ["a", "b", "c"];
+pub const ROVER: [&str; 3] = ["rover", "drive", "vision"];
+
+pub struct Rig {
+    pub system: String,
+    pub dir: PathBuf,
+    pub netlist: PathBuf,
+    pub rover_port: u16,
+    pub radio_port: u16,
+    pub ground_port: u16,
+    pub http: String,
+}
+
+impl Rig {
+    pub fn new(tag: &str, loss_line: &str) -> Self {
+        let system = format!("g{tag}{}", std::process::id());
+        let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let netlist = dir.join("netlist.toml");
+        std::fs::write(&netlist, text(&system, loss_line, 2)).unwrap();
+        Self {
+            system,
+            dir,
+            netlist,
+            rover_port: super::free_port(),
+            radio_port: super::free_port(),
+            ground_port: super::free_port(),
+            http: format!("127.0.0.1:{}", super::free_port()),
+        }
+    }
+
+    /// The rover's router, and the ground's, which reaches it across the radio.
+    pub fn routers(&self) -> (Proc, Proc) {
+        let config = |side: &str| {
+            Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join(format!("../configs/zenoh/{side}-router.json5"))
+                .display()
+                .to_string()
+        };
+        let rover = vec![
+            "--zenoh-config".into(),
+            config("rover"),
+            "--listen".into(),
+            super::endpoint(self.rover_port),
+            "router".into(),
+        ];
+        let ground = vec![
+            "--zenoh-config".into(),
+            config("ground"),
+            "--listen".into(),
+            super::endpoint(self.ground_port),
+            "--connect".into(),
+            super::endpoint(self.radio_port),
+            "router".into(),
+        ];
+        let routers = (
+            Proc::dnm(&self.dir, "rover-router", &rover),
+            Proc::dnm(&self.dir, "ground-router", &ground),
+        );
+        for port in [self.rover_port, self.ground_port] {
+            eventually("a router listening", || {
+                std::net::TcpStream::connect(("127.0.0.1", port)).ok()
+            });
+        }
+        routers
+    }
+
+    /// `dnm up` of some DNMs: rover side as peers of the rover's router, ground side as a
+    /// client of the ground's router.
+    pub fn up(&self, dnms: &[&str], ground_side: bool) -> Proc {
+        let mut args = if ground_side {
+            zenoh_args("client", self.ground_port)
+        } else {
+            zenoh_args("peer", self.rover_port)
+        };
+        args.push("up".into());
+        args.push(self.netlist.display().to_string());
+        for d in dnms {
+            args.push("--dnm".into());
+            args.push(d.to_string());
+        }
+        args.extend([
+            "--no-record".into(),
+            "--state-dir".into(),
+            self.dir.join("state").display().to_string(),
+        ]);
+        Proc::dnm(&self.dir, &dnms.join("-"), &args)
+    }
+
+    pub fn linksim(&self, extra: &[&str]) -> Proc {
+        let mut args: Vec<String> = vec![
+            "linksim".into(),
+            "--bind".into(),
+            format!("127.0.0.1:{}", self.radio_port),
+            "--to".into(),
+            format!("127.0.0.1:{}", self.rover_port),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        Proc::dnm(&self.dir, "linksim", &args)
+    }
+
+    pub fn station(&self) -> (Proc, Api) {
+        let mut args = zenoh_args("client", self.ground_port);
+        args.extend([
+            "ground".into(),
+            "serve".into(),
+            "--system".into(),
+            self.system.clone(),
+            "--db".into(),
+            self.dir.join("ground-1.redb").display().to_string(),
+            "--http".into(),
+            self.http.clone(),
+        ]);
+        let p = Proc::dnm(&self.dir, "station", &args);
+        let api = Api(format!("http://{}", self.http));
+        eventually("the station's API", || api.up().then_some(()));
+        (p, api)
+    }
+}
+
+pub fn text(system: &str, loss_line: &str, origin: u32) -> String {
+    NETLIST
+        .replace("SYSTEM", system)
+        .replace("LOSS", loss_line)
+        .replace("ORIGIN", &origin.to_string())
+}
+
+pub fn slot(task: &str) -> u16 {
+    TASKS.iter().position(|t| *t == task).unwrap() as u16
+}

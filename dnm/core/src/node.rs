@@ -25,11 +25,10 @@ use dnm_proto::{
 use crate::command::{Command, CommandKey, Reply};
 use crate::error::{DnmError, ipc};
 use crate::options::DnmOptions;
-use crate::pending::{Outcome, PendingApply, QueuedApply};
+use crate::pending::{Decided, HeldSwitch, NEAR, Outcome, PendingApply, QueuedApply, Scheduled};
 use crate::plugin::{Plugin, Snapshot};
 use crate::procfs::CpuMeter;
 use crate::slot::{ModuleSlot, PortServices, Stopping, Svc};
-use crate::txn::{Decided, HeldSwitch, Scheduled};
 
 type TsSvc = ipc_threadsafe::Service;
 
@@ -520,7 +519,7 @@ impl Dnm {
             }
             events.try_wait(|_| ()).map_err(ipc("events"))?;
             self.run_due();
-            if self.until_due().is_some_and(|d| d < crate::txn::NEAR) {
+            if self.until_due().is_some_and(|d| d < NEAR) {
                 // A decided instant is near: nothing else may hold up the store, so commands
                 // and supervision wait until it is done.
                 self.hurry();

@@ -1,12 +1,13 @@
-//! An apply in progress, applies waiting for it, and the remembered answers of commands.
+//! An apply in progress, applies waiting for it, transactions held and scheduled, and the
+//! remembered answers of commands.
 
-use std::collections::BTreeMap;
-use std::time::Instant;
+use std::collections::{BTreeMap, VecDeque};
+use std::time::{Duration, Instant};
 
 use dnm_netlist::Netlist;
 use dnm_proto::SwitchRecord;
 
-use crate::command::{CommandKey, Reply};
+use crate::command::{CommandKey, Decision, Reply};
 use crate::slot::ModuleSlot;
 
 /// An apply in progress.
@@ -44,3 +45,36 @@ pub(crate) enum Outcome {
 
 /// An apply waiting for the one in progress: the netlist, its command key, its reply.
 pub(crate) type QueuedApply = (Netlist, Option<CommandKey>, Reply<Result<u64, String>>);
+
+/// A prepared switch waiting for its decision.
+#[derive(Debug)]
+pub(crate) struct HeldSwitch {
+    pub(crate) id: u64,
+    pub(crate) task: String,
+    pub(crate) since: Instant,
+}
+
+/// A committed decision waiting for its instant.
+pub(crate) struct Scheduled {
+    pub(crate) decision: Decision,
+    pub(crate) due: Instant,
+    pub(crate) replies: Vec<Reply<DecideResult>>,
+}
+
+pub(crate) type DecideResult = Result<Option<SwitchRecord>, String>;
+
+/// Decisions remembered for retries.
+pub(crate) const DECIDED: usize = 256;
+
+/// How long a prepared switch keeps the loop quiet while it waits for the decision.
+pub(crate) const QUIET_HOLD: Duration = Duration::from_secs(1);
+
+/// From this long before a decided instant the DNM's loop does nothing but wait for it.
+pub(crate) const NEAR: Duration = Duration::from_millis(25);
+
+/// The loop sleeps out the last this much before a decided instant instead of waiting on its
+/// wait set, so the store lands within the timer's slack of the instant on every DNM.
+pub(crate) const FINE_WAIT: Duration = Duration::from_millis(2);
+
+/// Decisions remembered, by transaction id.
+pub(crate) type Decided = VecDeque<(u64, DecideResult)>;

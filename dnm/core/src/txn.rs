@@ -5,7 +5,6 @@
 //! A DNM never puts a transaction in force on its own: a held transaction waits for the
 //! decision however long that takes, while the DNM serves the revision and task in force.
 
-use std::collections::VecDeque;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use dnm_module::protocol::monotonic_ns;
@@ -15,36 +14,7 @@ use dnm_proto::SwitchRecord;
 use crate::command::{Decision, Reply, Txn};
 use crate::error::DnmError;
 use crate::node::Dnm;
-
-/// A prepared switch waiting for its decision.
-#[derive(Debug)]
-pub(crate) struct HeldSwitch {
-    pub(crate) id: u64,
-    pub(crate) task: String,
-    pub(crate) since: Instant,
-}
-
-/// A committed decision waiting for its instant.
-pub(crate) struct Scheduled {
-    pub(crate) decision: Decision,
-    pub(crate) due: Instant,
-    pub(crate) replies: Vec<Reply<DecideResult>>,
-}
-
-pub(crate) type DecideResult = Result<Option<SwitchRecord>, String>;
-
-/// Decisions remembered for retries.
-const DECIDED: usize = 256;
-
-/// How long a prepared switch keeps the loop quiet while it waits for the decision.
-const QUIET_HOLD: Duration = Duration::from_secs(1);
-
-/// From this long before a decided instant the DNM's loop does nothing but wait for it.
-pub(crate) const NEAR: Duration = Duration::from_millis(25);
-
-/// The loop sleeps out the last this much before a decided instant instead of waiting on its
-/// wait set, so the store lands within the timer's slack of the instant on every DNM.
-const FINE_WAIT: Duration = Duration::from_millis(2);
+use crate::pending::{DECIDED, DecideResult, FINE_WAIT, HeldSwitch, QUIET_HOLD, Scheduled};
 
 fn now_unix_ns() -> u64 {
     SystemTime::now()
@@ -373,6 +343,3 @@ impl Dnm {
         }
     }
 }
-
-/// Decisions remembered, by transaction id.
-pub(crate) type Decided = VecDeque<(u64, DecideResult)>;
