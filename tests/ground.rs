@@ -353,6 +353,7 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
             },
         }],
         pending_from: 1,
+        waiting: vec![],
     };
     let d = reply(&serde_json::to_vec(&gap).unwrap());
     assert_eq!(d.outcomes[0].fate, Fate::OutOfOrder { expected: 1 });

@@ -360,3 +360,64 @@ fn udp(link: Link, listen: SocketAddr, to: SocketAddr) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn link(delay_ms: u64, rate: f64, loss: f64, outage: Option<(u64, u64)>) -> Link {
+        Link {
+            delay: Duration::from_millis(delay_ms),
+            rate,
+            loss,
+            outage: outage.map(|(d, p)| (Duration::from_millis(d), Duration::from_millis(p))),
+            seed: 1,
+            buffer: 65536,
+            start: Instant::now(),
+        }
+    }
+
+    #[test]
+    fn delay_and_bandwidth_add_up() {
+        let l = link(300, 1000.0, 0.0, None);
+        let (mut rng, mut way) = (Rng(1), Way::new());
+        let t0 = Instant::now();
+        let a = schedule(&l, &mut rng, &mut way, 500, true).unwrap();
+        let b = schedule(&l, &mut rng, &mut way, 500, true).unwrap();
+        // 500 bytes at 1000 B/s, then the delay; the second waits for the first.
+        assert!(a - t0 >= Duration::from_millis(800), "{:?}", a - t0);
+        assert!(b - a >= Duration::from_millis(499), "{:?}", b - a);
+    }
+
+    #[test]
+    fn a_stream_loses_nothing_and_stays_in_order_a_datagram_is_lost() {
+        let l = link(10, 0.0, 0.5, None);
+        let (mut rng, mut way) = (Rng(7), Way::new());
+        let arrivals: Vec<Instant> = (0..200)
+            .map(|_| schedule(&l, &mut rng, &mut way, 100, true).unwrap())
+            .collect();
+        assert!(arrivals.windows(2).all(|w| w[0] <= w[1]));
+        let (mut rng, mut way) = (Rng(7), Way::new());
+        let delivered = (0..1000)
+            .filter(|_| schedule(&l, &mut rng, &mut way, 100, false).is_some())
+            .count();
+        assert!(
+            (400..600).contains(&delivered),
+            "{delivered} of 1000 at 50% loss"
+        );
+    }
+
+    #[test]
+    fn an_outage_holds_a_stream_and_drops_datagrams() {
+        // Down for the last 900 ms of every second; now is 200 ms into it: down.
+        let mut l = link(0, 0.0, 0.0, Some((900, 1000)));
+        l.start = Instant::now() - Duration::from_millis(200);
+        let (mut rng, mut way) = (Rng(1), Way::new());
+        assert!(schedule(&l, &mut rng, &mut way, 10, false).is_none());
+        let at = schedule(&l, &mut rng, &mut way, 10, true).unwrap();
+        assert!(
+            at >= l.start + Duration::from_millis(1000),
+            "held until the outage ends"
+        );
+    }
+}

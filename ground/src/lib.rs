@@ -177,13 +177,17 @@ struct Shared {
     inner: Mutex<Inner>,
     changed: Condvar,
     wake: (Mutex<bool>, Condvar),
+    /// Set while the regular lane waits for an answer.
+    busy: AtomicBool,
+    express: (Mutex<bool>, Condvar),
+    timing: Mutex<Timing>,
     stop: AtomicBool,
 }
 
 /// A running ground station.
 pub struct Station {
     shared: Arc<Shared>,
-    thread: Option<JoinHandle<()>>,
+    threads: Vec<JoinHandle<()>>,
 }
 
 impl std::fmt::Debug for Station {
@@ -241,19 +245,25 @@ impl Station {
             }),
             changed: Condvar::new(),
             wake: (Mutex::new(true), Condvar::new()),
+            busy: AtomicBool::new(false),
+            express: (Mutex::new(false), Condvar::new()),
+            timing: Mutex::new(Timing::default()),
             stop: AtomicBool::new(false),
         });
-        let thread = {
+        let mut threads = Vec::new();
+        for (name, lane) in [
+            ("ground-link", link_loop as fn(&Shared)),
+            ("ground-express", express_loop),
+        ] {
             let s = shared.clone();
-            std::thread::Builder::new()
-                .name("ground-link".into())
-                .spawn(move || link_loop(&s))
-                .map_err(store)?
-        };
-        Ok(Self {
-            shared,
-            thread: Some(thread),
-        })
+            threads.push(
+                std::thread::Builder::new()
+                    .name(name.into())
+                    .spawn(move || lane(&s))
+                    .map_err(store)?,
+            );
+        }
+        Ok(Self { shared, threads })
     }
 
     pub fn name(&self) -> &str {
@@ -290,6 +300,12 @@ impl Station {
         drop(inner);
         tracing::info!(seq, "command queued");
         wake(&self.shared);
+        if self.shared.busy.load(Ordering::Relaxed) {
+            if let Ok(mut e) = self.shared.express.0.lock() {
+                *e = true;
+                self.shared.express.1.notify_all();
+            }
+        }
         Ok(entry)
     }
 
@@ -341,7 +357,8 @@ impl Station {
     fn halt(&mut self) {
         self.shared.stop.store(true, Ordering::Relaxed);
         wake(&self.shared);
-        if let Some(t) = self.thread.take() {
+        self.shared.express.1.notify_all();
+        for t in self.threads.drain(..) {
             let _ = t.join();
         }
     }
@@ -396,113 +413,24 @@ const MAX_ANSWER_WAIT: Duration = Duration::from_secs(60);
 /// An uplink that fails faster than this found no route to the rover.
 const NO_ROUTE: Duration = Duration::from_millis(50);
 
+/// What the uplinks learn of the link, shared by both lanes.
+#[derive(Debug, Default)]
+struct Timing {
+    /// Smoothed round trip.
+    srtt: Option<Duration>,
+    /// Uplinks lost in a row: a link that does not answer is not flooded with more (each
+    /// answer would queue behind the last on a slow radio).
+    lost_in_row: u32,
+}
+
+/// The regular lane: sends what the rover has not acknowledged, pings when there is nothing,
+/// backs off when the link does not answer.
 fn link_loop(s: &Shared) {
-    let key = keys::authority(&s.options.system);
-    // Smoothed round trip, and uplinks lost in a row: a link that does not answer is not
-    // flooded with more (each answer would queue behind the last on a slow radio).
-    let mut srtt: Option<Duration> = None;
-    let mut lost_in_row: u32 = 0;
     while !s.stop.load(Ordering::Relaxed) {
-        let (uplink, has_commands) = {
-            let Ok(inner) = s.inner.lock() else {
-                return;
-            };
-            let mut bytes = 0;
-            let commands: Vec<Sent> = inner
-                .entries
-                .values()
-                .filter(|e| matches!(e.state, CommandState::Queued | CommandState::Sent))
-                .take(s.options.batch)
-                .map(|e| Sent {
-                    seq: e.seq,
-                    id: e.id.clone(),
-                    order: e.order.clone(),
-                })
-                .take_while(|c| {
-                    let first = bytes == 0;
-                    bytes += serde_json::to_vec(c).map_or(0, |b| b.len());
-                    first || bytes <= s.options.batch_bytes
-                })
-                .collect();
-            let pending_from = inner
-                .entries
-                .values()
-                .find(|e| !e.state.is_final())
-                .map_or(inner.next_seq, |e| e.seq);
-            let has = !commands.is_empty() || pending_from < inner.next_seq;
-            (
-                Uplink {
-                    station: s.options.name.clone(),
-                    commands,
-                    pending_from,
-                },
-                has,
-            )
-        };
-        let sent_seqs: Vec<u64> = uplink.commands.iter().map(|c| c.seq).collect();
-        mark_sent(s, &sent_seqs);
-        let payload = serde_json::to_vec(&uplink).unwrap_or_default();
-        let start = Instant::now();
-        // Three round trips, and twice as long after each uplink lost in a row (as TCP's
-        // retransmission timer): a link slower than the last guess is not asked again and
-        // again before its answer can arrive.
-        let timeout = srtt
-            .map_or(s.options.answer_timeout, |r| {
-                (r * 3).max(s.options.answer_timeout)
-            })
-            .saturating_mul(2u32.saturating_pow(lost_in_row.min(4)))
-            .min(MAX_ANSWER_WAIT);
-        let answer = s
-            .session
-            .get(&key)
-            .payload(payload)
-            // First on the link, and never dropped on the way: the routers of the radio wait
-            // out a stalled link (configs/zenoh/*-router.json5) instead of closing it.
-            .priority(Priority::InteractiveHigh)
-            .congestion_control(CongestionControl::Block)
-            .express(true)
-            .timeout(timeout)
-            .wait()
-            .ok()
-            .and_then(|rx| rx.recv().ok())
-            .and_then(|r| r.result().ok().map(|s| s.payload().to_bytes().to_vec()))
-            .and_then(|b| match serde_json::from_slice::<Downlink>(&b) {
-                Ok(d) => Some(d),
-                Err(e) => {
-                    tracing::error!(
-                        "unreadable answer from the rover ({e}); is it another version?"
-                    );
-                    None
-                }
-            });
-        let rtt = start.elapsed();
-        let answered = answer.is_some();
-        tracing::debug!(
-            commands = sent_seqs.len(),
-            answered,
-            ms = rtt.as_millis() as u64,
-            timeout_ms = timeout.as_millis() as u64,
-            "uplink"
-        );
-        // No route to the rover at all (the routers lost each other): it cost nothing on the
-        // link, so it is not a reason to back off.
-        let unreachable = !answered && rtt < NO_ROUTE;
-        if let Some(d) = answer {
-            take_downlink(s, d, rtt);
-            srtt = Some(srtt.map_or(rtt, |r| (r * 7 + rtt) / 8));
-            lost_in_row = 0;
-        } else if !unreachable {
-            lost_in_row = lost_in_row.saturating_add(1);
-        }
-        if let Ok(mut i) = s.inner.lock() {
-            i.link.uplinks += 1;
-            i.history.push_back(answered);
-            if i.history.len() > LOSS_WINDOW {
-                i.history.pop_front();
-            }
-            let lost = i.history.iter().filter(|a| !**a).count();
-            i.link.loss = lost as f64 / i.history.len() as f64;
-        }
+        s.busy.store(true, Ordering::Relaxed);
+        let (answered, unreachable, has_commands) = uplink(s);
+        s.busy.store(false, Ordering::Relaxed);
+        let lost_in_row = s.timing.lock().map(|t| t.lost_in_row).unwrap_or(0);
         // With commands waiting, send again at once; after losses, back off (doubling);
         // otherwise ping.
         let pause = if unreachable {
@@ -519,6 +447,169 @@ fn link_loop(s: &Shared) {
                 *w = false;
             }
         }
+    }
+}
+
+/// The express lane: a command given while the regular lane waits for an answer (a ping, or
+/// a retry on a slow link) goes at once in an uplink of its own, instead of a round trip
+/// later. Duplicates are harmless: the rover takes each command once.
+fn express_loop(s: &Shared) {
+    while !s.stop.load(Ordering::Relaxed) {
+        let Ok(w) = s.express.0.lock() else {
+            return;
+        };
+        let Ok(mut w) = s
+            .express
+            .1
+            .wait_while(w, |w| !*w && !s.stop.load(Ordering::Relaxed))
+        else {
+            return;
+        };
+        *w = false;
+        drop(w);
+        if !s.stop.load(Ordering::Relaxed) {
+            uplink(s);
+        }
+    }
+}
+
+/// One uplink: every command not acknowledged yet (oldest first, within the batch limits)
+/// and the oldest whose fate is not known; then the answer taken in. Returns (answered, no
+/// route to the rover at all, commands were pending).
+fn uplink(s: &Shared) -> (bool, bool, bool) {
+    let key = keys::authority(&s.options.system);
+    let (uplink, has_commands) = {
+        let Ok(inner) = s.inner.lock() else {
+            return (false, false, false);
+        };
+        let mut bytes = 0;
+        let commands: Vec<Sent> = inner
+            .entries
+            .values()
+            .filter(|e| matches!(e.state, CommandState::Queued | CommandState::Sent))
+            .take(s.options.batch)
+            .map(|e| Sent {
+                seq: e.seq,
+                id: e.id.clone(),
+                order: e.order.clone(),
+            })
+            .take_while(|c| {
+                let first = bytes == 0;
+                bytes += serde_json::to_vec(c).map_or(0, |b| b.len());
+                first || bytes <= s.options.batch_bytes
+            })
+            .collect();
+        let pending_from = inner
+            .entries
+            .values()
+            .find(|e| !e.state.is_final())
+            .map_or(inner.next_seq, |e| e.seq);
+        let waiting: Vec<u64> = inner
+            .entries
+            .values()
+            .filter(|e| {
+                matches!(
+                    e.state,
+                    CommandState::Acknowledged | CommandState::Scheduled
+                )
+            })
+            .map(|e| e.seq)
+            .take(64)
+            .collect();
+        let has = !commands.is_empty() || pending_from < inner.next_seq;
+        (
+            Uplink {
+                station: s.options.name.clone(),
+                commands,
+                pending_from,
+                waiting,
+            },
+            has,
+        )
+    };
+    let sent_seqs: Vec<u64> = uplink.commands.iter().map(|c| c.seq).collect();
+    mark_sent(s, &sent_seqs);
+    let payload = serde_json::to_vec(&uplink).unwrap_or_default();
+    let start = Instant::now();
+    // Three round trips, and twice as long after each uplink lost in a row (as TCP's
+    // retransmission timer): a link slower than the last guess is not asked again and
+    // again before its answer can arrive.
+    let timeout = s
+        .timing
+        .lock()
+        .map(|t| {
+            t.srtt
+                .map_or(s.options.answer_timeout, |r| {
+                    (r * 3).max(s.options.answer_timeout)
+                })
+                .saturating_mul(2u32.saturating_pow(t.lost_in_row.min(4)))
+                .min(MAX_ANSWER_WAIT)
+        })
+        .unwrap_or(s.options.answer_timeout);
+    let answer = s
+        .session
+        .get(&key)
+        .payload(payload)
+        // First on the link, and never dropped on the way: the routers of the radio wait
+        // out a stalled link (configs/zenoh/*-router.json5) instead of closing it.
+        .priority(Priority::InteractiveHigh)
+        .congestion_control(CongestionControl::Block)
+        .express(true)
+        .timeout(timeout)
+        .wait()
+        .ok()
+        .and_then(|rx| rx.recv().ok())
+        .and_then(|r| r.result().ok().map(|s| s.payload().to_bytes().to_vec()))
+        .and_then(|b| match serde_json::from_slice::<Downlink>(&b) {
+            Ok(d) => Some(d),
+            Err(e) => {
+                tracing::error!("unreadable answer from the rover ({e}); is it another version?");
+                None
+            }
+        });
+    let rtt = start.elapsed();
+    let answered = answer.is_some();
+    tracing::debug!(
+        commands = sent_seqs.len(),
+        answered,
+        ms = rtt.as_millis() as u64,
+        timeout_ms = timeout.as_millis() as u64,
+        "uplink"
+    );
+    // No route to the rover at all (the routers lost each other): it cost nothing on the
+    // link, so it is not a reason to back off.
+    let unreachable = !answered && rtt < NO_ROUTE;
+    if let Some(d) = answer {
+        take_downlink(s, d, rtt);
+        if let Ok(mut t) = s.timing.lock() {
+            t.srtt = Some(t.srtt.map_or(rtt, |r| (r * 7 + rtt) / 8));
+            t.lost_in_row = 0;
+        }
+    } else if !unreachable {
+        if let Ok(mut t) = s.timing.lock() {
+            t.lost_in_row = t.lost_in_row.saturating_add(1);
+        }
+    }
+    if let Ok(mut i) = s.inner.lock() {
+        i.link.uplinks += 1;
+        i.history.push_back(answered);
+        if i.history.len() > LOSS_WINDOW {
+            i.history.pop_front();
+        }
+        let lost = i.history.iter().filter(|a| !**a).count();
+        i.link.loss = lost as f64 / i.history.len() as f64;
+    }
+    (answered, unreachable, has_commands)
+}
+
+/// How far a command has come.
+fn rank(state: CommandState) -> u8 {
+    match state {
+        CommandState::Queued => 0,
+        CommandState::Sent => 1,
+        CommandState::Acknowledged => 2,
+        CommandState::Scheduled => 3,
+        CommandState::Applied | CommandState::Refused | CommandState::Cancelled => 4,
     }
 }
 
@@ -584,6 +675,10 @@ fn take_downlink(s: &Shared, d: Downlink, rtt: Duration) {
             Fate::Refused { .. } => CommandState::Refused,
         };
         if e.state == state && e.fate.as_ref() == Some(&o.fate) {
+            continue;
+        }
+        // Answers to two uplinks may arrive in either order: a command never goes back.
+        if rank(state) < rank(e.state) {
             continue;
         }
         if e.acknowledged_unix_ns.is_none() && state != CommandState::Sent {

@@ -91,6 +91,9 @@ impl AuthorityOptions {
     }
 }
 
+/// Longest lead of a decision, whatever was measured.
+const MAX_LEAD: Duration = Duration::from_secs(1);
+
 /// Uplinks waiting for the intake thread at most; more are dropped (the station sends again).
 const UPLINK_QUEUE: usize = 64;
 /// Events and time-tagged commands in an answer to a station, at most.
@@ -127,7 +130,7 @@ impl Timing {
     }
 
     fn lead(&self, least: Duration) -> Duration {
-        least.max(self.round_trip * 2 + self.store * 2)
+        least.max((self.round_trip * 2 + self.store * 2).min(MAX_LEAD))
     }
 }
 
@@ -223,7 +226,9 @@ impl Authority {
                     task: netlist.initial_task().map(str::to_string),
                     file: netlist.file.display().to_string(),
                     text: netlist.text.clone(),
-                    next_txn: 1,
+                    // Ids never seen before by any DNM, even if this database is new again:
+                    // they start from the time it was created.
+                    next_txn: (now_unix_ns() / 1_000_000_000) << 24,
                     burned: revision,
                     ..State::default()
                 };
@@ -362,7 +367,10 @@ fn take_uplink(s: &Shared, q: &Query) -> Downlink {
     if !s.heard.swap(true, Ordering::Relaxed) {
         s.wake();
     }
-    match s.store.intake(&up.station, &up.commands, up.pending_from) {
+    match s
+        .store
+        .intake(&up.station, &up.commands, up.pending_from, &up.waiting)
+    {
         Ok(outcomes) => {
             if outcomes.iter().any(|o| o.fate == Fate::Acknowledged) {
                 s.wake();
@@ -476,11 +484,14 @@ fn next_job(s: &Shared, core: &Core) -> Result<Option<Job>, AuthorityError> {
     // Time-tagged switches whose time has come (prepared a little ahead).
     let margin = (s.options.switch_lead * 4).as_nanos() as u64;
     let now = now_unix_ns();
+    let cancels = s.store.pending_cancels()?;
     if let Some(t) = s
         .store
         .timers()?
         .into_iter()
         .filter(|t| t.at_unix_ns <= now + margin)
+        // A cancel already taken for it runs first (the station's earlier commands with it).
+        .filter(|t| !cancels.contains(&(t.station.clone(), t.seq)))
         .min_by_key(|t| t.at_unix_ns)
     {
         return Ok(Some(Job::Timer(t)));
@@ -544,35 +555,51 @@ fn work_once(s: &Shared, gate: &mut Option<(String, Instant)>) -> Result<bool, A
             s.store.save_state(&core.state)?;
         }
         Job::LinkLoss { task, silent } => {
-            s.heard.store(false, Ordering::Relaxed);
-            core.state.link_lost = true;
             let detail = format!(
                 "no ground station heard for {:.1} s: switching to `{task}`",
                 silent.as_secs_f64()
             );
-            tracing::warn!("{detail}");
             let fate = if core.state.task.as_ref() == Some(&task) {
                 None
             } else {
+                tracing::warn!("{detail}");
                 Some(transact(s, core, None, Some(task), None, None, None))
             };
+            if let Some(Fate::Refused { reason }) = &fate {
+                // Not in force anywhere: tried again after the back-off, until it is.
+                tracing::error!("{detail}; refused, trying again: {reason}");
+                return Ok(false);
+            }
+            s.heard.store(false, Ordering::Relaxed);
+            core.state.link_lost = true;
             let e = RoverEvent {
                 at_unix_ns: now_unix_ns(),
                 what: "link_loss".into(),
-                detail: match &fate {
-                    Some(Fate::Refused { reason }) => format!("{detail}; refused: {reason}"),
+                detail: match fate {
                     None => format!(
                         "no ground station heard for {:.1} s; already in `{}`",
                         silent.as_secs_f64(),
                         core.state.task.as_deref().unwrap_or("-")
                     ),
-                    _ => detail,
+                    Some(_) => detail,
                 },
                 revision: core.state.revision,
                 task: core.state.task.clone(),
             };
             core.state.event(e);
             s.store.save_state(&core.state)?;
+        }
+        Job::Timer(t) if !core.netlist.tasks.contains_key(&t.task) => {
+            let reason = format!(
+                "task `{}` is no longer defined (a netlist applied since removed it)",
+                t.task
+            );
+            tracing::warn!(station = %t.station, seq = t.seq, "time-tagged switch refused: {reason}");
+            s.store.finish(Finish {
+                fates: vec![(&t.station, t.seq, &t.id, Fate::Refused { reason })],
+                timer_remove: Some((&t.station, t.seq)),
+                ..Finish::default()
+            })?;
         }
         Job::Timer(t) => {
             let cmd = (t.station.clone(), t.seq, t.id.clone());
@@ -808,6 +835,7 @@ fn transact(
             timer_add: None,
             timer_remove: timer_remove.as_ref().map(|(st, seq)| (st.as_str(), *seq)),
             state: Some(&core.state),
+            decision: core.state.decisions.last(),
         });
         if let Err(e) = &r {
             tracing::error!("storing a decision: {e}");
@@ -1137,8 +1165,14 @@ fn reconcile(s: &Shared) {
     }
     for r in found.into_iter().flatten() {
         if let Some(id) = r.holding {
-            let d = match snap.decisions.iter().find(|d| d.txn == id) {
-                Some(d) => d.clone(),
+            let known = snap
+                .decisions
+                .iter()
+                .find(|d| d.txn == id)
+                .cloned()
+                .or_else(|| s.store.decision(id).ok().flatten());
+            let d = match known {
+                Some(d) => d,
                 // Handed out after the snapshot: the worker is running it.
                 None if id >= snap.next_txn => continue,
                 // Never decided (the authority stopped before it could): dropped.
@@ -1162,6 +1196,13 @@ fn reconcile(s: &Shared) {
         }
         if r.preparing.is_some() || snap.in_step(&r) {
             continue;
+        }
+        // Decided again since the snapshot: these reports are old; look again next pass.
+        if s.core
+            .lock()
+            .map_or(true, |c| c.state.next_txn != snap.next_txn)
+        {
+            return;
         }
         // A rover DNM behind is only ever one that restarted (the others hold what they
         // prepared until decided); a radio DNM follows whenever it is reachable.

@@ -18,9 +18,13 @@ const INBOX: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("inbox");
 const FATES: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("fates");
 /// Time-tagged switches waiting, by `station \0 seq`.
 const TIMERS: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("timers");
+/// Every decision, by transaction id: a DNM cut off for long still learns its own.
+const DECISIONS: TableDefinition<'_, u64, &[u8]> = TableDefinition::new("decisions");
 
-/// Fates in one answer to a station, besides those of the commands it sent.
+/// Fates in one answer to a station that does not say which it waits for.
 pub(crate) const ANSWER_FATES: usize = 32;
+/// Fates in one answer, at most.
+const MAX_ASKED: usize = 256;
 
 /// Decisions kept for DNMs that missed them.
 const DECISIONS_KEPT: usize = 64;
@@ -107,6 +111,7 @@ pub(crate) struct Finish<'a> {
     pub(crate) timer_add: Option<Timer>,
     pub(crate) timer_remove: Option<(&'a str, u64)>,
     pub(crate) state: Option<&'a State>,
+    pub(crate) decision: Option<&'a DecisionRecord>,
 }
 
 #[derive(Debug)]
@@ -126,6 +131,7 @@ impl Store {
         for t in [META, INBOX, FATES, TIMERS] {
             tx.open_table(t).map_err(db)?;
         }
+        tx.open_table(DECISIONS).map_err(db)?;
         tx.commit().map_err(db)?;
         Ok(Self { db: database })
     }
@@ -160,6 +166,7 @@ impl Store {
         station: &str,
         commands: &[Sent],
         pending_from: u64,
+        waiting: &[u64],
     ) -> Result<Vec<Outcome>, AuthorityError> {
         let recv_key = format!("recv\0{station}");
         let mut received: u64 = self.meta(&recv_key)?.unwrap_or(0);
@@ -189,16 +196,19 @@ impl Store {
                 .map_err(db)?;
         }
         tx.commit().map_err(db)?;
-        let sent: std::collections::BTreeSet<u64> = commands.iter().map(|c| c.seq).collect();
-        let all = self.fates(station, pending_from.max(1), received)?;
-        let (mut out, news): (Vec<Outcome>, Vec<Outcome>) =
-            all.into_iter().partition(|o| sent.contains(&o.seq));
-        out.extend(
-            news.into_iter()
-                .filter(|o| o.fate != Fate::Acknowledged)
-                .take(ANSWER_FATES.saturating_sub(out.len())),
-        );
-        out.sort_by_key(|o| o.seq);
+        // The fates of what was sent and of what the station waits for, then news from
+        // `pending_from` on for a station that does not say what it waits for.
+        let mut asked: std::collections::BTreeSet<u64> = commands
+            .iter()
+            .map(|c| c.seq)
+            .chain(waiting.iter().copied())
+            .filter(|seq| *seq <= received)
+            .collect();
+        if waiting.is_empty() {
+            asked.extend((pending_from.max(1)..=received).take(ANSWER_FATES));
+        }
+        let mut out = self.fates_of(station, asked.iter().copied().take(MAX_ASKED))?;
+        out.retain(|o| commands.iter().any(|c| c.seq == o.seq) || o.fate != Fate::Acknowledged);
         if let Some((seq, id, expected)) = gap {
             out.push(Outcome {
                 seq,
@@ -209,31 +219,24 @@ impl Store {
         Ok(out)
     }
 
-    /// Fates of a station's commands `from..=to` (at most 256).
-    fn fates(&self, station: &str, from: u64, to: u64) -> Result<Vec<Outcome>, AuthorityError> {
+    /// Fates of some of a station's commands: final or scheduled from the fates, else
+    /// acknowledged if in the inbox.
+    fn fates_of(
+        &self,
+        station: &str,
+        seqs: impl Iterator<Item = u64>,
+    ) -> Result<Vec<Outcome>, AuthorityError> {
         let rx = self.db.begin_read().map_err(db)?;
         let fates = rx.open_table(FATES).map_err(db)?;
         let inbox = rx.open_table(INBOX).map_err(db)?;
         let mut out = Vec::new();
-        let (lo, hi) = (key(station, from), key(station, to));
-        for row in fates.range(lo.as_str()..=hi.as_str()).map_err(db)? {
-            let (k, v) = row.map_err(db)?;
-            let Some((_, seq)) = split(k.value()) else {
-                continue;
-            };
-            let (id, fate): (String, Fate) = serde_json::from_slice(v.value()).map_err(db)?;
-            out.push(Outcome { seq, id, fate });
-            if out.len() >= 256 {
-                break;
-            }
-        }
-        for row in inbox.range(lo.as_str()..=hi.as_str()).map_err(db)? {
-            let (k, v) = row.map_err(db)?;
-            let Some((_, seq)) = split(k.value()) else {
-                continue;
-            };
-            let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
-            if out.iter().all(|o| o.seq != seq) {
+        for seq in seqs {
+            let k = key(station, seq);
+            if let Some(v) = fates.get(k.as_str()).map_err(db)? {
+                let (id, fate): (String, Fate) = serde_json::from_slice(v.value()).map_err(db)?;
+                out.push(Outcome { seq, id, fate });
+            } else if let Some(v) = inbox.get(k.as_str()).map_err(db)? {
+                let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
                 out.push(Outcome {
                     seq,
                     id: sent.id,
@@ -241,8 +244,6 @@ impl Store {
                 });
             }
         }
-        out.sort_by_key(|o| o.seq);
-        out.truncate(256);
         Ok(out)
     }
 
@@ -273,6 +274,37 @@ impl Store {
         };
         let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
         Ok(Some((station, sent)))
+    }
+
+    /// The decision on transaction `txn`, if there was one.
+    pub(crate) fn decision(&self, txn: u64) -> Result<Option<DecisionRecord>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let t = rx.open_table(DECISIONS).map_err(db)?;
+        let Some(v) = t.get(txn).map_err(db)? else {
+            return Ok(None);
+        };
+        serde_json::from_slice(v.value()).map(Some).map_err(db)
+    }
+
+    /// (station, seq) of every time-tagged switch a cancel in the inbox targets.
+    pub(crate) fn pending_cancels(&self) -> Result<Vec<(String, u64)>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let inbox = rx.open_table(INBOX).map_err(db)?;
+        let mut out = Vec::new();
+        for row in inbox.iter().map_err(db)? {
+            let (k, v) = row.map_err(db)?;
+            let Some((station, _)) = split(k.value()) else {
+                continue;
+            };
+            if let Ok(Sent {
+                order: dnm_proto::station::Order::Cancel { seq },
+                ..
+            }) = serde_json::from_slice::<Sent>(v.value())
+            {
+                out.push((station, seq));
+            }
+        }
+        Ok(out)
     }
 
     pub(crate) fn timers(&self) -> Result<Vec<Timer>, AuthorityError> {
@@ -319,6 +351,11 @@ impl Store {
             }
             if let Some((station, seq)) = f.timer_remove {
                 timers.remove(key(station, seq).as_str()).map_err(db)?;
+            }
+            if let Some(d) = f.decision {
+                let mut t = tx.open_table(DECISIONS).map_err(db)?;
+                let bytes = serde_json::to_vec(d).map_err(db)?;
+                t.insert(d.txn, bytes.as_slice()).map_err(db)?;
             }
             if let Some(state) = f.state {
                 let mut meta = tx.open_table(META).map_err(db)?;

@@ -71,10 +71,13 @@ pub struct Uplink {
     /// Commands not yet acknowledged, oldest first.
     #[serde(default)]
     pub commands: Vec<Sent>,
-    /// The oldest of the station's commands whose final fate it does not know yet: the answer
-    /// carries the fates from there on.
+    /// The oldest of the station's commands whose final fate it does not know yet.
     #[serde(default)]
     pub pending_from: u64,
+    /// Commands acknowledged earlier whose final fate the station still waits for (at most
+    /// 64): the answer carries their fates.
+    #[serde(default)]
+    pub waiting: Vec<u64>,
 }
 
 /// The fate of one command on the rover.

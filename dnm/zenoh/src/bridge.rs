@@ -909,8 +909,21 @@ fn command_loop(
                 continue;
             }
         };
+        let transaction = matches!(
+            cmd.request,
+            Request::Prepare { .. } | Request::Decide { .. } | Request::Adopt { .. }
+        );
         if let Some(authority) = shared.authority.get() {
             let from_authority = cmd.client.as_deref() == Some(&format!("authority-{authority}"));
+            if transaction && !from_authority {
+                finish(
+                    query,
+                    &Response::error(format!(
+                        "transactions of system `{system}` come from its authority, DNM `{authority}`"
+                    )),
+                );
+                continue;
+            }
             if matches!(cmd.request, Request::Switch { .. } | Request::Apply { .. })
                 && !from_authority
             {
@@ -1097,6 +1110,23 @@ fn command_loop(
                 revision,
                 task,
             } => {
+                // A decision is sent shortly before its instant; one far ahead would keep the
+                // DNM waiting (and its supervision quiet) for nothing.
+                let now = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.as_nanos() as u64);
+                if commit && at_unix_ns > now + MAX_DECISION_AHEAD.as_nanos() as u64 {
+                    finish(
+                        query,
+                        &Response::error(format!(
+                            "decision {txn} is for {:.0} s from now; at most {} s ahead is taken \
+                             (are the clocks synchronised?)",
+                            (at_unix_ns - now) as f64 / 1e9,
+                            MAX_DECISION_AHEAD.as_secs()
+                        )),
+                    );
+                    continue;
+                }
                 let tx = jobs_tx.clone();
                 let (reply, slot) = answer_slot(
                     tx,
@@ -1181,6 +1211,9 @@ pub fn traffic_class(message: &dnm_netlist::MessageType) -> Priority {
         Priority::Data
     }
 }
+
+/// How far ahead of now a decided instant may be.
+const MAX_DECISION_AHEAD: Duration = Duration::from_secs(60);
 
 /// Samples larger than this are bulk (images, point clouds).
 const LARGE_SAMPLE: usize = 16 * 1024;
