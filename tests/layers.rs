@@ -155,14 +155,14 @@ fn cycle(src: &Path, root_file: &str) -> Option<Vec<String>> {
     for line in root.lines().map(str::trim) {
         let words: Vec<&str> = line.split_whitespace().collect();
         for kw in ["struct", "enum", "fn", "trait", "type", "const", "static"] {
-            if let Some(p) = words.iter().position(|w| *w == kw) {
-                if let Some(name) = words.get(p + 1) {
-                    let name: String = name
-                        .chars()
-                        .take_while(|c| c.is_alphanumeric() || *c == '_')
-                        .collect();
-                    owner.entry(name).or_insert_with(|| "crate".into());
-                }
+            if let Some(p) = words.iter().position(|w| *w == kw)
+                && let Some(name) = words.get(p + 1)
+            {
+                let name: String = name
+                    .chars()
+                    .take_while(|c| c.is_alphanumeric() || *c == '_')
+                    .collect();
+                owner.entry(name).or_insert_with(|| "crate".into());
             }
         }
     }
@@ -170,11 +170,11 @@ fn cycle(src: &Path, root_file: &str) -> Option<Vec<String>> {
         let rest = &root[i + "pub use ".len()..];
         let stmt = &rest[..rest.find(';').unwrap_or(rest.len())];
         let stmt = stmt.trim_start_matches("self::");
-        if let Some((module, items)) = stmt.split_once("::") {
-            if mods.contains_key(module) {
-                for item in items.trim_matches(|c| c == '{' || c == '}').split(',') {
-                    owner.insert(item.trim().to_string(), module.to_string());
-                }
+        if let Some((module, items)) = stmt.split_once("::")
+            && mods.contains_key(module)
+        {
+            for item in items.trim_matches(|c| c == '{' || c == '}').split(',') {
+                owner.insert(item.trim().to_string(), module.to_string());
             }
         }
     }

@@ -619,7 +619,7 @@ fn a_flood_of_queries_delays_neither_switches_nor_supervision() {
     let mut switches = 0u32;
     let start = Instant::now();
     while !done.load(Ordering::Relaxed) {
-        let task = if switches % 2 == 0 { "b" } else { "a" };
+        let task = if switches.is_multiple_of(2) { "b" } else { "a" };
         let r = zenoh_command(
             &session,
             &system,

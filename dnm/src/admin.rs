@@ -223,12 +223,12 @@ fn start(
     let mut joined = None;
     if follow {
         tracing::info!(authority = ?netlist.authority(), "the DNMs take what the authority decides");
-    } else if let Some(state) = dnm_zenoh::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT) {
-        if let Some((newer, revision, task)) = adopt(&state, &netlist.file, dnms) {
-            tracing::info!(revision, task = ?task, "joining the running system");
-            netlist = newer;
-            joined = Some((revision, task));
-        }
+    } else if let Some(state) = dnm_zenoh::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT)
+        && let Some((newer, revision, task)) = adopt(&state, &netlist.file, dnms)
+    {
+        tracing::info!(revision, task = ?task, "joining the running system");
+        netlist = newer;
+        joined = Some((revision, task));
     }
     let mut handles = Vec::new();
     for name in dnms {

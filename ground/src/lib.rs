@@ -300,11 +300,11 @@ impl Station {
         drop(inner);
         tracing::info!(seq, "command queued");
         wake(&self.shared);
-        if self.shared.busy.load(Ordering::Relaxed) {
-            if let Ok(mut e) = self.shared.express.0.lock() {
-                *e = true;
-                self.shared.express.1.notify_all();
-            }
+        if self.shared.busy.load(Ordering::Relaxed)
+            && let Ok(mut e) = self.shared.express.0.lock()
+        {
+            *e = true;
+            self.shared.express.1.notify_all();
         }
         Ok(entry)
     }
@@ -442,10 +442,10 @@ fn link_loop(s: &Shared) {
         } else {
             s.options.ping_every
         };
-        if let Ok(w) = s.wake.0.lock() {
-            if let Ok((mut w, _)) = s.wake.1.wait_timeout_while(w, pause, |w| !*w) {
-                *w = false;
-            }
+        if let Ok(w) = s.wake.0.lock()
+            && let Ok((mut w, _)) = s.wake.1.wait_timeout_while(w, pause, |w| !*w)
+        {
+            *w = false;
         }
     }
 }
@@ -585,10 +585,8 @@ fn uplink(s: &Shared) -> (bool, bool, bool) {
             t.srtt = Some(t.srtt.map_or(rtt, |r| (r * 7 + rtt) / 8));
             t.lost_in_row = 0;
         }
-    } else if !unreachable {
-        if let Ok(mut t) = s.timing.lock() {
-            t.lost_in_row = t.lost_in_row.saturating_add(1);
-        }
+    } else if !unreachable && let Ok(mut t) = s.timing.lock() {
+        t.lost_in_row = t.lost_in_row.saturating_add(1);
     }
     if let Ok(mut i) = s.inner.lock() {
         i.link.uplinks += 1;

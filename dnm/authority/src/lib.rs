@@ -530,11 +530,11 @@ fn work_once(s: &Shared, gate: &mut Option<(String, Instant)>) -> Result<bool, A
             _ => Instant::now(),
         };
         *gate = Some((key, since));
-        if since.elapsed() < READY_WAIT {
-            if let Some(why) = out_of_step(s, &snap) {
-                tracing::debug!("waiting for the rover's DNMs: {why}");
-                return Ok(false);
-            }
+        if since.elapsed() < READY_WAIT
+            && let Some(why) = out_of_step(s, &snap)
+        {
+            tracing::debug!("waiting for the rover's DNMs: {why}");
+            return Ok(false);
         }
     }
     *gate = None;
@@ -1116,10 +1116,10 @@ fn reports(session: &zenoh::Session, system: &str, timeout: Duration) -> Vec<Dnm
     };
     let mut out = Vec::new();
     while let Ok(r) = replies.recv() {
-        if let Ok(sample) = r.result() {
-            if let Ok(d) = serde_json::from_slice::<DnmBrief>(&sample.payload().to_bytes()) {
-                out.push(d);
-            }
+        if let Ok(sample) = r.result()
+            && let Ok(d) = serde_json::from_slice::<DnmBrief>(&sample.payload().to_bytes())
+        {
+            out.push(d);
         }
     }
     out

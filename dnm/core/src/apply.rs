@@ -35,11 +35,12 @@ impl Dnm {
         key: Option<CommandKey>,
         reply: Reply<Result<u64, String>>,
     ) {
-        if let Some(a) = self.apply.as_mut() {
-            if key.is_some() && a.key == key {
-                a.replies.push(reply);
-                return;
-            }
+        if let Some(a) = self.apply.as_mut()
+            && key.is_some()
+            && a.key == key
+        {
+            a.replies.push(reply);
+            return;
         }
         if self.stopping_all {
             reply.send(Err(DnmError::Stopped.to_string()));
@@ -277,12 +278,12 @@ impl Dnm {
         let mut exited = None;
         if let Some(a) = self.apply.as_mut() {
             for (name, slot) in a.staged.iter_mut() {
-                if let Some(child) = slot.child.as_mut() {
-                    if let Ok(Some(exit)) = child.try_wait() {
-                        slot.child = None;
-                        exited = Some((name.clone(), exit.to_string()));
-                        break;
-                    }
+                if let Some(child) = slot.child.as_mut()
+                    && let Ok(Some(exit)) = child.try_wait()
+                {
+                    slot.child = None;
+                    exited = Some((name.clone(), exit.to_string()));
+                    break;
                 }
             }
         }
@@ -520,11 +521,11 @@ impl Dnm {
         }
         if let Some((netlist, key, reply)) = self.queued_applies.pop_front() {
             // Answered from memory if it was applied meanwhile under the same key.
-            if let Some(k) = &key {
-                if let Some(Outcome::Apply(r)) = self.answered(k) {
-                    reply.send(r);
-                    return self.next_apply();
-                }
+            if let Some(k) = &key
+                && let Some(Outcome::Apply(r)) = self.answered(k)
+            {
+                reply.send(r);
+                return self.next_apply();
             }
             if !self.start_apply(netlist, key, reply) {
                 self.next_apply();

@@ -8,15 +8,15 @@ use serde_json::{Map, Value, json};
 
 /// The JSON view of one sample of a port with this message type.
 pub fn decode(message: &dnm_netlist::MessageType, bytes: &[u8]) -> Value {
-    if message.encoding == dnm_module::msg::POD_ENCODING {
-        if let Some(v) = decode_pod(&message.schema, bytes) {
-            return v;
-        }
+    if message.encoding == dnm_module::msg::POD_ENCODING
+        && let Some(v) = decode_pod(&message.schema, bytes)
+    {
+        return v;
     }
-    if message.encoding == "application/json" {
-        if let Ok(v) = serde_json::from_slice::<Value>(bytes) {
-            return v;
-        }
+    if message.encoding == "application/json"
+        && let Ok(v) = serde_json::from_slice::<Value>(bytes)
+    {
+        return v;
     }
     json!({ "bytes": bytes.len() })
 }

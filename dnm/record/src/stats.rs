@@ -87,11 +87,11 @@ pub fn stats(bytes: &[u8], parse: &crate::ParseNetlist<'_>) -> Result<Stats, Str
     let mut netlist_text = None;
     if let Ok(Some(summary)) = mcap::Summary::read(bytes) {
         for idx in &summary.metadata_indexes {
-            if let Ok(meta) = mcap::read::metadata(bytes, idx) {
-                if meta.name == "dnm.netlist" {
-                    revisions.extend(meta.metadata.get("revision").cloned());
-                    netlist_text = meta.metadata.get("text").cloned();
-                }
+            if let Ok(meta) = mcap::read::metadata(bytes, idx)
+                && meta.name == "dnm.netlist"
+            {
+                revisions.extend(meta.metadata.get("revision").cloned());
+                netlist_text = meta.metadata.get("text").cloned();
             }
         }
     }

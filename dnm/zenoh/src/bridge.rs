@@ -983,10 +983,10 @@ fn command_loop(
                         Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
                     },
                 );
-                if let Err(e) = commander.send(Command::Switch { task, key, reply }) {
-                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
-                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                    }
+                if let Err(e) = commander.send(Command::Switch { task, key, reply })
+                    && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
+                {
+                    finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
                 }
             }
             Request::Apply { file, text } => {
@@ -1097,10 +1097,10 @@ fn command_loop(
                     task,
                     netlist,
                 };
-                if let Err(e) = commander.send(Command::Prepare { txn, reply }) {
-                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
-                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                    }
+                if let Err(e) = commander.send(Command::Prepare { txn, reply })
+                    && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
+                {
+                    finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
                 }
             }
             Request::Decide {
@@ -1148,10 +1148,10 @@ fn command_loop(
                     revision,
                     task,
                 };
-                if let Err(e) = commander.send(Command::Decide { decision, reply }) {
-                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
-                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                    }
+                if let Err(e) = commander.send(Command::Decide { decision, reply })
+                    && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
+                {
+                    finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
                 }
             }
             Request::Adopt {
@@ -1191,10 +1191,9 @@ fn command_loop(
                     task,
                     netlist: Box::new(netlist),
                     reply,
-                }) {
-                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
-                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                    }
+                }) && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
+                {
+                    finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
                 }
             }
         }
