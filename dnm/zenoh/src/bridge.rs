@@ -1059,27 +1059,15 @@ fn command_loop(
                 file,
                 text,
             } => {
-                let netlist = match text {
+                let netlist = match text.map(|t| {
+                    let file = file.unwrap_or_else(|| "netlist.toml".into());
+                    parse_here(parse, system, &file, &t)
+                }) {
                     None => None,
-                    Some(text) => {
-                        let file = file.unwrap_or_else(|| "netlist.toml".into());
-                        match parse(Path::new(&file), &text) {
-                            Ok(n) if n.system == system => Some(Box::new(n)),
-                            Ok(n) => {
-                                finish(
-                                    query,
-                                    &Response::error(format!(
-                                        "netlist is for system `{}`, this is `{system}`",
-                                        n.system
-                                    )),
-                                );
-                                continue;
-                            }
-                            Err(e) => {
-                                finish(query, &Response::error(format!("netlist refused:\n{e}")));
-                                continue;
-                            }
-                        }
+                    Some(Ok(n)) => Some(Box::new(n)),
+                    Some(Err(e)) => {
+                        finish(query, &Response::error(e));
+                        continue;
                     }
                 };
                 let tx = jobs_tx.clone();
@@ -1160,20 +1148,10 @@ fn command_loop(
                 file,
                 text,
             } => {
-                let netlist = match parse(Path::new(&file), &text) {
-                    Ok(n) if n.system == system => n,
-                    Ok(n) => {
-                        finish(
-                            query,
-                            &Response::error(format!(
-                                "netlist is for system `{}`, this is `{system}`",
-                                n.system
-                            )),
-                        );
-                        continue;
-                    }
+                let netlist = match parse_here(parse, system, &file, &text) {
+                    Ok(n) => n,
                     Err(e) => {
-                        finish(query, &Response::error(format!("netlist refused:\n{e}")));
+                        finish(query, &Response::error(e));
                         continue;
                     }
                 };
@@ -1208,6 +1186,23 @@ pub fn traffic_class(message: &dnm_netlist::MessageType) -> Priority {
         Priority::Background
     } else {
         Priority::Data
+    }
+}
+
+/// A netlist sent in a transaction, validated here and for this system.
+fn parse_here(
+    parse: &ParseNetlist,
+    system: &str,
+    file: &str,
+    text: &str,
+) -> Result<Netlist, String> {
+    match parse(Path::new(file), text) {
+        Ok(n) if n.system == system => Ok(n),
+        Ok(n) => Err(format!(
+            "netlist is for system `{}`, this is `{system}`",
+            n.system
+        )),
+        Err(e) => Err(format!("netlist refused:\n{e}")),
     }
 }
 
