@@ -40,6 +40,9 @@ use dnm_proto::station::{Downlink, Fate, Order, RoverState, Sent, Uplink};
 const OUTBOX: TableDefinition<'_, u64, &[u8]> = TableDefinition::new("outbox");
 const META: TableDefinition<'_, &str, u64> = TableDefinition::new("meta");
 
+/// Answers the clock offset is estimated from.
+const CLOCK_SAMPLES: usize = 16;
+
 /// Uplinks remembered for the loss estimate.
 const LOSS_WINDOW: usize = 50;
 
@@ -168,6 +171,8 @@ struct Inner {
     link: LinkStatus,
     contact: Option<Instant>,
     history: VecDeque<bool>,
+    /// (round trip, clock offset ms) of the last answers.
+    clock_samples: VecDeque<(Duration, f64)>,
 }
 
 struct Shared {
@@ -242,6 +247,7 @@ impl Station {
                 link: LinkStatus::default(),
                 contact: None,
                 history: VecDeque::new(),
+                clock_samples: VecDeque::new(),
             }),
             changed: Condvar::new(),
             wake: (Mutex::new(true), Condvar::new()),
@@ -635,8 +641,20 @@ fn take_downlink(s: &Shared, d: Downlink, rtt: Duration) {
     let Ok(mut inner) = s.inner.lock() else {
         return;
     };
+    // As NTP does: the answer with the shortest round trip of the last few bounds the offset
+    // best (the least room for the two ways to differ).
     let middle = now_unix_ns() as f64 - rtt.as_nanos() as f64 / 2.0;
-    inner.link.rover_clock_offset_ms = Some((d.at_unix_ns as f64 - middle) / 1e6);
+    inner
+        .clock_samples
+        .push_back((rtt, (d.at_unix_ns as f64 - middle) / 1e6));
+    if inner.clock_samples.len() > CLOCK_SAMPLES {
+        inner.clock_samples.pop_front();
+    }
+    inner.link.rover_clock_offset_ms = inner
+        .clock_samples
+        .iter()
+        .min_by_key(|(r, _)| *r)
+        .map(|(_, o)| *o);
     inner.contact = Some(Instant::now());
     inner.link.answered += 1;
     inner.link.rtt_ms = Some(rtt.as_secs_f64() * 1e3);
