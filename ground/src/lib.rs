@@ -177,6 +177,8 @@ struct Inner {
 
 struct Shared {
     options: StationOptions,
+    /// The name the rover knows this outbox by: the station's name and the outbox's epoch.
+    wire_name: String,
     session: zenoh::Session,
     db: Database,
     inner: Mutex<Inner>,
@@ -213,6 +215,7 @@ impl Station {
             .map_err(|e| StationError::Store(format!("{}: {e}", options.db.display())))?;
         let mut entries = BTreeMap::new();
         let mut next_seq = 1;
+        let epoch;
         {
             let tx = db.begin_write().map_err(store)?;
             tx.open_table(OUTBOX).map_err(store)?;
@@ -230,7 +233,24 @@ impl Station {
             if let Some(v) = meta.get("next_seq").map_err(store)? {
                 next_seq = next_seq.max(v.value());
             }
+            epoch = meta.get("epoch").map_err(store)?.map(|v| v.value());
         }
+        // The outbox's own numbering: a new outbox under an old name is another station to
+        // the rover, so its numbers never meet those of the one it replaced.
+        let epoch = match epoch {
+            Some(e) => e,
+            None => {
+                let e = now_unix_ns() / 1_000_000;
+                let tx = db.begin_write().map_err(store)?;
+                tx.open_table(META)
+                    .map_err(store)?
+                    .insert("epoch", e)
+                    .map_err(store)?;
+                tx.commit().map_err(store)?;
+                e
+            }
+        };
+        let wire_name = format!("{}.{epoch:x}", options.name);
         tracing::info!(
             station = %options.name,
             commands = entries.len(),
@@ -239,6 +259,7 @@ impl Station {
         );
         let shared = Arc::new(Shared {
             options,
+            wire_name,
             session,
             db,
             inner: Mutex::new(Inner {
@@ -525,7 +546,7 @@ fn uplink(s: &Shared) -> (bool, bool, bool) {
         let has = !commands.is_empty() || pending_from < inner.next_seq;
         (
             Uplink {
-                station: s.options.name.clone(),
+                station: s.wire_name.clone(),
                 commands,
                 pending_from,
                 waiting,

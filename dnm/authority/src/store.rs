@@ -169,7 +169,22 @@ impl Store {
         waiting: &[u64],
     ) -> Result<Vec<Outcome>, AuthorityError> {
         let recv_key = format!("recv\0{station}");
-        let mut received: u64 = self.meta(&recv_key)?.unwrap_or(0);
+        let mut received: u64 = match self.meta(&recv_key)? {
+            Some(r) => r,
+            // A station this rover has no record of (its database was replaced) that has
+            // finished commands already: those are final at the station, so numbering goes on
+            // from the first it still waits for. Nothing is run twice that the station knows
+            // the fate of.
+            None if pending_from > 1 => {
+                tracing::warn!(
+                    station,
+                    pending_from,
+                    "no record of this station: taking its commands from the first it waits for"
+                );
+                pending_from - 1
+            }
+            None => 0,
+        };
         let mut gap = None;
         let tx = self.db.begin_write().map_err(db)?;
         {
