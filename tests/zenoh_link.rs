@@ -31,6 +31,7 @@ impl Proc {
             .env("DNM_RUN_DIR", run_dir)
             .env("DNM_RECORD_DIR", run_dir.join("recordings"))
             .env("RUST_LOG", "warn")
+            .current_dir(run_dir)
             .stdout(Stdio::null())
             .spawn()
             .unwrap();
@@ -486,6 +487,27 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
     );
     assert!(r.iter().all(|(_, r)| r.is_ok()), "{r:?}");
     let new_revision = rev(&r[0].1);
+
+    // An apply from the network that names a program as a module kind runs nothing: only
+    // executables installed in the module folder may be named, and none is set here.
+    let evil = format!(
+        "{text}\n[[module]]\nname = \"x\"\nkind = \"evil\"\ndnm = \"a\"\n\n[kind.evil]\nexec = \"/usr/bin/touch\"\n"
+    );
+    let r = sys.command(
+        serde_json::json!({"id": "apply-evil", "cmd": "apply", "file": "evil.toml", "text": evil}),
+    );
+    assert!(!r.is_empty());
+    for (_, answer) in &r {
+        let e = answer.as_ref().unwrap_err()["error"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        assert!(
+            e.contains("/usr/bin/touch") && e.contains("DNM_MODULE_DIR"),
+            "{e}"
+        );
+    }
+    assert!(!sys.run_dir.join("describe").exists(), "a program ran");
     assert_eq!(published("b"), [sys.key("port/b/relay_b/out")]);
     let back =
         sys.command(serde_json::json!({"id": "switch-2b", "cmd": "switch", "task": "remote"}));

@@ -294,7 +294,7 @@ fn start(
             let db = options
                 .state_dir
                 .join(format!("{}-authority.redb", netlist.system));
-            let parse: dnm_authority::ParseNetlist = Arc::new(crate::parse_netlist_text);
+            let parse: dnm_authority::ParseNetlist = Arc::new(crate::parse_remote_netlist_text);
             let a = dnm_authority::Authority::start(
                 session.clone(),
                 &netlist,
@@ -343,7 +343,7 @@ fn run_dnm(
 ) {
     let started = (|| {
         let mut dnm = Dnm::new(&netlist.system, name, options.dnm)?;
-        let parse: dnm_zenoh::ParseNetlist = Arc::new(crate::parse_netlist_text);
+        let parse: dnm_zenoh::ParseNetlist = Arc::new(crate::parse_remote_netlist_text);
         let bridge = dnm_zenoh::Bridge::new(
             session,
             &netlist.system,
@@ -400,8 +400,8 @@ fn adopt(
     dnms: &[String],
 ) -> Option<(Netlist, u64, Option<String>)> {
     let text = state.text.as_ref()?;
-    // Relative `exec` paths resolve against this machine's netlist file, not the sender's.
-    match crate::parse_netlist(local_file, text) {
+    // It came over the network: external kinds only from this computer's module folder.
+    match crate::parse_remote_netlist_text(local_file, text) {
         Ok(n) if dnms.iter().all(|d| n.dnm(d).is_some()) => {
             Some((n, state.revision, state.active_task.clone()))
         }

@@ -72,16 +72,110 @@ impl HostOptions {
     }
 }
 
-/// Asks a module executable for its kind (`EXEC describe`).
+/// How long a module executable may take to describe itself.
+const DESCRIBE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+/// How much it may print doing so.
+const DESCRIBE_MAX_BYTES: u64 = 1 << 20;
+
+/// Asks a module executable for its kind (`EXEC describe`), within [`DESCRIBE_TIMEOUT`] and
+/// [`DESCRIBE_MAX_BYTES`] of output.
 pub fn describe_exec(path: &Path) -> Result<KindSpec, String> {
-    let out = std::process::Command::new(path)
+    use std::io::Read;
+    let mut child = std::process::Command::new(path)
         .arg("describe")
-        .output()
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
         .map_err(|e| e.to_string())?;
-    if !out.status.success() {
-        return Err(format!("`describe` exited with {}", out.status));
+    let mut stdout = child.stdout.take().ok_or("no output")?;
+    let reader = std::thread::spawn(move || {
+        let mut out = Vec::new();
+        let r = (&mut stdout)
+            .take(DESCRIBE_MAX_BYTES + 1)
+            .read_to_end(&mut out);
+        r.map(|_| out)
+    });
+    let deadline = std::time::Instant::now() + DESCRIBE_TIMEOUT;
+    let status = loop {
+        if let Some(s) = child.try_wait().map_err(|e| e.to_string())? {
+            break s;
+        }
+        if std::time::Instant::now() >= deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(format!(
+                "`describe` did not finish within {} s",
+                DESCRIBE_TIMEOUT.as_secs()
+            ));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    };
+    let out = reader
+        .join()
+        .map_err(|_| "reading `describe`".to_string())?
+        .map_err(|e| e.to_string())?;
+    if out.len() as u64 > DESCRIBE_MAX_BYTES {
+        return Err(format!(
+            "`describe` printed more than {DESCRIBE_MAX_BYTES} bytes"
+        ));
     }
-    serde_json::from_slice(&out.stdout).map_err(|e| format!("`describe` printed no kind: {e}"))
+    if !status.success() {
+        return Err(format!("`describe` exited with {status}"));
+    }
+    serde_json::from_slice(&out).map_err(|e| format!("`describe` printed no kind: {e}"))
+}
+
+/// The folder of module executables installed on this computer (`$DNM_MODULE_DIR`): the only
+/// place a netlist from the network may take external kinds from.
+pub fn module_dir() -> Option<std::path::PathBuf> {
+    std::env::var_os("DNM_MODULE_DIR").map(Into::into)
+}
+
+/// Validates a netlist that came over the network (an operator's apply, the authority's
+/// decisions): its external kinds are looked up by file name in [`module_dir`] and nothing
+/// outside it is ever run or described.
+pub fn parse_remote_netlist_text(path: &Path, text: &str) -> Result<Netlist, String> {
+    let dir = module_dir();
+    let name = path
+        .file_name()
+        .map_or_else(|| "remote.toml".into(), |n| n.to_os_string());
+    // Relative `exec` paths resolve against the module folder, not the sender's.
+    let file = dir
+        .as_ref()
+        .map_or_else(|| Path::new("/nonexistent").join(&name), |d| d.join(&name));
+    let installed = dir.as_ref().and_then(|d| d.canonicalize().ok());
+    let mut describe = |exec: &Path| -> Result<KindSpec, String> {
+        let Some(root) = &installed else {
+            return Err(format!(
+                "`{}` is not run: a netlist from the network may only use kinds installed on this \
+                 computer; set DNM_MODULE_DIR to the folder of installed module executables",
+                exec.display()
+            ));
+        };
+        match exec.canonicalize() {
+            Ok(p) if p.starts_with(root) && p.is_file() => describe_exec(&p),
+            _ => Err(format!(
+                "`{}` is not an installed module: a netlist from the network may only name \
+                 executables in {} (DNM_MODULE_DIR), by file name",
+                exec.display(),
+                root.display()
+            )),
+        }
+    };
+    Netlist::parse(&file, text, &catalog(), &mut describe).map_err(|e| e.to_string())
+}
+
+/// Validates a netlist stored in a recording without running anything: its external kinds
+/// stay unknown.
+pub fn parse_recorded_netlist_text(path: &Path, text: &str) -> Result<Netlist, String> {
+    let mut refuse = |exec: &Path| -> Result<KindSpec, String> {
+        Err(format!(
+            "`{}` is not run for a recording: analyse it where the module is installed",
+            exec.display()
+        ))
+    };
+    Netlist::parse(path, text, &catalog(), &mut refuse).map_err(|e| e.to_string())
 }
 
 /// Every built-in kind: the standard ones and Beetle-One's. `dnm-module-host` runs them.
@@ -153,4 +247,41 @@ pub fn placed_text(
         }
     }
     toml::to_string(&doc).map_err(|e| e.to_string())
+}
+
+#[cfg(test)]
+mod describe_tests {
+    use super::*;
+
+    fn script(name: &str, body: &str) -> std::path::PathBuf {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = std::env::temp_dir().join(format!("dnm-describe-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join(name);
+        std::fs::write(&p, format!("#!/bin/sh\n{body}\n")).unwrap();
+        std::fs::set_permissions(&p, std::fs::Permissions::from_mode(0o755)).unwrap();
+        p
+    }
+
+    #[test]
+    fn a_module_that_hangs_or_floods_when_asked_to_describe_itself_is_refused() {
+        let hang = script("hang", "sleep 60");
+        let e = describe_exec(&hang).unwrap_err();
+        assert!(e.contains("did not finish"), "{e}");
+        let flood = script("flood", "yes");
+        let e = describe_exec(&flood).unwrap_err();
+        assert!(
+            e.contains("did not finish") || e.contains("more than"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_remote_netlist_names_only_installed_executables_and_a_recording_none() {
+        let text = "[system]\nname = \"s\"\n[[module]]\nname = \"x\"\nkind = \"evil\"\n[kind.evil]\nexec = \"/bin/sh\"\n";
+        let e = parse_remote_netlist_text(Path::new("evil.toml"), text).unwrap_err();
+        assert!(e.contains("/bin/sh"), "{e}");
+        let e = parse_recorded_netlist_text(Path::new("evil.toml"), text).unwrap_err();
+        assert!(e.contains("not run for a recording"), "{e}");
+    }
 }

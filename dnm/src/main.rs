@@ -406,7 +406,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         } => {
             let bytes =
                 std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-            let s = dnm::stats::stats(&bytes, &dnm::parse_netlist_text).map_err(|e| {
+            let s = dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text).map_err(|e| {
                 anyhow::anyhow!("{}: not a readable MCAP file: {e}", file.display())
             })?;
             if !csv.is_empty() {
@@ -453,7 +453,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 system.as_deref(),
                 &only,
                 pace,
-                &dnm::parse_netlist_text,
+                &dnm::parse_recorded_netlist_text,
             )
             .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
             if json {

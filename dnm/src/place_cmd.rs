@@ -77,7 +77,7 @@ fn row(
 /// Bytes per message and rate of every recorded port, from a recording's channels.
 fn measured(file: &Path) -> anyhow::Result<dnm_place::Measured> {
     let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
-    let stats = dnm::stats::stats(&bytes, &dnm::parse_netlist_text)
+    let stats = dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text)
         .map_err(|e| anyhow::anyhow!("{}: not a readable recording: {e}", file.display()))?;
     let mut out = dnm_place::Measured::new();
     for c in stats.channels {
