@@ -3,7 +3,7 @@
 //! machine's DNMs behind it.
 //!
 //! ```text
-//! $ echo '{"cmd":"switch","task":"auto"}' | socat - UNIX-CONNECT:/tmp/dnm-run/beetle.sock
+//! $ echo '{"cmd":"switch","task":"auto"}' | socat - UNIX-CONNECT:/tmp/dnm-run-0/beetle/rover+drive+vision+ground.sock
 //! ```
 
 use std::io::{BufRead, BufReader, Write};
@@ -44,11 +44,55 @@ pub enum AdminError {
     },
 }
 
-/// Folder of the admin sockets: `$DNM_RUN_DIR`, else `/tmp/dnm-run`.
+/// Folder of the admin sockets: `$DNM_RUN_DIR`, else `$XDG_RUNTIME_DIR/dnm`, else
+/// `/tmp/dnm-run-<uid>` (one per user).
 pub fn run_dir() -> PathBuf {
-    std::env::var_os("DNM_RUN_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| std::env::temp_dir().join("dnm-run"))
+    if let Some(d) = std::env::var_os("DNM_RUN_DIR") {
+        return d.into();
+    }
+    if let Some(d) = std::env::var_os("XDG_RUNTIME_DIR") {
+        return PathBuf::from(d).join("dnm");
+    }
+    // SAFETY: getuid(2) cannot fail and has no preconditions.
+    let uid = unsafe { libc::getuid() };
+    std::env::temp_dir().join(format!("dnm-run-{uid}"))
+}
+
+/// Creates `dir` (and its parents) for this user only, or checks an existing one: it must be
+/// this user's and is made private. Anyone else's folder is refused: its owner could put a
+/// socket of their own where `dnm` commands look for the system.
+pub fn private_dir(dir: &Path) -> anyhow::Result<()> {
+    use std::os::unix::fs::{DirBuilderExt, MetadataExt, PermissionsExt};
+    std::fs::DirBuilder::new()
+        .recursive(true)
+        .mode(0o700)
+        .create(dir)
+        .map_err(|e| anyhow::anyhow!("creating {}: {e}", dir.display()))?;
+    // SAFETY: getuid(2) cannot fail and has no preconditions.
+    let uid = unsafe { libc::getuid() };
+    for d in [
+        dir.parent().filter(|p| *p != std::env::temp_dir()),
+        Some(dir),
+    ]
+    .into_iter()
+    .flatten()
+    {
+        let meta = std::fs::symlink_metadata(d)
+            .map_err(|e| anyhow::anyhow!("reading {}: {e}", d.display()))?;
+        if !meta.is_dir() || meta.uid() != uid {
+            anyhow::bail!(
+                "{} belongs to user {} (or is not a folder), not to this user ({uid}): refusing \
+                 to put the admin socket there; remove it or set DNM_RUN_DIR",
+                d.display(),
+                meta.uid()
+            );
+        }
+        if meta.mode() & 0o077 != 0 {
+            std::fs::set_permissions(d, std::fs::Permissions::from_mode(0o700))
+                .map_err(|e| anyhow::anyhow!("making {} private: {e}", d.display()))?;
+        }
+    }
+    Ok(())
 }
 
 /// Admin socket of the process hosting `dnms` of `system`: one per process, so several
@@ -270,7 +314,7 @@ fn start(
 
     let path = socket_path(&netlist.system, dnms);
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).context("creating the admin socket folder")?;
+        private_dir(dir).context("the admin socket folder")?;
     }
     if UnixStream::connect(&path).is_ok() {
         anyhow::bail!(
@@ -601,5 +645,31 @@ fn dispatch(req: Request, system: &str, dnms: &[Commander]) -> Response {
                 "transactions come from the system's authority over Zenoh, not the admin socket",
             )
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_admin_folder_is_made_private_and_anyone_elses_is_refused() {
+        use std::os::unix::fs::{MetadataExt, PermissionsExt};
+        let base = std::env::temp_dir().join(format!("dnm-private-{}", std::process::id()));
+        let dir = base.join("sys");
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o777)).unwrap();
+        private_dir(&dir).unwrap();
+        assert_eq!(std::fs::metadata(&dir).unwrap().mode() & 0o777, 0o700);
+        // SAFETY: getuid(2) has no preconditions.
+        if unsafe { libc::getuid() } == 0 {
+            // As root, hand it to `nobody`: it must be refused now.
+            let path = std::ffi::CString::new(dir.to_str().unwrap()).unwrap();
+            // SAFETY: chown(2) on a path we created, with a valid C string.
+            assert_eq!(unsafe { libc::chown(path.as_ptr(), 65534, 65534) }, 0);
+            let e = private_dir(&dir).unwrap_err().to_string();
+            assert!(e.contains("refusing"), "{e}");
+        }
+        let _ = std::fs::remove_dir_all(&base);
     }
 }
