@@ -3,7 +3,7 @@
 //! machine's DNMs behind it.
 //!
 //! ```text
-//! $ echo '{"cmd":"switch","task":"auto"}' | socat - UNIX-CONNECT:/tmp/dnm-run-0/beetle/rover+drive+vision+ground.sock
+//! $ echo '{"cmd":"status"}' | socat - UNIX-CONNECT:/tmp/dnm-run-0/beetle/rover+drive+vision+ground.sock
 //! ```
 
 use std::io::{BufRead, BufReader, Write};
