@@ -42,7 +42,8 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
             // A time tag far enough ahead to be cancelled, and its cancel.
             58 => Order::Switch {
                 task: "b".into(),
-                at_unix_ns: Some(dnm_ground::now_unix_ns() + 40_000_000_000),
+                // Far enough ahead that its cancel arrives first, whatever the radio does.
+                at_unix_ns: Some(dnm_ground::now_unix_ns() + 300_000_000_000),
             },
             60 => Order::Cancel {
                 seq: cancelled_target.unwrap(),

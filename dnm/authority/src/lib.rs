@@ -263,8 +263,9 @@ impl Authority {
         if let Ok(core) = shared.core.lock() {
             publish_rover(&shared, &core);
         }
-        // Transactions a stopped authority left undecided are dropped before any new one.
-        reconcile(&shared);
+        // Transactions a stopped authority left undecided are dropped by the reconciler; the
+        // worker starts none while any DNM still holds one (it waits for them all in step), so
+        // stations are heard from the first moment.
         let (tx, rx) = mpsc::sync_channel::<Query>(UPLINK_QUEUE);
         let queryable = session
             .declare_queryable(keys::authority(&system))
