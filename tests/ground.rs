@@ -37,6 +37,8 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
 
     let mut sent = Vec::new();
     let mut cancelled_target = None;
+    // When the authority was down and catching up (wall clock, ns).
+    let mut restart = (0u64, 0u64);
     for i in 0..100u64 {
         let order = match i {
             // A time tag far enough ahead to be cancelled, and its cancel.
@@ -85,6 +87,7 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
         }
         if i == 70 {
             // The authority dies with its DNM, mid-run, and comes back.
+            restart.0 = dnm_ground::now_unix_ns();
             poller.set_down("rover", true);
             authority.take().unwrap().kill();
             std::thread::sleep(Duration::from_secs(1));
@@ -95,6 +98,7 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
                 report(&session, &rig.system, "rover").filter(|r| r.pid == pid)
             });
             poller.set_down("rover", false);
+            restart.1 = dnm_ground::now_unix_ns();
         }
         std::thread::sleep(Duration::from_millis(350));
     }
@@ -118,6 +122,26 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
             other => panic!("command {} ended {other:?}: {e:?}", e.seq),
         }
     }
+    // A time tag the rover held before its time ran at exactly that rover time (unless it fell
+    // due while the authority was restarting and its DNMs catching up).
+    let mut on_time = 0;
+    for e in &entries {
+        if let (
+            Order::Switch {
+                at_unix_ns: Some(tag),
+                ..
+            },
+            Some(Fate::Applied { at_unix_ns, .. }),
+            Some(acked),
+        ) = (&e.order, &e.fate, e.acknowledged_unix_ns)
+            && acked + 500_000_000 < *tag
+            && !(restart.0..restart.1 + 10_000_000_000).contains(tag)
+        {
+            assert_eq!(at_unix_ns, tag, "{e:?}");
+            on_time += 1;
+        }
+    }
+    println!("{on_time} time-tagged switches held by the rover ran at their tag");
     // In the station's order (time tags run at their time).
     let immediate: Vec<(u64, u64)> = entries
         .iter()

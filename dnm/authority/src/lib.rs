@@ -483,7 +483,7 @@ fn next_job(s: &Shared, core: &Core) -> Result<Option<Job>, AuthorityError> {
         }
     }
     // Time-tagged switches whose time has come (prepared a little ahead).
-    let margin = (s.options.switch_lead * 4).as_nanos() as u64;
+    let margin = tag_margin(s);
     let now = now_unix_ns();
     let cancels = s.store.pending_cancels()?;
     if let Some(t) = s
@@ -704,7 +704,7 @@ fn run_command(
                     format!("unknown task `{task}`; the tasks are {}", known.join(", ")),
                 );
             }
-            let lead = s.options.switch_lead.as_nanos() as u64 * 4;
+            let lead = tag_margin(s);
             if let Some(at) = at_unix_ns.filter(|at| *at > now_unix_ns() + lead) {
                 tracing::info!(
                     station,
@@ -1019,6 +1019,18 @@ fn decide(d: &DecisionRecord) -> Request {
         revision: d.revision,
         task: d.task.clone(),
     }
+}
+
+/// How long before its time a time-tagged switch is started: time to prepare it and a lead
+/// as long as the one the decision will get (as measured lately), twice over, so it is put in
+/// force at its tag.
+fn tag_margin(s: &Shared) -> u64 {
+    let lead = s
+        .timing
+        .lock()
+        .map(|t| t.lead(s.options.switch_lead))
+        .unwrap_or(s.options.switch_lead);
+    (lead * 4).as_nanos() as u64
 }
 
 /// Sends `req` to each DNM at once and collects their answers.

@@ -868,6 +868,14 @@ fn command_loop(
         shared.commands_in_flight.fetch_sub(1, Ordering::Relaxed);
         shared.answered.fetch_add(1, Ordering::Relaxed);
     };
+    // Hands a command to the DNM; if it cannot take it, its query is answered here.
+    let hand = |command: Command, slot: Arc<Mutex<Option<Query>>>| {
+        if let Err(e) = commander.send(command)
+            && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
+        {
+            finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
+        }
+    };
     loop {
         let job = match jobs.recv_timeout(Duration::from_millis(100)) {
             Ok(job) => job,
@@ -983,11 +991,7 @@ fn command_loop(
                         Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
                     },
                 );
-                if let Err(e) = commander.send(Command::Switch { task, key, reply })
-                    && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
-                {
-                    finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                }
+                hand(Command::Switch { task, key, reply }, slot);
             }
             Request::Apply { file, text } => {
                 let applies = shared.applies_in_flight.clone();
@@ -1085,11 +1089,7 @@ fn command_loop(
                     task,
                     netlist,
                 };
-                if let Err(e) = commander.send(Command::Prepare { txn, reply })
-                    && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
-                {
-                    finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                }
+                hand(Command::Prepare { txn, reply }, slot);
             }
             Request::Decide {
                 txn,
@@ -1136,11 +1136,7 @@ fn command_loop(
                     revision,
                     task,
                 };
-                if let Err(e) = commander.send(Command::Decide { decision, reply })
-                    && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
-                {
-                    finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                }
+                hand(Command::Decide { decision, reply }, slot);
             }
             Request::Adopt {
                 revision,
@@ -1164,15 +1160,13 @@ fn command_loop(
                     },
                     Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
                 });
-                if let Err(e) = commander.send(Command::Adopt {
+                let adopt = Command::Adopt {
                     revision,
                     task,
                     netlist: Box::new(netlist),
                     reply,
-                }) && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
-                {
-                    finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                }
+                };
+                hand(adopt, slot);
             }
         }
     }

@@ -491,15 +491,7 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
         .map_err(ipc("node"))?;
 
     // Our side of the conversation with the DNM.
-    let board = task_board(&node)?;
-    let reader = board
-        .reader_builder()
-        .create()
-        .map_err(ipc("blackboard reader"))?;
-    let word_entry = reader.entry::<u64>(&0).map_err(ipc("blackboard entry"))?;
-    let switched_entry = reader
-        .entry::<u64>(&SWITCHED_AT_KEY)
-        .map_err(ipc("blackboard entry"))?;
+    let task = TaskWatch::on(&node)?;
     let plan_sub = plan_service_factory(&node, &launch.module)?
         .subscriber_builder()
         .create()
@@ -683,7 +675,7 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                 }
 
                 // The reference swap: one read of the task word decides every input of this step.
-                let word = *word_entry.get();
+                let word = *task.word.get();
                 let (revision, slot) = split_task_word(word);
                 let routes_idx = plans.iter().position(|p| p.revision == revision);
                 if let Some(i) = routes_idx
@@ -703,7 +695,7 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                     // An input switched to another source shows only what that source sends
                     // from the switch on: what it queued before (it may have gone quiet long
                     // ago) is old. The DNM stamps each store of the word.
-                    let switched_at = *switched_entry.get();
+                    let switched_at = *task.at.get();
                     for (input, a) in active.iter().enumerate() {
                         let source = a.map(|c| conns[c].source.clone());
                         if last_word != UNSET_WORD && source != last_sources[input] {
@@ -773,7 +765,7 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                     tracing::error!(module = %launch.module, revision, "cannot prepare: {e}");
                     // The revision in force itself: this process cannot serve it, so it ends and
                     // its restart policy takes over.
-                    let (in_force, _) = split_task_word(*word_entry.get());
+                    let (in_force, _) = split_task_word(*task.word.get());
                     if revision == in_force {
                         return Err(e);
                     }
@@ -957,7 +949,7 @@ pub struct TaskWatch {
     at: iceoryx2::port::reader::EntryHandle<Svc, u64, u64>,
     _reader: iceoryx2::port::reader::Reader<Svc, u64>,
     _board: BlackboardFactory<Svc, u64>,
-    _node: Node<Svc>,
+    _node: Option<Node<Svc>>,
 }
 
 impl std::fmt::Debug for TaskWatch {
@@ -974,7 +966,14 @@ impl TaskWatch {
             .config(&config)
             .create::<Svc>()
             .map_err(ipc("node"))?;
-        let board = task_board(&node)?;
+        let mut watch = Self::on(&node)?;
+        watch._node = Some(node);
+        Ok(watch)
+    }
+
+    /// The task word of the DNM whose namespace `node` is in (a module's own view of it).
+    pub(crate) fn on(node: &Node<Svc>) -> Result<Self, ModuleError> {
+        let board = task_board(node)?;
         let reader = board
             .reader_builder()
             .create()
@@ -990,7 +989,7 @@ impl TaskWatch {
             at,
             _reader: reader,
             _board: board,
-            _node: node,
+            _node: None,
         })
     }
 
