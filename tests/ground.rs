@@ -209,10 +209,12 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
         .collect();
     assert!(late.is_empty(), "DNMs apart outside a switch: {late:?}");
 
-    // The ground's DNM follows across the radio.
+    // The ground's DNM follows across the radio (asked on the ground's side, as an operator
+    // would: a query across this radio can stall for many seconds).
     let last = decided.last().unwrap();
+    let ground = zenoh_client(rig.ground_port);
     eventually("the ground's DNM follows", || {
-        report(&session, &rig.system, "ground")
+        report(&ground, &rig.system, "ground")
             .filter(|r| r.revision == last.1 && r.active_task.as_deref() == Some(&last.2))
     });
     drop(authority);

@@ -118,6 +118,8 @@ struct Core {
 struct Timing {
     round_trip: Duration,
     store: Duration,
+    /// How long a transaction that runs at once keeps the worker, prepare to last ack.
+    busy: Duration,
 }
 
 impl Timing {
@@ -129,10 +131,19 @@ impl Timing {
         self.store = (self.store * 7 / 8 + d / 8).max(d);
     }
 
+    fn busy(&mut self, d: Duration) {
+        self.busy = (self.busy * 7 / 8 + d / 8).max(d).min(MAX_BUSY);
+    }
+
     fn lead(&self, least: Duration) -> Duration {
         least.max((self.round_trip * 2 + self.store * 2).min(MAX_LEAD))
     }
 }
+
+/// The least and the most a transaction is expected to keep the worker when deciding whether
+/// a command can run before a time tag falls due.
+const MIN_BUSY: Duration = Duration::from_millis(500);
+const MAX_BUSY: Duration = Duration::from_secs(5);
 
 struct Shared {
     timing: Mutex<Timing>,
@@ -486,20 +497,34 @@ fn next_job(s: &Shared, core: &Core) -> Result<Option<Job>, AuthorityError> {
     let margin = tag_margin(s);
     let now = now_unix_ns();
     let cancels = s.store.pending_cancels()?;
-    if let Some(t) = s
+    let timer = s
         .store
         .timers()?
         .into_iter()
-        .filter(|t| t.at_unix_ns <= now + margin)
         // A cancel already taken for it runs first (the station's earlier commands with it).
         .filter(|t| !cancels.contains(&(t.station.clone(), t.seq)))
-        .min_by_key(|t| t.at_unix_ns)
+        .min_by_key(|t| t.at_unix_ns);
+    if let Some(t) = timer.as_ref().filter(|t| t.at_unix_ns <= now + margin) {
+        return Ok(Some(Job::Timer(t.clone())));
+    }
+    let Some((station, sent)) = s.store.next_command()? else {
+        return Ok(None);
+    };
+    // A command that would still hold the worker when a time tag is due to be prepared waits
+    // for it: the tag is prepared early and runs at its time, the command right after.
+    let busy = s
+        .timing
+        .lock()
+        .map(|t| t.busy)
+        .unwrap_or_default()
+        .max(MIN_BUSY)
+        .as_nanos() as u64;
+    if !matches!(sent.order, Order::Cancel { .. })
+        && let Some(t) = timer.filter(|t| t.at_unix_ns <= now + margin + busy)
     {
         return Ok(Some(Job::Timer(t)));
     }
-    Ok(s.store
-        .next_command()?
-        .map(|(station, sent)| Job::Command(station, sent)))
+    Ok(Some(Job::Command(station, sent)))
 }
 
 /// Longest wait for the rover's DNMs to be in step before a transaction is tried anyway (and
@@ -999,6 +1024,9 @@ fn transact(
         if missing.is_empty() {
             break;
         }
+    }
+    if at.is_none() {
+        s.timing.lock().map(|mut t| t.busy(started.elapsed())).ok();
     }
     tracing::info!(
         txn = id,

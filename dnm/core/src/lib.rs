@@ -28,6 +28,7 @@
 mod apply;
 mod command;
 mod error;
+mod janitor;
 mod node;
 mod options;
 mod pending;

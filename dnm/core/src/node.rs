@@ -24,6 +24,7 @@ use dnm_proto::{
 
 use crate::command::{Command, CommandKey, Reply};
 use crate::error::{DnmError, ipc};
+use crate::janitor::Janitor;
 use crate::options::DnmOptions;
 use crate::pending::{Decided, HeldSwitch, NEAR, Outcome, PendingApply, QueuedApply, Scheduled};
 use crate::plugin::{Plugin, Snapshot};
@@ -143,6 +144,7 @@ pub struct Dnm {
     pub(crate) memory: Option<Memory>,
     pub(crate) memory_read: Instant,
     pub(crate) cleaned: u64,
+    pub(crate) janitor: Janitor,
     pub(crate) plugins: Vec<Box<dyn Plugin>>,
     answered: VecDeque<(CommandKey, Outcome)>,
     pub(crate) apply: Option<PendingApply>,
@@ -252,6 +254,7 @@ impl Dnm {
             memory: None,
             memory_read: Instant::now() - Duration::from_secs(2),
             cleaned,
+            janitor: Janitor::start(name, config.clone()),
             plugins: Vec::new(),
             answered: VecDeque::new(),
             apply: None,
@@ -444,7 +447,7 @@ impl Dnm {
                 .collect(),
             switches: self.switches.iter().cloned().collect(),
             events: self.events_log.iter().cloned().collect(),
-            cleaned_dead_nodes: self.cleaned,
+            cleaned_dead_nodes: self.cleaned + self.janitor.cleaned(),
             supervision: self.supervision.clone(),
             peers: Vec::new(),
             routes: Default::default(),
@@ -537,8 +540,8 @@ impl Dnm {
             }
             self.read_statuses();
             self.progress_apply();
-            // Exits are noticed within a few milliseconds (their shared memory is cleaned up by
-            // this DNM), not on every module heartbeat; readings and snapshots follow the tick.
+            // Exits are noticed within a few milliseconds (the janitor thread removes their shared
+            // memory), not on every module heartbeat; readings and snapshots follow the tick.
             if self.last_supervise.elapsed() >= SUPERVISE_EVERY {
                 self.last_supervise = Instant::now();
                 self.supervise();

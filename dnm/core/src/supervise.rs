@@ -266,20 +266,21 @@ impl Dnm {
             i += 1;
         }
         if any_died {
-            let c = self.node.try_cleanup_dead_nodes();
-            self.cleaned += c.cleanups;
+            self.janitor.sweep();
         }
         // An apply that waited for a stopping process may start now.
         if self.apply.is_none() && !self.queued_applies.is_empty() {
             self.next_apply();
         }
         // Starts that are due: restarts after their back-off, replacements once the process
-        // they replace is gone.
+        // they replace is gone and its shared memory removed (the sweep wakes this DNM).
+        let swept = self.janitor.idle();
         let due: Vec<String> = self
             .modules
             .iter()
             .filter(|(n, s)| {
-                s.child.is_none()
+                swept
+                    && s.child.is_none()
                     && s.start_at.is_some_and(|t| t <= now)
                     && !self.stopping.iter().any(|x| x.module == **n)
             })
