@@ -7,6 +7,7 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
 
+mod certs;
 mod demo;
 mod ground_cmd;
 mod linksim;
@@ -220,6 +221,12 @@ enum Cmd {
         #[command(subcommand)]
         cmd: ground_cmd::GroundCmd,
     },
+    /// The system's certificate authority, its identities' certificates, and Zenoh
+    /// configurations with mutual TLS and access control generated from the netlist.
+    Certs {
+        #[command(subcommand)]
+        cmd: certs::CertsCmd,
+    },
     /// Emulate a radio link between two endpoints (delay, bandwidth, loss, outages), no root
     /// needed.
     Linksim(linksim::LinkArgs),
@@ -281,11 +288,12 @@ fn main() -> ExitCode {
     unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
     let cli = Cli::parse();
     // The demo talks to its user on stdout; its DNMs only speak up for warnings.
-    dnm_module::init_logging_at(if matches!(cli.command, Cmd::Demo { .. }) {
+    dnm::init_logging(if matches!(cli.command, Cmd::Demo { .. }) {
         "warn"
     } else {
         "info"
     });
+    iceoryx2::prelude::set_log_level(iceoryx2::prelude::LogLevel::Warn);
     match run(cli) {
         Ok(code) => code,
         Err(e) => {
@@ -300,6 +308,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Cmd::Check { netlist, json } => check(&netlist, json),
         Cmd::Ground { cmd } => ground_cmd::run(&z.options(), cmd),
+        Cmd::Certs { cmd } => certs::run(cmd),
         Cmd::Linksim(args) => {
             linksim::run(&args)?;
             Ok(ExitCode::SUCCESS)

@@ -1,7 +1,7 @@
 //! Joining Zenoh. Every process of the system (DNM hosts, the `dnm` command, the router) builds
 //! its Zenoh configuration with [`ZenohOptions`]: a Zenoh JSON5 file (ours are in
-//! `configs/zenoh/`) or Zenoh's defaults (peer mode, multicast scouting), with endpoints and mode
-//! given on the command line on top. [`run_router`] runs a Zenoh router: the process that joins
+//! `configs/zenoh/`) or Zenoh's defaults (peer mode, multicast scouting) listening on loopback
+//! only, with endpoints and mode given on the command line on top. [`run_router`] runs a Zenoh router: the process that joins
 //! the rover's network and the ground's.
 //!
 //! ```no_run
@@ -76,6 +76,9 @@ impl ZenohOptions {
                 "listen/endpoints",
                 serde_json::Value::from(self.listen.clone()).to_string(),
             )?;
+        } else if self.config.is_none() {
+            // Without a configuration nothing is reachable from another machine.
+            set("listen/endpoints", r#"["tcp/127.0.0.1:0"]"#.into())?;
         }
         if !self.connect.is_empty() {
             set(
@@ -139,4 +142,143 @@ fn wait_for(set: &libc::sigset_t) {
     let mut sig = 0;
     // SAFETY: `set` is an initialised sigset_t whose signals are blocked in this thread.
     unsafe { libc::sigwait(set, &mut sig) };
+}
+
+/// Logging for processes that admit others over Zenoh: the usual log on standard error, and
+/// every access Zenoh's access control refuses, written as `access refused: …` (at most
+/// [`REFUSALS_PER_WINDOW`] lines per ten seconds, then a count of those left out).
+pub fn init_logging(default: &str) {
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
+    use tracing_subscriber::{EnvFilter, Layer, filter::Targets};
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+        EnvFilter::new(format!(
+            "{default},zenoh=warn,zenoh_transport=warn,zenoh_link_tcp=warn,zenoh_link_tls=warn,zenoh_link_udp=warn,zenoh_config=warn"
+        ))
+    });
+    let refusals = Refusals::default().with_filter(
+        Targets::new()
+            .with_target(ACL_TARGET, tracing::Level::TRACE)
+            .with_target("zenoh::net::routing::interceptor", tracing::Level::INFO),
+    );
+    let _ = tracing_subscriber::registry()
+        .with(
+            tracing_subscriber::fmt::layer()
+                .with_writer(std::io::stderr)
+                .with_filter(filter),
+        )
+        .with(refusals)
+        .try_init();
+}
+
+const ACL_TARGET: &str = "zenoh::net::routing::interceptor::access_control";
+
+/// Refusal lines written per ten seconds at most.
+pub const REFUSALS_PER_WINDOW: u32 = 20;
+
+#[derive(Default)]
+struct Refusals {
+    /// Start of the window, lines written in it, lines left out since the last one written.
+    window: std::sync::Mutex<Option<(std::time::Instant, u32, u64)>>,
+}
+
+struct Message(String);
+
+impl tracing::field::Visit for Message {
+    fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+        if field.name() == "message" {
+            use std::fmt::Write;
+            let _ = write!(self.0, "{value:?}");
+        }
+    }
+}
+
+impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for Refusals {
+    fn on_event(
+        &self,
+        event: &tracing::Event<'_>,
+        _ctx: tracing_subscriber::layer::Context<'_, S>,
+    ) {
+        let mut m = Message(String::new());
+        event.record(&mut m);
+        if !refused(&m.0) {
+            return;
+        }
+        let Ok(mut w) = self.window.lock() else {
+            return;
+        };
+        let now = std::time::Instant::now();
+        let (start, written, left_out) = w.get_or_insert((now, 0, 0));
+        if now.duration_since(*start) >= std::time::Duration::from_secs(10) {
+            (*start, *written) = (now, 0);
+        }
+        if *written >= REFUSALS_PER_WINDOW {
+            *left_out += 1;
+            return;
+        }
+        *written += 1;
+        let more = std::mem::take(left_out);
+        let more = if more > 0 {
+            format!(" ({more} more refused before this one)")
+        } else {
+            String::new()
+        };
+        // Straight to standard error: a refusal is recorded whatever the log filter says.
+        eprintln!("{} WARN access refused: {}{more}", utc_now(), m.0);
+    }
+}
+
+thread_local! {
+    /// The key whose permissions Zenoh is computing on this thread (when a key is declared,
+    /// before any message on it), if it is.
+    static CACHING: std::cell::RefCell<Option<String>> = const { std::cell::RefCell::new(None) };
+}
+
+/// Whether a message of Zenoh's access control reports a refusal of something a remote sent
+/// or was to receive (not the permissions worked out ahead for a newly declared key).
+fn refused(m: &str) -> bool {
+    if let Some(rest) = m.split("caching permissions for `").nth(1) {
+        let key = rest.split('`').next().unwrap_or_default().to_string();
+        CACHING.with(|c| *c.borrow_mut() = Some(key));
+        return false;
+    }
+    if m.contains("did not match any configured ACL") {
+        return true;
+    }
+    let ahead = !m.starts_with("Using cached result")
+        && CACHING.with(|c| {
+            c.borrow()
+                .as_ref()
+                .is_some_and(|k| m.ends_with(&format!(" on {k}")))
+        });
+    if ahead {
+        return false;
+    }
+    CACHING.with(|c| *c.borrow_mut() = None);
+    m.contains("is unauthorized")
+}
+
+/// The time now in UTC, as `2026-11-22T01:02:03.456789Z`.
+fn utc_now() -> String {
+    let t = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap_or_default();
+    let secs = t.as_secs();
+    let z = (secs / 86_400) as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    let s = secs % 86_400;
+    format!(
+        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:06}Z",
+        s / 3600,
+        s / 60 % 60,
+        s % 60,
+        t.subsec_micros()
+    )
 }
