@@ -261,6 +261,9 @@ fn refusals(log: &Path) -> Vec<String> {
 #[test]
 fn only_the_operator_commands_a_secured_system() {
     let s = Secured::new();
+    // A DNM may come up before its router: it waits for it.
+    let _a = s.up("a");
+    std::thread::sleep(Duration::from_secs(1));
     let router = Proc::dnm(
         &s.dir,
         "router",
@@ -270,7 +273,6 @@ fn only_the_operator_commands_a_secured_system() {
             "router".into(),
         ],
     );
-    let _a = s.up("a");
     let _b = s.up("b");
     let operator = s.session("ground-1");
     eventually("src's samples cross to relay", || {

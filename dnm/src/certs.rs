@@ -428,6 +428,12 @@ pub fn zenoh_config(
     if !connect.is_empty() {
         set(&mut config, &["connect", "endpoints"], json!(connect));
     }
+    if matches!(me.role, Role::Rover | Role::Router) {
+        // The system's own computers wait for their router however long it takes to come up
+        // (an operator's command fails at once instead).
+        set(&mut config, &["connect", "timeout_ms"], json!(-1));
+        set(&mut config, &["connect", "exit_on_failure"], json!(false));
+    }
     // Only the endpoints given: nothing announced or found on the network.
     set(
         &mut config,
