@@ -66,6 +66,7 @@ pub fn replay(
     pace: Pace,
     parse: &crate::ParseNetlist<'_>,
 ) -> Result<ReplayReport, String> {
+    crate::check_layout(bytes)?;
     // The recorded netlist: system name and port types.
     let summary = mcap::Summary::read(bytes).ok().flatten().ok_or(
         "the recording has no summary (was its DNM killed?); replay needs a finished file",
@@ -85,8 +86,7 @@ pub fn replay(
     let mut targets: BTreeMap<String, Target> = BTreeMap::new();
     let mut messages = Vec::new();
     let mut skipped: Vec<String> = Vec::new();
-    let options = enumset::enum_set!(mcap::read::Options::IgnoreEndMagic);
-    for m in mcap::MessageStream::new_with_options(bytes, options).map_err(|e| e.to_string())? {
+    for m in crate::messages(bytes) {
         let Ok(m) = m else { break };
         let topic = m.channel.topic.clone();
         if topic.ends_with("/_switches")

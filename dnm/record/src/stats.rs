@@ -52,12 +52,10 @@ struct Seen {
 
 /// Reads a recording, tolerating a missing end (a DNM that was killed).
 pub fn stats(bytes: &[u8], parse: &crate::ParseNetlist<'_>) -> Result<Stats, String> {
+    crate::check_layout(bytes)?;
     let mut channels: BTreeMap<String, Seen> = BTreeMap::new();
     let mut switches = Vec::new();
-    let options = enumset::enum_set!(mcap::read::Options::IgnoreEndMagic);
-    let stream =
-        mcap::MessageStream::new_with_options(bytes, options).map_err(|e| e.to_string())?;
-    for m in stream {
+    for m in crate::messages(bytes) {
         let Ok(m) = m else { break };
         if m.channel.topic.ends_with("/_switches") {
             if let Ok(v) = serde_json::from_slice(&m.data) {
@@ -99,7 +97,9 @@ pub fn stats(bytes: &[u8], parse: &crate::ParseNetlist<'_>) -> Result<Stats, Str
     let mut out = Vec::new();
     for (topic, s) in &channels {
         let n = s.times.len();
-        let (t0, t1) = (s.times[0], s.times[n - 1]);
+        // A damaged file may hold times out of order.
+        let t0 = s.times.iter().copied().min().unwrap_or(0);
+        let t1 = s.times.iter().copied().max().unwrap_or(0);
         first = first.min(t0);
         last = last.max(t1);
         let span = (t1 - t0) as f64 / 1e9;
@@ -201,13 +201,11 @@ fn link_latencies(
 /// decoded fields (fixed-size messages and JSON) or the byte count. Returns the files written.
 pub fn export_csv(bytes: &[u8], topics: &[String], dir: &Path) -> Result<Vec<String>, String> {
     use std::io::Write;
+    crate::check_layout(bytes)?;
     std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     let mut files: BTreeMap<String, (std::io::BufWriter<std::fs::File>, Vec<String>)> =
         BTreeMap::new();
-    let options = enumset::enum_set!(mcap::read::Options::IgnoreEndMagic);
-    let stream =
-        mcap::MessageStream::new_with_options(bytes, options).map_err(|e| e.to_string())?;
-    for m in stream {
+    for m in crate::messages(bytes) {
         let Ok(m) = m else { break };
         if !topics.iter().any(|t| *t == m.channel.topic) {
             continue;
