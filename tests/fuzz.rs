@@ -325,7 +325,7 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         let b = r.recv().ok()?.result().ok()?.payload().to_bytes().to_vec();
         Some(u64::from_le_bytes(b.get(8..16)?.try_into().ok()?))
     };
-    let first = eventually("relay forwards src", || relay_out(&session));
+    eventually("relay forwards src", || relay_out(&session));
 
     // 1. Over the network: commands, queries and samples, mutated.
     let corpus = commands(&text);
@@ -380,13 +380,9 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         let a = mutate(&mut rng, &attachment, &[]);
         session.put(&sample_key, p).attachment(a).wait().unwrap();
     }
-    // Still up, still forwarding, still commanded.
+    // Still up and commanded: back to the task that feeds relay, answered by both DNMs...
     assert!(up.alive(), "the DNMs' process died");
-    let later = eventually("relay still forwards src", || {
-        relay_out(&session).filter(|s| *s > first)
-    });
-    assert!(later > first);
-    let switch = serde_json::json!({"client": "t", "id": "after", "cmd": "switch", "task": "idle"});
+    let switch = serde_json::json!({"client": "t", "id": "after", "cmd": "switch", "task": "feed"});
     let answers: Vec<bool> = session
         .get(format!("{system}/dnm/*/cmd"))
         .payload(serde_json::to_vec(&switch).unwrap())
@@ -398,6 +394,25 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         .map(|r| r.result().is_ok())
         .collect();
     assert_eq!(answers, [true, true]);
+    // ...and still forwarding src's own samples (origin 1, a sequence that keeps rising).
+    let origin_seq = |session: &zenoh::Session| -> Option<(u64, u64)> {
+        let r = session
+            .get(format!("{system}/port/b/relay/out"))
+            .timeout(Duration::from_secs(3))
+            .wait()
+            .ok()?;
+        let b = r.recv().ok()?.result().ok()?.payload().to_bytes().to_vec();
+        Some((
+            u64::from_le_bytes(b.get(0..8)?.try_into().ok()?),
+            u64::from_le_bytes(b.get(8..16)?.try_into().ok()?),
+        ))
+    };
+    let a = eventually("relay forwards src again", || {
+        origin_seq(&session).filter(|(o, _)| *o == 1)
+    });
+    eventually("src's sequence keeps rising through relay", || {
+        origin_seq(&session).filter(|(o, q)| *o == 1 && *q > a.1)
+    });
     drop(up);
 
     // 2. The parsers, in this process.

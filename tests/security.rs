@@ -351,7 +351,28 @@ fn only_the_operator_commands_a_secured_system() {
     assert_eq!(netlists.len(), 1, "{netlists:?}");
     assert_ne!(netlists[0].1["revision"], 999);
 
-    // The operator's switch works, on every DNM.
+    // Nor can one of the system's computers answer for another's DNM.
+    let computer_b = s.session("computer-b");
+    let mut rogues = Vec::new();
+    for key in ["dnm/a/netlist", "dnm/a/cmd"] {
+        rogues.push(
+            computer_b
+                .declare_queryable(s.key(key))
+                .callback(|q| {
+                    let _ = q
+                        .reply(q.key_expr().clone(), r#"{"ok": true, "revision": 999}"#)
+                        .wait();
+                })
+                .wait()
+                .unwrap(),
+        );
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let netlists = ask(&operator, &s.key("dnm/a/netlist"), None);
+    assert_eq!(netlists.len(), 1, "{netlists:?}");
+    assert_ne!(netlists[0].1["revision"], 999);
+
+    // The operator's switch works, on every DNM (and only they answer it).
     let switch = json!({"id": "op-switch-1", "cmd": "switch", "task": "idle"});
     let answers = ask(&operator, &s.key("dnm/*/cmd"), Some(&switch));
     assert_eq!(answers.len(), 2, "{answers:?}");
@@ -366,7 +387,6 @@ fn only_the_operator_commands_a_secured_system() {
 
     // A sample on a mirrored port's key from anyone but the port's owner never reaches a module:
     // not from the operator, the observer, or the system's other computer.
-    let computer_b = s.session("computer-b");
     for (who, session) in [
         ("operator", &operator),
         ("observer", &observer),
@@ -387,7 +407,12 @@ fn only_the_operator_commands_a_secured_system() {
         "{text}\n[[module]]\nname = \"x\"\nkind = \"evil\"\ndnm = \"a\"\n\n[kind.evil]\nexec = \"/usr/bin/touch\"\n"
     );
     let apply = json!({"id": "op-apply-evil", "cmd": "apply", "file": "evil.toml", "text": evil});
-    let answers = ask(&operator, &s.key("dnm/*/cmd"), Some(&apply));
+    // Each DNM asked on its own key, as `dnm` does: an error answer carries the key the query
+    // named, and a computer may answer only on its own DNMs' keys.
+    let answers: Vec<(bool, Value)> = ["a", "b"]
+        .iter()
+        .flat_map(|d| ask(&operator, &s.key(&format!("dnm/{d}/cmd")), Some(&apply)))
+        .collect();
     assert_eq!(answers.len(), 2, "{answers:?}");
     for (ok, a) in &answers {
         let e = a["error"].as_str().unwrap_or_default();

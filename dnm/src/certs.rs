@@ -35,7 +35,7 @@ pub enum CertsCmd {
         #[arg(long)]
         system: String,
         /// Years the authority is valid.
-        #[arg(long, default_value_t = 10)]
+        #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u16).range(1..=100))]
         years: u16,
     },
     /// Issue a certificate for an identity.
@@ -56,7 +56,7 @@ pub enum CertsCmd {
         #[arg(long = "host")]
         hosts: Vec<String>,
         /// Years the certificate is valid.
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u16).range(1..=100))]
         years: u16,
     },
     /// Write the Zenoh configuration of an identity: mutual TLS with its certificate and, when
@@ -455,12 +455,28 @@ pub fn zenoh_config(
             "verify_name_on_connect": true,
         }),
     );
-    for ep in listen.iter().chain(connect) {
-        if !ep.starts_with("tls/") {
-            bail!("endpoint `{ep}`: a secured system uses tls/ endpoints only");
+    if mode != "client" && config.pointer("/listen/endpoints").is_none() {
+        // Zenoh's default for peers and routers listens on every interface, in the clear.
+        set(&mut config, &["listen", "endpoints"], json!([]));
+    }
+    // Every endpoint of the result, from the base file too (plain or per mode).
+    for side in ["listen", "connect"] {
+        let mut found = Vec::new();
+        endpoints(
+            config
+                .pointer(&format!("/{side}/endpoints"))
+                .unwrap_or(&Value::Null),
+            &mut found,
+        );
+        if let Some(ep) = found.iter().find(|e| !e.starts_with("tls/")) {
+            bail!(
+                "{side} endpoint `{ep}`: a secured system uses tls/ endpoints only (give \
+                 --{side} tls/HOST:PORT, or remove it from the base configuration)"
+            );
         }
     }
-    if !listen.is_empty() || mode == "router" {
+    if mode != "client" {
+        // Anything that accepts links checks what comes through them.
         set(
             &mut config,
             &["access_control"],
@@ -471,6 +487,16 @@ pub fn zenoh_config(
     let text = serde_json::to_string_pretty(&config)?;
     zenoh::Config::from_json5(&text).map_err(|e| anyhow::anyhow!("generated config: {e}"))?;
     Ok(text)
+}
+
+/// The endpoint strings of a Zenoh `endpoints` value: a list, or lists per mode.
+fn endpoints(v: &Value, out: &mut Vec<String>) {
+    match v {
+        Value::String(e) => out.push(e.clone()),
+        Value::Array(a) => a.iter().for_each(|e| endpoints(e, out)),
+        Value::Object(o) => o.values().for_each(|e| endpoints(e, out)),
+        _ => {}
+    }
 }
 
 /// Zenoh access control for a system: what each role may do on the system's keys, and which
@@ -484,7 +510,13 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
         format!("{sys}/module/**"),
         format!("{sys}/port/**"),
     ];
-    let commands = vec![keys::authority(sys), keys::cmd(sys, "*")];
+    // Where a system is commanded through its authority, operators reach only the authority
+    // (a DNM takes switches and applies from nowhere else); else also each DNM.
+    let commands = if dnm::commanded_by_authority(netlist) {
+        vec![keys::authority(sys)]
+    } else {
+        vec![keys::authority(sys), keys::cmd(sys, "*")]
+    };
     let mut rules = vec![
         // What anyone admitted may be sent: state, telemetry, answers.
         json!({
@@ -516,16 +548,8 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
             "messages": ["query"],
             "key_exprs": commands,
         }),
-        // The system's own computers: they query, answer and keep liveliness; and receive
-        // everything (queries to their DNMs included).
-        json!({
-            "id": "node",
-            "flows": ["ingress"],
-            "permission": "allow",
-            "messages": ["query", "declare_queryable", "reply", "declare_subscriber",
-                         "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
-            "key_exprs": [all],
-        }),
+        // The system's computers are asked (their DNMs' queryables) and their liveliness is
+        // watched; what each may answer for is its own (below).
         json!({
             "id": "to-node",
             "flows": ["egress"],
@@ -553,21 +577,60 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
         let mut granted: Vec<String> = match i.role {
             Role::Observer => vec!["to-everyone", "read", "watch"],
             Role::Operator => vec!["to-everyone", "read", "watch", "command"],
-            Role::Rover => vec!["to-everyone", "node", "to-node"],
+            Role::Rover => vec!["to-everyone", "read", "watch", "to-node"],
             Role::Router => vec!["forward"],
         }
         .into_iter()
         .map(str::to_string)
         .collect();
-        // Each computer publishes the ports of the modules on its own DNMs, and nothing else.
-        let owned: Vec<String> = i
+        let own: Vec<&str> = i
             .dnms
             .iter()
-            .filter(|d| declared.contains(d.as_str()))
-            .map(|d| format!("{sys}/port/{d}/**"))
+            .map(String::as_str)
+            .filter(|d| declared.contains(d))
             .collect();
-        if i.role == Role::Rover && !owned.is_empty() {
+        if i.role == Role::Rover && !own.is_empty() {
+            // A computer answers for its own DNMs only (their state, netlist, commands,
+            // modules and ports) and keeps their liveliness; the authority's host also answers
+            // the stations and sends the DNMs their transactions.
+            let mut answers: Vec<String> = own
+                .iter()
+                .flat_map(|d| {
+                    [
+                        keys::dnm(sys, d),
+                        format!("{}/**", keys::dnm(sys, d)),
+                        format!("{sys}/module/{d}/**"),
+                        format!("{sys}/port/{d}/**"),
+                    ]
+                })
+                .collect();
+            let authority = netlist.authority().is_some_and(|a| own.contains(&a));
+            if authority {
+                answers.push(keys::authority(sys));
+            }
+            let id = format!("answer-{}", i.name);
+            rules.push(json!({
+                "id": id,
+                "flows": ["ingress"],
+                "permission": "allow",
+                "messages": ["declare_queryable", "reply", "liveliness_token"],
+                "key_exprs": answers,
+            }));
+            granted.push(id);
+            if authority {
+                let id = format!("transact-{}", i.name);
+                rules.push(json!({
+                    "id": id,
+                    "flows": ["ingress"],
+                    "permission": "allow",
+                    "messages": ["query"],
+                    "key_exprs": [keys::cmd(sys, "*")],
+                }));
+                granted.push(id);
+            }
+            // It publishes the ports of the modules on its own DNMs, and nothing else.
             let id = format!("publish-{}", i.name);
+            let owned: Vec<String> = own.iter().map(|d| format!("{sys}/port/{d}/**")).collect();
             rules.push(json!({
                 "id": id,
                 "flows": ["ingress"],

@@ -80,6 +80,11 @@ impl ZenohOptions {
             // Without a configuration nothing is reachable from another machine.
             set("listen/endpoints", r#"["tcp/127.0.0.1:0"]"#.into())?;
         }
+        if self.config.is_none() {
+            // Nor does it look for others beyond this machine: its scouts never leave it, so
+            // no one on the network is found and connected to.
+            set("scouting/multicast/ttl", "0".into())?;
+        }
         if !self.connect.is_empty() {
             set(
                 "connect/endpoints",
@@ -224,7 +229,9 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for Refusals {
             String::new()
         };
         // Straight to standard error: a refusal is recorded whatever the log filter says.
-        eprintln!("{} WARN access refused: {}{more}", utc_now(), m.0);
+        // Keys come from the remote: one line each, whatever they hold.
+        let text = m.0.escape_debug();
+        eprintln!("{} WARN access refused: {text}{more}", utc_now());
     }
 }
 

@@ -71,14 +71,15 @@ pub fn check_layout(bytes: &[u8]) -> Result<(), String> {
 }
 
 /// The messages of an MCAP recording in file order, up to its data end (a file cut short ends
-/// with its last whole message). No length the file declares is allocated beyond the file's own
-/// size.
+/// with its last whole message). No length the file declares is allocated beyond 1 GiB.
 pub fn messages(bytes: &[u8]) -> Messages<'_> {
     use mcap::sans_io::LinearReaderOptions;
     Messages {
         reader: mcap::sans_io::MessageReader::new_with_options(
             LinearReaderOptions::default()
-                .with_record_length_limit(bytes.len())
+                // A chunk's records may be larger than the (compressed) file; never larger
+                // than any record `check_layout` lets through.
+                .with_record_length_limit(MAX_RECORD as usize)
                 .with_skip_end_magic(true),
         ),
         bytes,
@@ -120,4 +121,11 @@ impl Iterator for Messages<'_> {
             }
         }
     }
+}
+
+/// Whether a metadata index points inside the file (the reader would panic otherwise).
+pub(crate) fn within(bytes: &[u8], idx: &mcap::records::MetadataIndex) -> bool {
+    idx.offset
+        .checked_add(idx.length)
+        .is_some_and(|end| end <= bytes.len() as u64)
 }

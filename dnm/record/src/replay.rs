@@ -75,6 +75,7 @@ pub fn replay(
         .metadata_indexes
         .iter()
         .filter(|i| i.name == "dnm.netlist")
+        .filter(|i| crate::within(bytes, i))
         .filter_map(|i| mcap::read::metadata(bytes, i).ok())
         .filter_map(|m| m.metadata.get("text").cloned())
         .next_back()

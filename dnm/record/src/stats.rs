@@ -85,7 +85,8 @@ pub fn stats(bytes: &[u8], parse: &crate::ParseNetlist<'_>) -> Result<Stats, Str
     let mut netlist_text = None;
     if let Ok(Some(summary)) = mcap::Summary::read(bytes) {
         for idx in &summary.metadata_indexes {
-            if let Ok(meta) = mcap::read::metadata(bytes, idx)
+            if crate::within(bytes, idx)
+                && let Ok(meta) = mcap::read::metadata(bytes, idx)
                 && meta.name == "dnm.netlist"
             {
                 revisions.extend(meta.metadata.get("revision").cloned());

@@ -238,7 +238,11 @@ impl LinkUnicastTrait for LinkUnicastTls {
                 }
             }
         }
-        Ok(())
+        // What the TLS session still holds goes out now, not with the next write.
+        self.locked(|s, cx| s.poll_flush(cx)).await.map_err(|e| {
+            tracing::trace!("Write error on TLS link {}: {}", self, e);
+            zerror!(e).into()
+        })
     }
 
     async fn read(&self, buffer: &mut [u8], _priority: Option<Priority>) -> ZResult<usize> {
