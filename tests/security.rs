@@ -9,9 +9,11 @@ mod support;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use dnm_ground::CommandState;
 use dnm_proto::keys::{SampleHeader, encode_header};
+use dnm_proto::station::Order;
 use serde_json::{Value, json};
-use support::ground::Proc;
+use support::ground::{Api, Proc};
 use support::{eventually, free_port};
 use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
@@ -72,12 +74,17 @@ struct Secured {
 
 impl Secured {
     fn new() -> Self {
-        let system = format!("sec{}", std::process::id());
+        Self::with("sec", NETLIST)
+    }
+
+    /// A system of `template` (SYSTEM replaced), its authority and identities.
+    fn with(tag: &str, template: &str) -> Self {
+        let system = format!("{tag}{}", std::process::id());
         let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
         let netlist = dir.join("netlist.toml");
-        std::fs::write(&netlist, NETLIST.replace("SYSTEM", &system)).unwrap();
+        std::fs::write(&netlist, template.replace("SYSTEM", &system)).unwrap();
         let pki = dir.join("pki");
         let p = pki.to_str().unwrap();
         dnm(&["certs", "init", "--dir", p, "--system", &system]);
@@ -157,6 +164,8 @@ impl Secured {
                 "--dnm".into(),
                 dnm.into(),
                 "--no-record".into(),
+                "--state-dir".into(),
+                self.dir.join("state").display().to_string(),
             ],
         )
     }
@@ -423,4 +432,92 @@ fn only_the_operator_commands_a_secured_system() {
     }
     assert!(!Path::new("describe").exists(), "a program ran");
     assert_eq!(active_tasks(&s, &operator), ["feed", "feed"]);
+}
+
+#[test]
+fn through_the_authority_only_the_operators_station_commands() {
+    let template = NETLIST.replace(
+        "default_task = \"feed\"",
+        "default_task = \"feed\"\nauthority = \"a\"",
+    );
+    let s = Secured::with("seca", &template);
+    let router = Proc::dnm(
+        &s.dir,
+        "router",
+        &[
+            "--zenoh-config".into(),
+            s.config("rover-router").display().to_string(),
+            "router".into(),
+        ],
+    );
+    let _a = s.up("a");
+    let _b = s.up("b");
+    let operator = s.session("ground-1");
+    // The DNMs start empty and take what the authority decided.
+    eventually("both DNMs adopt the authority's netlist", || {
+        (active_tasks(&s, &operator) == ["feed", "feed"]).then_some(())
+    });
+    let station = |name: &str| -> (Proc, Api) {
+        let http = format!("127.0.0.1:{}", free_port());
+        let p = Proc::dnm(
+            &s.dir,
+            &format!("station-{name}"),
+            &[
+                "--zenoh-config".into(),
+                s.config(name).display().to_string(),
+                "ground".into(),
+                "serve".into(),
+                "--system".into(),
+                s.system.clone(),
+                "--station".into(),
+                name.into(),
+                "--db".into(),
+                s.dir.join(format!("{name}.redb")).display().to_string(),
+                "--http".into(),
+                http.clone(),
+            ],
+        );
+        let api = Api(format!("http://{http}"));
+        eventually("the station's API", || api.up().then_some(()));
+        (p, api)
+    };
+
+    // The operator's station commands the rover through the authority.
+    let (_op_station, op) = station("ground-1");
+    let e = op.submit(&Order::Switch {
+        task: "idle".into(),
+        at_unix_ns: None,
+    });
+    assert_eq!(op.entry(e.seq, 60).state, CommandState::Applied);
+    assert_eq!(active_tasks(&s, &operator), ["idle", "idle"]);
+
+    // An observer's station is never heard: its command is never acknowledged, whatever the
+    // operator does meanwhile, and the router records the refusal.
+    let (_obs_station, obs) = station("science");
+    let o = obs.submit(&Order::Switch {
+        task: "feed".into(),
+        at_unix_ns: None,
+    });
+    let e = op.submit(&Order::Switch {
+        task: "idle".into(),
+        at_unix_ns: None,
+    });
+    assert_eq!(op.entry(e.seq, 60).state, CommandState::Applied);
+    eventually("the router records the observer's uplink refused", || {
+        refusals(&router.log).into_iter().find(|l| {
+            l.contains("CertCommonName(science)") && l.contains(&format!("{}/authority", s.system))
+        })
+    });
+    let o = obs.entry(o.seq, 0);
+    assert!(
+        matches!(o.state, CommandState::Queued | CommandState::Sent),
+        "{o:?}"
+    );
+    assert_eq!(active_tasks(&s, &operator), ["idle", "idle"]);
+
+    // Nor may the operator go around the authority: a DNM's own command key is not theirs.
+    let switch = json!({"id": "op-direct", "cmd": "switch", "task": "feed"});
+    let answers = ask(&operator, &s.key("dnm/a/cmd"), Some(&switch));
+    assert!(answers.is_empty(), "{answers:?}");
+    assert_eq!(active_tasks(&s, &operator), ["idle", "idle"]);
 }
