@@ -488,8 +488,12 @@ fn through_the_authority_only_the_operators_station_commands() {
         task: "idle".into(),
         at_unix_ns: None,
     });
-    assert_eq!(op.entry(e.seq, 60).state, CommandState::Applied);
-    assert_eq!(active_tasks(&s, &operator), ["idle", "idle"]);
+    let applied = op.entry(e.seq, 60);
+    assert_eq!(applied.state, CommandState::Applied, "{applied:?}");
+    // Every DNM switches at the decided instant (a little after the decision).
+    eventually("both DNMs switch to idle", || {
+        (active_tasks(&s, &operator) == ["idle", "idle"]).then_some(())
+    });
 
     // An observer's station is never heard: its command is never acknowledged, whatever the
     // operator does meanwhile, and the router records the refusal.
