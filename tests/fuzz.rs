@@ -259,36 +259,10 @@ fn commands(text: &str) -> Vec<Vec<u8>> {
     .collect()
 }
 
-const NETLIST: &str = r#"
-[system]
-name = "SYSTEM"
-default_task = "feed"
-
-[[dnm]]
-name = "a"
-
-[[dnm]]
-name = "b"
-parent = "a"
-
-[[module]]
-name = "src"
-kind = "ticker"
-dnm = "a"
-rate_hz = 50
-params = { origin = 1 }
-
-[[module]]
-name = "relay"
-kind = "relay"
-dnm = "b"
-
-[task.feed]
-links = ["src.out -> relay.in"]
-
-[task.idle]
-links = []
-"#;
+/// Fast, so the samples to mutate come quickly.
+fn netlist_template() -> String {
+    support::FEED_NETLIST.replace("RATE", "50")
+}
 
 #[test]
 fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
@@ -298,7 +272,7 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
     let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
-    let text = NETLIST.replace("SYSTEM", &system);
+    let text = netlist_template().replace("SYSTEM", &system);
     let netlist = dir.join("netlist.toml");
     std::fs::write(&netlist, &text).unwrap();
     let port = free_port();
@@ -316,14 +290,18 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         ],
     );
     let session = zenoh_client(port);
-    let relay_out = |session: &zenoh::Session| -> Option<u64> {
+    // Relay's last output: (origin, sequence).
+    let relay_out = |session: &zenoh::Session| -> Option<(u64, u64)> {
         let r = session
             .get(format!("{system}/port/b/relay/out"))
             .timeout(Duration::from_secs(3))
             .wait()
             .ok()?;
         let b = r.recv().ok()?.result().ok()?.payload().to_bytes().to_vec();
-        Some(u64::from_le_bytes(b.get(8..16)?.try_into().ok()?))
+        Some((
+            u64::from_le_bytes(b.get(0..8)?.try_into().ok()?),
+            u64::from_le_bytes(b.get(8..16)?.try_into().ok()?),
+        ))
     };
     eventually("relay forwards src", || relay_out(&session));
 
@@ -395,23 +373,11 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         .collect();
     assert_eq!(answers, [true, true]);
     // ...and still forwarding src's own samples (origin 1, a sequence that keeps rising).
-    let origin_seq = |session: &zenoh::Session| -> Option<(u64, u64)> {
-        let r = session
-            .get(format!("{system}/port/b/relay/out"))
-            .timeout(Duration::from_secs(3))
-            .wait()
-            .ok()?;
-        let b = r.recv().ok()?.result().ok()?.payload().to_bytes().to_vec();
-        Some((
-            u64::from_le_bytes(b.get(0..8)?.try_into().ok()?),
-            u64::from_le_bytes(b.get(8..16)?.try_into().ok()?),
-        ))
-    };
     let a = eventually("relay forwards src again", || {
-        origin_seq(&session).filter(|(o, _)| *o == 1)
+        relay_out(&session).filter(|(o, _)| *o == 1)
     });
     eventually("src's sequence keeps rising through relay", || {
-        origin_seq(&session).filter(|(o, q)| *o == 1 && *q > a.1)
+        relay_out(&session).filter(|(o, q)| *o == 1 && *q > a.1)
     });
     drop(up);
 

@@ -18,36 +18,10 @@ use support::{eventually, free_port};
 use zenoh::Wait;
 use zenoh::query::{ConsolidationMode, QueryTarget};
 
-const NETLIST: &str = r#"
-[system]
-name = "SYSTEM"
-default_task = "feed"
-
-[[dnm]]
-name = "a"
-
-[[dnm]]
-name = "b"
-parent = "a"
-
-[[module]]
-name = "src"
-kind = "ticker"
-dnm = "a"
-rate_hz = 0.5
-params = { origin = 1 }
-
-[[module]]
-name = "relay"
-kind = "relay"
-dnm = "b"
-
-[task.feed]
-links = ["src.out -> relay.in"]
-
-[task.idle]
-links = []
-"#;
+/// Slow enough that a forged sample stays relay's last output until the next tick.
+fn netlist_template() -> String {
+    support::FEED_NETLIST.replace("RATE", "0.5")
+}
 
 /// Runs `dnm ARGS` to completion; panics with its output if it fails.
 fn dnm(args: &[&str]) -> String {
@@ -74,7 +48,7 @@ struct Secured {
 
 impl Secured {
     fn new() -> Self {
-        Self::with("sec", NETLIST)
+        Self::with("sec", &netlist_template())
     }
 
     /// A system of `template` (SYSTEM replaced), its authority and identities.
@@ -149,6 +123,19 @@ impl Secured {
 
     fn key(&self, rest: &str) -> String {
         format!("{}/{rest}", self.system)
+    }
+
+    /// The rover's router: TLS only, with the generated access control.
+    fn router(&self) -> Proc {
+        Proc::dnm(
+            &self.dir,
+            "router",
+            &[
+                "--zenoh-config".into(),
+                self.config("rover-router").display().to_string(),
+                "router".into(),
+            ],
+        )
     }
 
     fn up(&self, dnm: &str) -> Proc {
@@ -273,15 +260,7 @@ fn only_the_operator_commands_a_secured_system() {
     // A DNM may come up before its router: it waits for it.
     let _a = s.up("a");
     std::thread::sleep(Duration::from_secs(1));
-    let router = Proc::dnm(
-        &s.dir,
-        "router",
-        &[
-            "--zenoh-config".into(),
-            s.config("rover-router").display().to_string(),
-            "router".into(),
-        ],
-    );
+    let router = s.router();
     let _b = s.up("b");
     let operator = s.session("ground-1");
     eventually("src's samples cross to relay", || {
@@ -411,7 +390,7 @@ fn only_the_operator_commands_a_secured_system() {
     assert!(forged_reaches_relay(&s, &computer_a, &operator));
 
     // An apply from the operator naming a program as a module kind runs nothing.
-    let text = NETLIST.replace("SYSTEM", &s.system);
+    let text = netlist_template().replace("SYSTEM", &s.system);
     let evil = format!(
         "{text}\n[[module]]\nname = \"x\"\nkind = \"evil\"\ndnm = \"a\"\n\n[kind.evil]\nexec = \"/usr/bin/touch\"\n"
     );
@@ -436,20 +415,12 @@ fn only_the_operator_commands_a_secured_system() {
 
 #[test]
 fn through_the_authority_only_the_operators_station_commands() {
-    let template = NETLIST.replace(
+    let template = netlist_template().replace(
         "default_task = \"feed\"",
         "default_task = \"feed\"\nauthority = \"a\"",
     );
     let s = Secured::with("seca", &template);
-    let router = Proc::dnm(
-        &s.dir,
-        "router",
-        &[
-            "--zenoh-config".into(),
-            s.config("rover-router").display().to_string(),
-            "router".into(),
-        ],
-    );
+    let router = s.router();
     let _a = s.up("a");
     let _b = s.up("b");
     let operator = s.session("ground-1");

@@ -48,3 +48,36 @@ pub fn zenoh_client(port: u16) -> zenoh::Session {
         zenoh::open(c.clone()).wait().ok()
     })
 }
+
+/// Two DNMs: `src` (a ticker, origin 1) on `a` feeds `relay` on `b` in task `feed`; `idle` links
+/// nothing. `SYSTEM` and `RATE` are replaced.
+pub const FEED_NETLIST: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "feed"
+
+[[dnm]]
+name = "a"
+
+[[dnm]]
+name = "b"
+parent = "a"
+
+[[module]]
+name = "src"
+kind = "ticker"
+dnm = "a"
+rate_hz = RATE
+params = { origin = 1 }
+
+[[module]]
+name = "relay"
+kind = "relay"
+dnm = "b"
+
+[task.feed]
+links = ["src.out -> relay.in"]
+
+[task.idle]
+links = []
+"#;
