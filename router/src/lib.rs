@@ -231,7 +231,12 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for Refusals {
         // Straight to standard error: a refusal is recorded whatever the log filter says.
         // Keys come from the remote: one line each, whatever they hold.
         let text = m.0.escape_debug();
-        eprintln!("{} WARN access refused: {text}{more}", utc_now());
+        let mut now = String::new();
+        let _ = tracing_subscriber::fmt::time::FormatTime::format_time(
+            &tracing_subscriber::fmt::time::SystemTime,
+            &mut tracing_subscriber::fmt::format::Writer::new(&mut now),
+        );
+        eprintln!("{now} WARN access refused: {text}{more}");
     }
 }
 
@@ -263,29 +268,4 @@ fn refused(m: &str) -> bool {
     }
     CACHING.with(|c| *c.borrow_mut() = None);
     m.contains("is unauthorized")
-}
-
-/// The time now in UTC, as `2026-11-22T01:02:03.456789Z`.
-fn utc_now() -> String {
-    let t = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap_or_default();
-    let secs = t.as_secs();
-    let z = (secs / 86_400) as i64 + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + i64::from(m <= 2);
-    let s = secs % 86_400;
-    format!(
-        "{y:04}-{m:02}-{d:02}T{:02}:{:02}:{:02}.{:06}Z",
-        s / 3600,
-        s / 60 % 60,
-        s % 60,
-        t.subsec_micros()
-    )
 }
