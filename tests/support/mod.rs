@@ -24,8 +24,14 @@ pub fn endpoint(port: u16) -> String {
 
 /// Polls `f` until it returns `Some`, failing with `what` if that takes unreasonably long (a
 /// hang guard, not a performance limit).
-pub fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
-    let deadline = Instant::now() + Duration::from_secs(60);
+pub fn eventually<T>(what: &str, f: impl FnMut() -> Option<T>) -> T {
+    eventually_within(what, Duration::from_secs(60), f)
+}
+
+/// [`eventually`] with a hang guard of `guard`, for what legitimately takes long (a lossy radio
+/// link whose TCP retransmissions back off across outages).
+pub fn eventually_within<T>(what: &str, guard: Duration, mut f: impl FnMut() -> Option<T>) -> T {
+    let deadline = Instant::now() + guard;
     loop {
         if let Some(v) = f() {
             return v;

@@ -304,7 +304,11 @@ impl Authority {
             })?,
             spawn("authority-reconcile", {
                 let s = shared.clone();
-                Box::new(move || reconcile_loop(&s))
+                Box::new(move || reconcile_loop(&s, Side::Rover))
+            })?,
+            spawn("authority-reconcile-radio", {
+                let s = shared.clone();
+                Box::new(move || reconcile_loop(&s, Side::Radio))
             })?,
         ];
         tracing::info!(system = %system, dnm = %shared.name, "authority ready");
@@ -1169,9 +1173,28 @@ fn reports(session: &zenoh::Session, system: &str, timeout: Duration) -> Vec<Dnm
 // ---------------------------------------------------------------------------------------------
 // The reconciler: DNMs that missed a decision catch up.
 
-fn reconcile_loop(s: &Shared) {
+/// The DNMs one reconciler looks after: those on the rover answer at once, those across the
+/// radio may take many seconds (a stalled link, a session being re-established), and waiting
+/// for them must never delay a restarted rover DNM's catching up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Side {
+    Rover,
+    Radio,
+}
+
+impl Side {
+    /// How long a pass waits for the DNMs' reports.
+    fn report_timeout(self, s: &Shared) -> Duration {
+        match self {
+            Side::Rover => Duration::from_millis(1500),
+            Side::Radio => s.options.prepare_timeout,
+        }
+    }
+}
+
+fn reconcile_loop(s: &Shared, side: Side) {
     while !s.stop.load(Ordering::Relaxed) {
-        reconcile(s);
+        reconcile(s, side);
         let deadline = Instant::now() + s.options.reconcile_every;
         while Instant::now() < deadline && !s.stop.load(Ordering::Relaxed) {
             std::thread::sleep(Duration::from_millis(50).min(s.options.reconcile_every));
@@ -1181,27 +1204,32 @@ fn reconcile_loop(s: &Shared) {
 
 /// One pass: every DNM that holds a transaction gets its decision (or the order to drop it),
 /// every DNM out of step adopts what was decided. Nothing waits under the state lock.
-fn reconcile(s: &Shared) {
+fn reconcile(s: &Shared, side: Side) {
     let (names, before) = match s.core.lock() {
         Ok(core) => (
             core.netlist
                 .dnms
                 .iter()
+                .filter(|d| d.radio == (side == Side::Radio))
                 .map(|d| d.name.clone())
                 .collect::<Vec<_>>(),
             core.state.next_txn,
         ),
         Err(_) => return,
     };
-    // Rover DNMs answer at once; those across the radio may take a while.
-    let found = reports_of(s, &names, Duration::from_millis(1500));
+    if names.is_empty() {
+        return;
+    }
+    let found = reports_of(s, &names, side.report_timeout(s));
     // Taken after the reports: a report is never newer than the decisions it is judged by.
     let snap = match s.core.lock() {
         Ok(core) => Snapshot::of(&core),
         Err(_) => return,
     };
-    if snap.next_txn != before {
-        // A transaction ran meanwhile: the reports may show it half done. Look again later.
+    // A transaction ran meanwhile: rover DNMs' reports may show it half done. Look again
+    // later. (DNMs across the radio take no part in transactions; they adopt the newest
+    // decision, which the snapshot, taken after their reports, holds.)
+    if side == Side::Rover && snap.next_txn != before {
         return;
     }
     for r in found.into_iter().flatten() {
@@ -1239,9 +1267,10 @@ fn reconcile(s: &Shared) {
             continue;
         }
         // Decided again since the snapshot: these reports are old; look again next pass.
-        if s.core
-            .lock()
-            .map_or(true, |c| c.state.next_txn != snap.next_txn)
+        if side == Side::Rover
+            && s.core
+                .lock()
+                .map_or(true, |c| c.state.next_txn != snap.next_txn)
         {
             return;
         }
