@@ -68,6 +68,23 @@ fn layers_depend_only_downwards() {
             "dnm-module-host depends on {banned}"
         );
     }
+    // Rerun (its SDK, and everything under it) is the monitor's alone: no DNM, module host,
+    // station or the `dnm` command links it.
+    for package in [
+        "dnm",
+        "dnm-core",
+        "dnm-module-host",
+        "dnm-zenoh",
+        "dnm-record",
+        "dnm-authority",
+        "dnm-ground",
+    ] {
+        let deps = dependencies(package);
+        for banned in ["rerun", "re_sdk", "re_log_encoding"] {
+            assert!(!deps.contains(banned), "{package} depends on {banned}");
+        }
+    }
+    assert!(dependencies("dnm-monitor").contains("rerun"));
     let proto = dependencies("dnm-proto");
     let ours: Vec<&String> = proto.iter().filter(|p| p.starts_with("dnm")).collect();
     assert_eq!(ours, ["dnm-proto"], "dnm-proto depends on our crates");
@@ -230,6 +247,9 @@ fn no_file_imports_another_in_a_circle() {
         "modules/rover",
         "modules/host",
         "router",
+        "ground",
+        "dnm/authority",
+        "monitor",
     ];
     for c in crates {
         let src = root.join(c).join("src");

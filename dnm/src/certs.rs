@@ -489,6 +489,7 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
     let reads = vec![
         keys::all_dnms(sys),
         format!("{}/netlist", keys::all_dnms(sys)),
+        keys::wiring(sys, "*"),
         format!("{sys}/module/**"),
         format!("{sys}/port/**"),
     ];
@@ -610,9 +611,13 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
                 }));
                 granted.push(id);
             }
-            // It publishes the ports of the modules on its own DNMs, and nothing else.
+            // It publishes the ports of the modules on its own DNMs (routed or watched), and
+            // nothing else.
             let id = format!("publish-{}", i.name);
-            let owned: Vec<String> = own.iter().map(|d| format!("{sys}/port/{d}/**")).collect();
+            let owned: Vec<String> = own
+                .iter()
+                .flat_map(|d| [format!("{sys}/port/{d}/**"), format!("{sys}/watch/{d}/**")])
+                .collect();
             rules.push(json!({
                 "id": id,
                 "flows": ["ingress"],

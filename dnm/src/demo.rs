@@ -36,6 +36,62 @@ pub struct DemoArgs {
     pub teleop_s: f64,
     /// Record every port to MCAP.
     pub record: Option<dnm::record::RecordOptions>,
+    /// Watch the mission in Rerun.
+    pub rerun: Option<RerunOut>,
+}
+
+/// Where `dnm demo --rerun` shows the mission.
+#[derive(Debug, Clone)]
+pub enum RerunOut {
+    /// A viewer started from the PATH, else an .rrd under `recordings/`.
+    Auto,
+    Save(PathBuf),
+}
+
+/// Starts `dnm-monitor` on the demo's Zenoh network (reached at `endpoint`).
+fn start_monitor(
+    out: &RerunOut,
+    system: &str,
+    endpoint: &str,
+    quiet: bool,
+) -> anyhow::Result<std::process::Child> {
+    let mut args: Vec<String> = vec![
+        "--system".into(),
+        system.into(),
+        "--connect".into(),
+        endpoint.into(),
+        "--no-multicast".into(),
+    ];
+    let save = match out {
+        RerunOut::Auto if crate::monitor_cmd::viewer_available() => None,
+        RerunOut::Auto => {
+            let stamp = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs());
+            std::fs::create_dir_all("recordings").context("creating recordings/")?;
+            Some(PathBuf::from(format!("recordings/demo-{stamp}.rrd")))
+        }
+        RerunOut::Save(p) => Some(p.clone()),
+    };
+    match &save {
+        Some(p) => {
+            if !quiet {
+                println!(
+                    "Rerun: saving to {} (open it with `rerun {}`)",
+                    p.display(),
+                    p.display()
+                );
+            }
+            args.extend(["--save".into(), p.display().to_string()]);
+        }
+        None => {
+            if !quiet {
+                println!("Rerun: starting a viewer");
+            }
+            args.push("--spawn".into());
+        }
+    }
+    crate::monitor_cmd::start(&args)
 }
 
 /// Reads last values of ports over Zenoh, as any operator tool would.
@@ -363,13 +419,49 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
     let state = std::env::temp_dir().join(format!("dnm-demo-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&state);
     options.state_dir = state.clone();
+    // With Rerun, the monitor (a process of its own, as on a real ground station) joins the
+    // demo's Zenoh network on a known loopback port.
+    let mut zenoh = zenoh.clone();
+    let monitor_endpoint = match &args.rerun {
+        Some(_) if zenoh.config.is_none() && zenoh.listen.is_empty() => {
+            let port = std::net::TcpListener::bind("127.0.0.1:0")?
+                .local_addr()?
+                .port();
+            let e = format!("tcp/127.0.0.1:{port}");
+            zenoh.listen = vec![e.clone()];
+            Some(e)
+        }
+        Some(_) => Some(
+            zenoh
+                .listen
+                .first()
+                .map(|e| e.replace("0.0.0.0", "127.0.0.1"))
+                .context("--rerun with a Zenoh configuration file: also give --listen")?,
+        ),
+        None => None,
+    };
     let host = Host::start(netlist.clone(), &dnms, options, zenoh.config()?)?;
+    let monitor = match (&args.rerun, &monitor_endpoint) {
+        (Some(out), Some(endpoint)) => {
+            match start_monitor(out, &netlist.system, endpoint, args.json) {
+                Ok(m) => Some(m),
+                Err(e) => {
+                    host.stop();
+                    return Err(e);
+                }
+            }
+        }
+        _ => None,
+    };
     let station = match dnm_ground::Station::start(
         host.session().clone(),
         dnm_ground::StationOptions::new(&netlist.system, "demo-station", state.join("ground.redb")),
     ) {
         Ok(s) => s,
         Err(e) => {
+            if let Some(m) = monitor {
+                crate::monitor_cmd::stop(m);
+            }
             host.stop();
             return Err(e.into());
         }
@@ -378,6 +470,9 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
     let summary = match result {
         Ok(s) => s,
         Err(e) => {
+            if let Some(m) = monitor {
+                crate::monitor_cmd::stop(m);
+            }
             station.stop();
             host.stop();
             let _ = std::fs::remove_dir_all(&state);
@@ -399,6 +494,9 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
         host.wait();
     } else {
         host.stop();
+    }
+    if let Some(m) = monitor {
+        crate::monitor_cmd::stop(m);
     }
     station.stop();
     let _ = std::fs::remove_dir_all(&state);

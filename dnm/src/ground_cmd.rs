@@ -28,6 +28,10 @@ pub enum GroundCmd {
         /// Where the operator API listens.
         #[arg(long, default_value = "127.0.0.1:7480")]
         http: std::net::SocketAddr,
+        /// Also watch the rover in Rerun: `spawn` (start a viewer), a viewer's URL
+        /// (rerun+http://HOST:PORT/proxy) or a path to save an .rrd to.
+        #[arg(long)]
+        monitor: Option<String>,
     },
     /// Switch the rover to TASK, now or at a rover time.
     Switch {
@@ -243,6 +247,7 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             station,
             db,
             http,
+            monitor,
         } => {
             let db = db.unwrap_or_else(|| {
                 dnm::default_state_dir().join(format!("{system}-{station}.redb"))
@@ -267,7 +272,25 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
                 db.display(),
                 api.addr()
             );
+            let monitor = match monitor {
+                Some(m) => {
+                    let mut args = crate::monitor_cmd::zenoh_flags(z);
+                    args.extend(["--system".into(), system.clone()]);
+                    if m == "spawn" {
+                        args.push("--spawn".into());
+                    } else if m.contains("://") {
+                        args.extend(["--viewer".into(), m]);
+                    } else {
+                        args.extend(["--save".into(), m]);
+                    }
+                    Some(crate::monitor_cmd::start(&args)?)
+                }
+                None => None,
+            };
             wait_for_signal();
+            if let Some(m) = monitor {
+                crate::monitor_cmd::stop(m);
+            }
             drop(api);
             Ok(ExitCode::SUCCESS)
         }

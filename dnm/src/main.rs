@@ -11,6 +11,7 @@ mod certs;
 mod demo;
 mod ground_cmd;
 mod linksim;
+mod monitor_cmd;
 mod place_cmd;
 use dnm::admin::{Request, Response, request};
 use dnm::{DnmReport, HostOptions};
@@ -162,6 +163,13 @@ enum Cmd {
         #[command(subcommand)]
         op: ModuleOp,
     },
+    /// Watch a running system in Rerun: pose, camera, time series, the live connection graph
+    /// and events (runs `dnm-monitor`; `dnm monitor --help` lists its options).
+    #[command(disable_help_flag = true)]
+    Monitor {
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Run the simulated Beetle-One rover on this machine and drive a scripted mission:
     /// joystick, autopilot to waypoints, a module replaced live, joystick again; then a summary.
     Demo {
@@ -177,6 +185,13 @@ enum Cmd {
         /// Print only the summary, as JSON.
         #[arg(long)]
         json: bool,
+        /// Watch the mission in a Rerun viewer (started from the PATH), or, when none can be
+        /// started, save it to recordings/demo-<time>.rrd.
+        #[arg(long)]
+        rerun: bool,
+        /// Save the Rerun stream to this .rrd file instead of starting a viewer.
+        #[arg(long)]
+        rerun_save: Option<PathBuf>,
         #[command(flatten)]
         record: RecordArgs,
     },
@@ -307,6 +322,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let z = &cli.zenoh;
     match cli.command {
         Cmd::Check { netlist, json } => check(&netlist, json),
+        Cmd::Monitor { args } => monitor_cmd::run(&z.options(), &args),
         Cmd::Ground { cmd } => ground_cmd::run(&z.options(), cmd),
         Cmd::Certs { cmd } => certs::run(cmd),
         Cmd::Linksim(args) => {
@@ -395,6 +411,8 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             keep_running,
             teleop_seconds,
             json,
+            rerun,
+            rerun_save,
             record,
         } => demo::run(
             &z.options(),
@@ -404,6 +422,11 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 json,
                 teleop_s: teleop_seconds,
                 record: record.options(),
+                rerun: match (rerun, rerun_save) {
+                    (_, Some(path)) => Some(demo::RerunOut::Save(path)),
+                    (true, None) => Some(demo::RerunOut::Auto),
+                    (false, None) => None,
+                },
             },
         ),
         Cmd::Place(args) => place_cmd::run(&args),

@@ -38,7 +38,6 @@ pub mod procfs;
 mod slot;
 mod supervise;
 mod txn;
-pub mod values;
 pub mod worker;
 
 pub use command::{Command, CommandKey, Decision, Reply, Txn};

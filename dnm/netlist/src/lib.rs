@@ -18,6 +18,8 @@
 mod error;
 mod model;
 pub mod spec;
+pub mod values;
+pub mod wiring;
 
 pub use error::{Diagnostic, NetlistError};
 pub use model::{
@@ -26,6 +28,7 @@ pub use model::{
     RestartPolicy, Task, parse_duration_ms,
 };
 pub use spec::{
-    Catalog, CatalogEntry, KindSource, KindSpec, MessageType, ParamKind, ParamSpec, ParamValue,
-    Payload, PortSpec, Trigger,
+    Catalog, CatalogEntry, KindSource, KindSpec, MessageType, POD_ENCODING, ParamKind, ParamSpec,
+    ParamValue, Payload, PortSpec, Trigger,
 };
+pub use wiring::{WiredModule, Wiring};

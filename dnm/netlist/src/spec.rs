@@ -28,6 +28,10 @@ impl Payload {
     }
 }
 
+/// Encoding of fixed-size messages: the `repr(C)` little-endian layout of the fields in the
+/// schema.
+pub const POD_ENCODING: &str = "dnm-pod";
+
 /// The type carried by a port: a schema name and encoding that recordings and other tools use
 /// to decode it, plus its shared-memory layout.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]

@@ -7,7 +7,9 @@
 //! | `<system>/dnm/<dnm>/netlist`          | queryable            | the applied netlist (JSON: revision, digest, file, text) |
 //! | `<system>/dnm/<dnm>/cmd`              | queryable            | commands (JSON request in the query payload; JSON reply) |
 //! | `<system>/module/<dnm>/<module>`      | queryable, liveliness | one module's state and the last value of each output (JSON) |
+//! | `<system>/dnm/<dnm>/wiring`           | queryable            | the wiring in force (JSON `dnm_netlist::Wiring`): DNMs, modules, ports' message types, tasks' links |
 //! | `<system>/port/<dnm>/<module>/<port>` | pub/sub, queryable   | samples of outputs that cross DNMs; last value of any output |
+//! | `<system>/watch/<dnm>/<module>/<port>/<rate>` | pub/sub      | any output, published only while subscribed; `<rate>` is `full`, `10hz` or `1hz`; images as JPEG |
 //!
 //! Port samples carry the message bytes as the module wrote them (the encoding names the schema,
 //! e.g. `dnm-pod;dnm_msgs/Tick`) and a 32-byte attachment: send time (CLOCK_MONOTONIC ns of the
@@ -34,6 +36,11 @@ pub fn netlist(system: &str, dnm: &str) -> String {
     format!("{system}/dnm/{dnm}/netlist")
 }
 
+/// `<system>/dnm/<dnm>/wiring`; `dnm` may be `*`.
+pub fn wiring(system: &str, dnm: &str) -> String {
+    format!("{system}/dnm/{dnm}/wiring")
+}
+
 /// `<system>/dnm/<dnm>/cmd`; `dnm` may be `*` to address every DNM.
 pub fn cmd(system: &str, dnm: &str) -> String {
     format!("{system}/dnm/{dnm}/cmd")
@@ -54,6 +61,66 @@ pub fn module(system: &str, dnm: &str, module: &str) -> String {
 pub fn port(system: &str, dnm: &str, module: &str, port: &str) -> String {
     format!("{system}/port/{dnm}/{module}/{port}")
 }
+
+/// How often a watched output is published: every sample, or at most 10 or 1 per second (the
+/// newest sample of each period). A watcher picks one by the key it subscribes to, so the radio
+/// carries only what some operator asked for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum WatchRate {
+    Full,
+    Hz10,
+    Hz1,
+}
+
+impl WatchRate {
+    pub const ALL: [WatchRate; 3] = [WatchRate::Full, WatchRate::Hz10, WatchRate::Hz1];
+
+    /// The key chunk: `full`, `10hz`, `1hz`.
+    pub fn chunk(self) -> &'static str {
+        match self {
+            WatchRate::Full => "full",
+            WatchRate::Hz10 => "10hz",
+            WatchRate::Hz1 => "1hz",
+        }
+    }
+
+    pub fn parse(chunk: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|r| r.chunk() == chunk)
+    }
+
+    /// The shortest time between two samples published, ns (0: every sample).
+    pub fn period_ns(self) -> u64 {
+        match self {
+            WatchRate::Full => 0,
+            WatchRate::Hz10 => 100_000_000,
+            WatchRate::Hz1 => 1_000_000_000,
+        }
+    }
+}
+
+/// `<system>/watch/<dnm>/<module>/<port>/<rate>`.
+pub fn watch(system: &str, dnm: &str, module: &str, port: &str, rate: WatchRate) -> String {
+    format!("{system}/watch/{dnm}/{module}/{port}/{}", rate.chunk())
+}
+
+/// Every watchable output of a system at `rate`: `<system>/watch/*/*/*/<rate>`.
+pub fn watch_all(system: &str, rate: WatchRate) -> String {
+    format!("{system}/watch/*/*/*/{}", rate.chunk())
+}
+
+/// (dnm, module, port, rate) of a key made by [`watch`].
+pub fn parse_watch(system: &str, key: &str) -> Option<(String, String, String, WatchRate)> {
+    let rest = key.strip_prefix(system)?.strip_prefix("/watch/")?;
+    let mut it = rest.split('/');
+    let (d, m, p, r) = (it.next()?, it.next()?, it.next()?, it.next()?);
+    if it.next().is_some() || d.is_empty() || m.is_empty() || p.is_empty() {
+        return None;
+    }
+    Some((d.into(), m.into(), p.into(), WatchRate::parse(r)?))
+}
+
+/// Encoding of a watched image: JPEG bytes.
+pub const JPEG_ENCODING: &str = "image/jpeg";
 
 /// The DNM name in a key under `<system>/dnm/`.
 pub fn dnm_of(system: &str, key: &str) -> Option<String> {
@@ -129,6 +196,25 @@ mod tests {
             Some("drive")
         );
         assert_eq!(dnm_of("rover", "other/dnm/drive"), None);
+        let w = watch("rover", "vision", "camera", "image", WatchRate::Hz1);
+        assert_eq!(w, "rover/watch/vision/camera/image/1hz");
+        assert_eq!(
+            parse_watch("rover", &w),
+            Some((
+                "vision".into(),
+                "camera".into(),
+                "image".into(),
+                WatchRate::Hz1
+            ))
+        );
+        assert_eq!(
+            parse_watch("rover", "rover/watch/vision/camera/image/2hz"),
+            None
+        );
+        assert_eq!(
+            parse_watch("rover", "rover/watch/vision/camera/image/1hz/x"),
+            None
+        );
     }
 
     #[test]

@@ -214,7 +214,7 @@ pub fn export_csv(bytes: &[u8], topics: &[String], dir: &Path) -> Result<Vec<Str
         let schema = m.channel.schema.as_ref();
         let value = match (m.channel.message_encoding.as_str(), schema) {
             ("cdr", Some(s)) if s.encoding == "ros2msg" && m.data.len() >= 4 => {
-                dnm_core::values::decode_pod(&String::from_utf8_lossy(&s.data), &m.data[4..])
+                dnm_netlist::values::decode_pod(&String::from_utf8_lossy(&s.data), &m.data[4..])
             }
             ("json", _) => serde_json::from_slice(&m.data).ok(),
             _ => None,

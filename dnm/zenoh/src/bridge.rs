@@ -33,7 +33,9 @@ use dnm_core::{
 };
 use dnm_module::protocol::{PortHeader, dnm_config, output_event, output_service};
 use dnm_module::{event_service, port_service};
-use dnm_netlist::{MessageType, Netlist};
+use dnm_netlist::{MessageType, Netlist, Wiring};
+
+use crate::watch::{WATCH_EVENT, WatchPort, watch_loop};
 use dnm_proto::keys::{self, SampleHeader};
 use dnm_proto::{
     NetReport, NetlistState, PeerReport, RemoteCommand, Request, Response, RouteReport,
@@ -80,7 +82,7 @@ fn unix_now_ns() -> u64 {
 }
 
 /// The header as it leaves this machine: its send time also in wall-clock time.
-fn to_wire(h: &PortHeader) -> SampleHeader {
+pub(crate) fn to_wire(h: &PortHeader) -> SampleHeader {
     let age = dnm_module::protocol::monotonic_ns().saturating_sub(h.stamp_ns);
     SampleHeader {
         stamp_ns: h.stamp_ns,
@@ -113,6 +115,7 @@ fn from_wire(h: SampleHeader) -> PortHeader {
 enum Target {
     Dnm,
     Netlist,
+    Wiring,
     Module,
     Port,
 }
@@ -124,6 +127,8 @@ struct Shared {
     peers: Mutex<BTreeMap<String, (bool, Instant)>>,
     /// Local outputs and their types, for last-value readers (set at each commit).
     outputs: Mutex<Option<Vec<(String, MessageType)>>>,
+    /// The wiring of the revision committed last.
+    wiring: Mutex<Option<Wiring>>,
     queries_in_flight: AtomicUsize,
     commands_in_flight: AtomicUsize,
     applies_in_flight: Arc<AtomicUsize>,
@@ -157,6 +162,8 @@ pub struct Bridge {
     prepared: Vec<String>,
     egress: Vec<EgressRoute>,
     egress_worker: Worker<EgressRoute>,
+    watch: Vec<WatchPort>,
+    watch_worker: Worker<WatchPort>,
     declared_dnms: Vec<String>,
     query_thread: Option<std::thread::JoinHandle<()>>,
     command_thread: Option<std::thread::JoinHandle<()>>,
@@ -231,6 +238,7 @@ impl Bridge {
         for (target, key) in [
             (Target::Dnm, keys::dnm(system, dnm)),
             (Target::Netlist, keys::netlist(system, dnm)),
+            (Target::Wiring, keys::wiring(system, dnm)),
             (Target::Module, keys::module(system, dnm, "*")),
             (Target::Port, keys::port(system, dnm, "*", "*")),
         ] {
@@ -313,6 +321,16 @@ impl Bridge {
                 move |control| egress_loop(&session, &control),
             )?
         };
+        let watch_worker = {
+            let session = session.clone();
+            let (system, dnm, p) = (system.to_string(), dnm.to_string(), prefix.to_string());
+            Worker::spawn(
+                format!("watch-{dnm}"),
+                prefix,
+                WATCH_EVENT,
+                move |control| watch_loop(&session, &system, &dnm, &p, &control),
+            )?
+        };
         Ok(Self {
             session,
             system: system.into(),
@@ -326,6 +344,8 @@ impl Bridge {
             prepared: Vec::new(),
             egress: Vec::new(),
             egress_worker: egress,
+            watch: Vec::new(),
+            watch_worker,
             declared_dnms: Vec::new(),
             query_thread: Some(query_thread),
             command_thread: Some(command_thread),
@@ -422,6 +442,23 @@ impl Bridge {
         out.into_iter().map(|(s, (k, m))| (s, k, m)).collect()
     }
 
+    /// Every output of a local module, for watchers.
+    fn watchable(&self, netlist: &Netlist) -> Vec<WatchPort> {
+        netlist
+            .modules_on(&self.dnm)
+            .filter_map(|m| netlist.kind_of(&m.name).map(|k| (m, k)))
+            .flat_map(|(m, k)| {
+                k.outputs.iter().map(|p| WatchPort {
+                    module: m.name.clone(),
+                    port: p.name.clone(),
+                    service: output_service(&m.name, &p.name),
+                    event: output_event(&m.name, &p.name),
+                    message: p.message.clone(),
+                })
+            })
+            .collect()
+    }
+
     /// Every local output some task links to a module on another DNM, sorted by key.
     fn wanted_egress(&self, netlist: &Netlist) -> Vec<EgressRoute> {
         let mut out: BTreeMap<String, EgressRoute> = BTreeMap::new();
@@ -488,7 +525,7 @@ impl Plugin for Bridge {
 
     /// Publishes exactly the outputs remote inputs need, drops mirrors no task uses any more,
     /// and gives the query thread the outputs to keep last values of.
-    fn commit(&mut self, _ctx: &Context<'_>, netlist: &Netlist, _revision: u64) {
+    fn commit(&mut self, _ctx: &Context<'_>, netlist: &Netlist, revision: u64) {
         self.prepared.clear();
         self.declared_dnms = netlist.dnms.iter().map(|d| d.name.clone()).collect();
         let wanted = self.wanted_ingress(netlist);
@@ -545,6 +582,15 @@ impl Plugin for Bridge {
             .collect();
         if let Ok(mut o) = self.shared.outputs.lock() {
             *o = Some(outputs);
+        }
+        if let Ok(mut w) = self.shared.wiring.lock() {
+            *w = Some(Wiring::of(netlist, &self.dnm, revision, None));
+        }
+
+        let watch = self.watchable(netlist);
+        if watch != self.watch {
+            self.watch = watch.clone();
+            self.watch_worker.send(watch);
         }
     }
 
@@ -638,7 +684,7 @@ impl Monitor {
                 "schema": self.message.schema_name,
                 "seq": h.seq,
                 "age_ms": dnm_module::protocol::monotonic_ns().saturating_sub(h.stamp_ns) / 1_000_000,
-                "value": dnm_core::values::decode(&self.message, bytes),
+                "value": dnm_netlist::values::decode(&self.message, bytes),
             }),
         }
     }
@@ -716,6 +762,9 @@ fn query_loop(
             target,
             &query,
             snapshot.as_deref(),
+            (target == Target::Wiring)
+                .then(|| shared.wiring.lock().ok().and_then(|w| w.clone()))
+                .flatten(),
             &mut monitors,
         );
         drop(query);
@@ -761,6 +810,7 @@ fn answer(
     target: Target,
     query: &Query,
     snapshot: Option<&Snapshot>,
+    wiring: Option<Wiring>,
     monitors: &mut BTreeMap<String, Monitor>,
 ) {
     match target {
@@ -782,6 +832,15 @@ fn answer(
         Target::Netlist => {
             if let Some(s) = snapshot {
                 reply_json(query, keys::netlist(system, dnm), &s.netlist);
+            }
+        }
+        Target::Wiring => {
+            if let Some(mut w) = wiring {
+                // The task in force now (switches do not commit a new revision).
+                if let Some(s) = snapshot.filter(|s| s.report.revision == w.revision) {
+                    w.active_task = s.report.active_task.clone();
+                }
+                reply_json(query, keys::wiring(system, dnm), &w);
             }
         }
         Target::Module => {

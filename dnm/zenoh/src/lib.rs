@@ -16,6 +16,7 @@
 
 mod bridge;
 pub mod remote;
+mod watch;
 
 pub use bridge::{Bridge, COMMAND_QUEUE, ParseNetlist, QUERY_QUEUE, encoding};
 

@@ -8,8 +8,7 @@
 use bytemuck::{Pod, Zeroable};
 use dnm_netlist::{MessageType, Payload};
 
-/// Encoding of fixed-size messages: the `repr(C)` little-endian layout of the fields in `SCHEMA`.
-pub const POD_ENCODING: &str = "dnm-pod";
+pub use dnm_netlist::POD_ENCODING;
 
 /// A fixed-size message type.
 pub trait Message: Pod {

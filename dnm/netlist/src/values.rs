@@ -1,14 +1,14 @@
 //! Turning a port's bytes into JSON for operators, using the message schema alone.
 //!
 //! Fixed-size messages are `repr(C)` structs whose `SCHEMA` lists their fields in ROS 2 `.msg`
-//! syntax in layout order (see `dnm_module::msg`); this decodes primitive fields and fixed-size
+//! syntax in layout order (see the module SDK's `msg`); this decodes primitive fields and fixed-size
 //! arrays of them, honouring C alignment. Anything else is summarised by its size.
 
 use serde_json::{Map, Value, json};
 
 /// The JSON view of one sample of a port with this message type.
-pub fn decode(message: &dnm_netlist::MessageType, bytes: &[u8]) -> Value {
-    if message.encoding == dnm_module::msg::POD_ENCODING
+pub fn decode(message: &crate::MessageType, bytes: &[u8]) -> Value {
+    if message.encoding == crate::POD_ENCODING
         && let Some(v) = decode_pod(&message.schema, bytes)
     {
         return v;
@@ -91,23 +91,25 @@ pub fn decode_pod(schema: &str, bytes: &[u8]) -> Option<Value> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dnm_module::msg::{Message, PairReading, Tick};
+    use crate::{MessageType, Payload};
 
     #[test]
     fn decodes_messages_by_their_schema() {
-        let t = Tick { origin: 3, seq: 9 };
-        let v = decode(&Tick::message_type(), bytemuck::bytes_of(&t));
-        assert_eq!(v, json!({"origin": 3, "seq": 9}));
-        let p = PairReading {
-            a_origin: 1,
-            a_seq: 2,
-            b_origin: 3,
-            b_seq: 4,
-            revision: 5,
-            task_slot: 6,
+        let tick = MessageType {
+            schema_name: "dnm_msgs/Tick".into(),
+            encoding: crate::POD_ENCODING.into(),
+            schema: "uint64 origin\nuint64 seq\n".into(),
+            payload: Payload::Fixed { size_bytes: 16 },
         };
-        let v = decode(&PairReading::message_type(), bytemuck::bytes_of(&p));
-        assert_eq!(v["task_slot"], json!(6));
+        let mut b = 3u64.to_le_bytes().to_vec();
+        b.extend(9u64.to_le_bytes());
+        assert_eq!(decode(&tick, &b), json!({"origin": 3, "seq": 9}));
+        assert_eq!(decode(&tick, &b[..8]), json!({"bytes": 8}));
+        let telemetry = MessageType {
+            encoding: "application/json".into(),
+            ..tick
+        };
+        assert_eq!(decode(&telemetry, b"{\"v\": 1}"), json!({"v": 1}));
     }
 
     #[test]

@@ -1,0 +1,96 @@
+//! `dnm monitor`, `dnm demo --rerun` and `dnm ground serve --monitor` start `dnm-monitor`, a
+//! separate executable: the Rerun SDK stays out of the DNM, the module host and this command.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitCode, Stdio};
+
+use anyhow::Context;
+
+/// Where `dnm-monitor` is: `$DNM_MONITOR`, next to this executable, else on the PATH.
+pub fn monitor_path() -> PathBuf {
+    if let Some(p) = std::env::var_os("DNM_MONITOR") {
+        return PathBuf::from(p);
+    }
+    if let Ok(exe) = std::env::current_exe() {
+        let dir = exe.parent().unwrap_or(Path::new("."));
+        for candidate in [dir.join("dnm-monitor"), dir.join("../dnm-monitor")] {
+            if candidate.exists() {
+                return candidate;
+            }
+        }
+    }
+    PathBuf::from("dnm-monitor")
+}
+
+/// Whether a Rerun viewer (`rerun`) can be started from the PATH.
+pub fn viewer_available() -> bool {
+    std::env::var_os("PATH").is_some_and(|paths| {
+        std::env::split_paths(&paths).any(|d| {
+            let p = d.join("rerun");
+            std::fs::metadata(&p).is_ok_and(|m| m.is_file())
+        })
+    })
+}
+
+/// The Zenoh flags a monitor needs to join the same network as `z`.
+pub fn zenoh_flags(z: &dnm::ZenohOptions) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Some(c) = &z.config {
+        out.extend(["--zenoh-config".into(), c.display().to_string()]);
+    }
+    if let Some(m) = &z.mode {
+        out.extend(["--zenoh-mode".into(), m.clone()]);
+    }
+    for e in &z.connect {
+        out.extend(["--connect".into(), e.clone()]);
+    }
+    if z.no_multicast {
+        out.push("--no-multicast".into());
+    }
+    out
+}
+
+/// Starts a monitor with `args`.
+pub fn start(args: &[String]) -> anyhow::Result<Child> {
+    let path = monitor_path();
+    Command::new(&path)
+        .args(args)
+        .stdin(Stdio::null())
+        .spawn()
+        .with_context(|| {
+            format!(
+                "starting {} (build it with `cargo build --release -p dnm-monitor`, or set DNM_MONITOR)",
+                path.display()
+            )
+        })
+}
+
+/// Asks a monitor to finish its file and waits for it.
+pub fn stop(mut child: Child) {
+    // SAFETY: kill(2) on a child we started and have not reaped.
+    unsafe {
+        libc::kill(child.id() as libc::pid_t, libc::SIGTERM);
+    }
+    let _ = child.wait();
+}
+
+/// `dnm monitor ARGS`: runs the monitor in the foreground.
+pub fn run(z: &dnm::ZenohOptions, args: &[String]) -> anyhow::Result<ExitCode> {
+    let mut all = zenoh_flags(z);
+    all.extend(args.iter().cloned());
+    let path = monitor_path();
+    let status = Command::new(&path)
+        .args(&all)
+        .status()
+        .with_context(|| {
+            format!(
+                "starting {} (build it with `cargo build --release -p dnm-monitor`, or set DNM_MONITOR)",
+                path.display()
+            )
+        })?;
+    Ok(if status.success() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}

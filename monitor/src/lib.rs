@@ -1,0 +1,848 @@
+//! `dnm monitor`: a ground-side Zenoh client that watches a running system and streams it to
+//! Rerun. It never runs inside a DNM or a module: it reads what any operator's tool can read.
+//!
+//! - **What it asks for.** The wiring in force (`<system>/dnm/*/wiring`) and the DNMs' reports,
+//!   every `status_every`; every output through the DNMs' on-demand watch keys
+//!   (`<system>/watch/...`), numeric ones at `numeric_rate` and camera frames (JPEG) at
+//!   `camera_rate`. Nothing else crosses the radio for it.
+//! - **What it draws** (entity paths):
+//!   - `world/<module>`: the pose of any output with numeric `x`, `y` and `yaw` (the
+//!     simulator's truth, the odometry estimate), its path under `world/paths/<module>`, the
+//!     waypoints and the rocks of Beetle-One's world;
+//!   - `camera/<module>/<port>`: the frames;
+//!   - `series/<module>/<port>/<field>`: every numeric field of every message (arrays by index,
+//!     JSON by path), whatever the kind;
+//!   - `graph`: the live connection graph: modules as nodes placed in a column per DNM,
+//!     coloured by state, the active task's links as edges, redrawn on every switch, apply and
+//!     module state change;
+//!   - `log`: switches, applies, module faults and restarts, DNMs and links lost and found.
+//! - **Layout.** A blueprint for a rover operator: world and camera on the left; the connection
+//!   graph, time series (a tab per module) and the log on the right.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use dnm_netlist::{MessageType, Wiring};
+use dnm_proto::keys::{self, JPEG_ENCODING, WatchRate};
+use dnm_proto::{DnmReport, ModuleRunState};
+use rerun::RecordingStream;
+use rerun::blueprint::components::PanelState;
+use rerun::blueprint::{
+    Blueprint, BlueprintActivation, BlueprintPanel, ContainerLike, GraphView, Horizontal,
+    SelectionPanel, Spatial2DView, Spatial3DView, Tabs, TextLogView, TimePanel, TimeSeriesView,
+    Vertical,
+};
+use serde_json::Value;
+use zenoh::Wait;
+
+/// The timeline every sample is put on: the producer's wall-clock send time.
+pub const TIMELINE: &str = "time";
+
+/// What to watch and how often.
+#[derive(Debug, Clone)]
+pub struct MonitorOptions {
+    pub system: String,
+    /// Rate of numeric outputs.
+    pub numeric_rate: WatchRate,
+    /// Rate of camera frames.
+    pub camera_rate: WatchRate,
+    /// How often the wiring and the DNMs' reports are asked for.
+    pub status_every: Duration,
+    /// Stop after this long (else until the process is stopped).
+    pub duration: Option<Duration>,
+}
+
+impl MonitorOptions {
+    pub fn new(system: &str) -> Self {
+        Self {
+            system: system.to_string(),
+            numeric_rate: WatchRate::Hz10,
+            camera_rate: WatchRate::Hz1,
+            status_every: Duration::from_secs(1),
+            duration: None,
+        }
+    }
+}
+
+/// What a monitor run received.
+#[derive(Debug, Clone, Default)]
+pub struct MonitorStats {
+    pub samples: u64,
+    pub bytes: u64,
+    /// Samples dropped because the monitor fell behind.
+    pub dropped: u64,
+    pub revisions: u64,
+    pub switches: u64,
+}
+
+enum Event {
+    Sample {
+        module: String,
+        port: String,
+        encoding: String,
+        bytes: Vec<u8>,
+        unix_ns: u64,
+    },
+    Status {
+        wiring: Option<Wiring>,
+        reports: Vec<DnmReport>,
+    },
+}
+
+/// Samples waiting for the logging thread at most; beyond, they are dropped and counted.
+const QUEUE: usize = 1024;
+
+/// Watches `options.system` on `session` and logs it to `rec` until `options.duration` passes
+/// or `stop` is set.
+pub fn run(
+    session: &zenoh::Session,
+    rec: &RecordingStream,
+    options: &MonitorOptions,
+    stop_when: &std::sync::atomic::AtomicBool,
+) -> anyhow::Result<MonitorStats> {
+    let (tx, rx) = mpsc::sync_channel::<Event>(QUEUE);
+    let dropped = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let poller = {
+        let (session, tx, stop) = (session.clone(), tx.clone(), stop.clone());
+        let (system, every) = (options.system.clone(), options.status_every);
+        std::thread::Builder::new()
+            .name("monitor-status".into())
+            .spawn(move || status_loop(&session, &system, every, &tx, &stop))?
+    };
+    let mut view = View::new(rec.clone(), options.clone());
+    let result = view.run(session, &rx, &tx, &dropped, stop_when);
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    drop(rx);
+    let _ = poller.join();
+    let mut stats = result?;
+    stats.dropped = dropped.load(std::sync::atomic::Ordering::Relaxed);
+    rec.flush_blocking()?;
+    Ok(stats)
+}
+
+fn status_loop(
+    session: &zenoh::Session,
+    system: &str,
+    every: Duration,
+    tx: &SyncSender<Event>,
+    stop: &std::sync::atomic::AtomicBool,
+) {
+    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+        let started = Instant::now();
+        let timeout = Duration::from_secs(5);
+        let wiring = collect::<Wiring>(session, &keys::wiring(system, "*"), timeout)
+            .into_iter()
+            .max_by_key(|w| w.revision);
+        let reports = collect::<DnmReport>(session, &keys::all_dnms(system), timeout);
+        if tx.send(Event::Status { wiring, reports }).is_err() {
+            return;
+        }
+        let rest = every.saturating_sub(started.elapsed());
+        let until = Instant::now() + rest;
+        while Instant::now() < until && !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            std::thread::sleep(rest.min(Duration::from_millis(100)));
+        }
+    }
+}
+
+/// Every JSON reply to `key`, decoded; replies that do not decode are skipped.
+fn collect<T: serde::de::DeserializeOwned>(
+    session: &zenoh::Session,
+    key: &str,
+    timeout: Duration,
+) -> Vec<T> {
+    let Ok(replies) = session
+        .get(key)
+        .target(zenoh::query::QueryTarget::All)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(timeout)
+        .wait()
+    else {
+        return Vec::new();
+    };
+    let mut out = Vec::new();
+    while let Ok(r) = replies.recv() {
+        if let Ok(s) = r.result()
+            && let Ok(v) = serde_json::from_slice(&s.payload().to_bytes())
+        {
+            out.push(v);
+        }
+    }
+    out
+}
+
+fn now_unix_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// A pose path keeps a point per this much movement, m.
+const PATH_STEP: f64 = 0.05;
+/// Points a path keeps at most (older ones are thinned out).
+const PATH_POINTS: usize = 4000;
+
+#[derive(Default)]
+struct Path {
+    points: Vec<[f32; 3]>,
+    logged_at: Option<Instant>,
+    dirty: bool,
+}
+
+/// What has been drawn, to log only what changed.
+struct View {
+    rec: RecordingStream,
+    options: MonitorOptions,
+    wiring: Option<Wiring>,
+    /// The watch subscriptions, by key.
+    subscribers: BTreeMap<String, zenoh::pubsub::Subscriber<()>>,
+    /// Message types of the outputs, by (module, port).
+    messages: BTreeMap<(String, String), MessageType>,
+    states: BTreeMap<String, (String, ModuleRunState, u32)>,
+    dnms_seen: BTreeSet<String>,
+    peers: BTreeMap<(String, String), String>,
+    events_seen: BTreeSet<(String, String, String, u64)>,
+    switches_seen: BTreeSet<(String, u64, String, u64)>,
+    paths: BTreeMap<String, Path>,
+    stats: MonitorStats,
+    blueprint_modules: Vec<String>,
+}
+
+impl View {
+    fn new(rec: RecordingStream, options: MonitorOptions) -> Self {
+        Self {
+            rec,
+            options,
+            wiring: None,
+            subscribers: BTreeMap::new(),
+            messages: BTreeMap::new(),
+            states: BTreeMap::new(),
+            dnms_seen: BTreeSet::new(),
+            peers: BTreeMap::new(),
+            events_seen: BTreeSet::new(),
+            switches_seen: BTreeSet::new(),
+            paths: BTreeMap::new(),
+            stats: MonitorStats::default(),
+            blueprint_modules: Vec::new(),
+        }
+    }
+
+    fn run(
+        &mut self,
+        session: &zenoh::Session,
+        rx: &Receiver<Event>,
+        tx: &SyncSender<Event>,
+        dropped: &std::sync::Arc<std::sync::atomic::AtomicU64>,
+        stop_when: &std::sync::atomic::AtomicBool,
+    ) -> anyhow::Result<MonitorStats> {
+        let until = self.options.duration.map(|d| Instant::now() + d);
+        self.send_blueprint()?;
+        self.say(
+            rerun::TextLogLevel::INFO,
+            &format!(
+                "monitoring `{}`: graph nodes green running, yellow starting, orange hung, red failed, grey stopped",
+                self.options.system
+            ),
+        )?;
+        while !stop_when.load(std::sync::atomic::Ordering::Relaxed) {
+            let wait = match until {
+                Some(u) => match u.checked_duration_since(Instant::now()) {
+                    Some(d) => d.min(Duration::from_millis(200)),
+                    None => break,
+                },
+                None => Duration::from_millis(200),
+            };
+            match rx.recv_timeout(wait) {
+                Ok(Event::Sample {
+                    module,
+                    port,
+                    encoding,
+                    bytes,
+                    unix_ns,
+                }) => {
+                    self.stats.samples += 1;
+                    self.stats.bytes += bytes.len() as u64;
+                    self.sample(&module, &port, &encoding, &bytes, unix_ns)?;
+                }
+                Ok(Event::Status { wiring, reports }) => {
+                    if let Some(w) = wiring {
+                        self.wiring_changed(session, w, tx, dropped)?;
+                    }
+                    self.reports(&reports)?;
+                }
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+            self.flush_paths(false)?;
+        }
+        self.flush_paths(true)?;
+        self.subscribers.clear();
+        Ok(self.stats.clone())
+    }
+
+    fn at_now(&self) {
+        self.rec
+            .set_timestamp_nanos_since_epoch(TIMELINE, now_unix_ns() as i64);
+    }
+
+    fn say(&self, level: &str, text: &str) -> anyhow::Result<()> {
+        self.at_now();
+        self.rec
+            .log("log", &rerun::TextLog::new(text).with_level(level))?;
+        Ok(())
+    }
+
+    /// A new revision or task: subscriptions follow the outputs, the graph its links.
+    fn wiring_changed(
+        &mut self,
+        session: &zenoh::Session,
+        w: Wiring,
+        tx: &SyncSender<Event>,
+        dropped: &std::sync::Arc<std::sync::atomic::AtomicU64>,
+    ) -> anyhow::Result<()> {
+        let (rev_changed, task_changed) = match &self.wiring {
+            None => (true, true),
+            Some(old) => (old.revision != w.revision, old.active_task != w.active_task),
+        };
+        if !rev_changed && !task_changed {
+            return Ok(());
+        }
+        if rev_changed {
+            self.stats.revisions += 1;
+            self.say(
+                rerun::TextLogLevel::INFO,
+                &format!(
+                    "revision {} in force: {} modules on {} DNMs, tasks {}",
+                    w.revision,
+                    w.modules.len(),
+                    w.dnms.len(),
+                    w.tasks.keys().cloned().collect::<Vec<_>>().join(", ")
+                ),
+            )?;
+            self.subscribe(session, &w, tx, dropped);
+            self.scene(&w)?;
+        }
+        if task_changed && !rev_changed {
+            self.stats.switches += 1;
+        }
+        self.say(
+            rerun::TextLogLevel::INFO,
+            &format!(
+                "task `{}` active",
+                w.active_task.as_deref().unwrap_or("(none)")
+            ),
+        )?;
+        self.wiring = Some(w);
+        self.draw_graph()?;
+        self.send_blueprint()?;
+        Ok(())
+    }
+
+    fn subscribe(
+        &mut self,
+        session: &zenoh::Session,
+        w: &Wiring,
+        tx: &SyncSender<Event>,
+        dropped: &std::sync::Arc<std::sync::atomic::AtomicU64>,
+    ) {
+        let mut wanted: BTreeMap<String, (String, String)> = BTreeMap::new();
+        self.messages.clear();
+        for m in &w.modules {
+            for p in &m.outputs {
+                let rate = if p.message.encoding == "dnm-image-rgb8" {
+                    self.options.camera_rate
+                } else {
+                    self.options.numeric_rate
+                };
+                let key = keys::watch(&self.options.system, &m.dnm, &m.name, &p.name, rate);
+                wanted.insert(key, (m.name.clone(), p.name.clone()));
+                self.messages
+                    .insert((m.name.clone(), p.name.clone()), p.message.clone());
+            }
+        }
+        self.subscribers.retain(|k, _| wanted.contains_key(k));
+        for (key, (module, port)) in wanted {
+            if self.subscribers.contains_key(&key) {
+                continue;
+            }
+            let (tx, dropped) = (tx.clone(), dropped.clone());
+            let sub = session
+                .declare_subscriber(key.clone())
+                .callback(move |s| {
+                    let unix_ns = s
+                        .attachment()
+                        .and_then(|a| keys::decode_header(&a.to_bytes()))
+                        .map(|h| h.unix_ns)
+                        .filter(|t| *t > 0)
+                        .unwrap_or_else(now_unix_ns);
+                    let event = Event::Sample {
+                        module: module.clone(),
+                        port: port.clone(),
+                        encoding: s.encoding().to_string(),
+                        bytes: s.payload().to_bytes().to_vec(),
+                        unix_ns,
+                    };
+                    if tx.try_send(event).is_err() {
+                        dropped.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    }
+                })
+                .wait();
+            match sub {
+                Ok(s) => {
+                    self.subscribers.insert(key, s);
+                }
+                Err(e) => tracing::warn!(key = %key, "cannot watch: {e}"),
+            }
+        }
+    }
+
+    /// Beetle-One's waypoints and rocks, from the parameters of its modules.
+    fn scene(&self, w: &Wiring) -> anyhow::Result<()> {
+        for m in &w.modules {
+            let param = |name: &str| match m.params.get(name) {
+                Some(dnm_netlist::ParamValue::String(s)) => Some(s.clone()),
+                _ => None,
+            };
+            if let Some(text) = param("waypoints")
+                && let Ok(points) = dnm_rover::control::parse_waypoints(&text)
+            {
+                let pts: Vec<[f32; 3]> = points
+                    .iter()
+                    .map(|(x, y)| [*x as f32, *y as f32, 0.0])
+                    .collect();
+                let labels: Vec<String> =
+                    (1..=pts.len()).map(|i| format!("waypoint {i}")).collect();
+                self.rec.log_static(
+                    format!("world/waypoints/{}", m.name),
+                    &rerun::Points3D::new(pts)
+                        .with_radii([0.15])
+                        .with_colors([rerun::Color::from_rgb(80, 160, 255)])
+                        .with_labels(labels),
+                )?;
+            }
+            if m.kind == "rover_world" {
+                let name = param("terrain").unwrap_or_else(|| "mars-yard".into());
+                if let Some(t) = dnm_rover::world::Terrain::named(&name) {
+                    let centers: Vec<[f32; 3]> = t
+                        .rocks
+                        .iter()
+                        .map(|r| {
+                            [
+                                r.center.x as f32,
+                                r.center.y as f32,
+                                (r.height / 2.0) as f32,
+                            ]
+                        })
+                        .collect();
+                    let halves: Vec<[f32; 3]> = t
+                        .rocks
+                        .iter()
+                        .map(|r| [r.radius as f32, r.radius as f32, (r.height / 2.0) as f32])
+                        .collect();
+                    self.rec.log_static(
+                        "world/rocks",
+                        &rerun::Ellipsoids3D::from_centers_and_half_sizes(centers, halves)
+                            .with_colors([rerun::Color::from_rgb(150, 110, 80)])
+                            .with_fill_mode(rerun::FillMode::Solid),
+                    )?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn reports(&mut self, reports: &[DnmReport]) -> anyhow::Result<()> {
+        let mut changed = false;
+        let answering: BTreeSet<String> = reports.iter().map(|r| r.dnm.clone()).collect();
+        for d in answering.difference(&self.dnms_seen.clone()) {
+            self.say(rerun::TextLogLevel::INFO, &format!("DNM `{d}` answers"))?;
+        }
+        for d in self.dnms_seen.clone().difference(&answering) {
+            self.say(
+                rerun::TextLogLevel::WARN,
+                &format!("DNM `{d}` does not answer"),
+            )?;
+        }
+        self.dnms_seen = answering;
+        for r in reports {
+            for m in &r.modules {
+                let now = (r.dnm.clone(), m.state, m.restarts);
+                let before = self.states.insert(m.name.clone(), now.clone());
+                if before.as_ref().map(|b| b.1) != Some(m.state) {
+                    changed = true;
+                    if before.is_some() {
+                        let level = match m.state {
+                            ModuleRunState::Failed | ModuleRunState::Hung => {
+                                rerun::TextLogLevel::ERROR
+                            }
+                            ModuleRunState::Stopped => rerun::TextLogLevel::WARN,
+                            _ => rerun::TextLogLevel::INFO,
+                        };
+                        self.say(
+                            level,
+                            &format!(
+                                "module `{}` on `{}` is {}",
+                                m.name,
+                                r.dnm,
+                                state_name(m.state)
+                            ),
+                        )?;
+                    }
+                }
+            }
+            for e in &r.events {
+                let id = (e.dnm.clone(), e.module.clone(), e.what.clone(), e.at_ns);
+                if self.events_seen.insert(id) {
+                    let level = match e.what.as_str() {
+                        "exited" | "hung" | "gave_up" => rerun::TextLogLevel::ERROR,
+                        "restarting" | "stopped" => rerun::TextLogLevel::WARN,
+                        _ => rerun::TextLogLevel::INFO,
+                    };
+                    self.say(
+                        level,
+                        &format!("`{}` on `{}`: {} {}", e.module, e.dnm, e.what, e.detail),
+                    )?;
+                }
+            }
+            for s in &r.switches {
+                let id = (s.dnm.clone(), s.revision, s.to.clone(), s.at_ns);
+                if self.switches_seen.insert(id) {
+                    self.say(
+                        rerun::TextLogLevel::INFO,
+                        &format!(
+                            "`{}` switched {} → `{}` (revision {}, {:.2} µs)",
+                            r.dnm,
+                            s.from
+                                .as_deref()
+                                .map_or("(none)".into(), |f| format!("`{f}`")),
+                            s.to,
+                            s.revision,
+                            s.duration_ns as f64 / 1000.0
+                        ),
+                    )?;
+                }
+            }
+            for p in &r.peers {
+                let key = (r.dnm.clone(), p.dnm.clone());
+                let before = self.peers.insert(key, p.state.clone());
+                if before.as_ref().is_some_and(|b| *b != p.state) {
+                    let level = if p.state == "alive" {
+                        rerun::TextLogLevel::INFO
+                    } else {
+                        rerun::TextLogLevel::WARN
+                    };
+                    self.say(
+                        level,
+                        &format!("link `{}` → `{}`: {}", r.dnm, p.dnm, p.state),
+                    )?;
+                }
+            }
+        }
+        if changed {
+            self.draw_graph()?;
+        }
+        Ok(())
+    }
+
+    /// The connection graph: a column of modules per DNM, coloured by state, and the active
+    /// task's links.
+    fn draw_graph(&self) -> anyhow::Result<()> {
+        let Some(w) = &self.wiring else {
+            return Ok(());
+        };
+        let mut ids = Vec::new();
+        let mut labels = Vec::new();
+        let mut colors = Vec::new();
+        let mut positions = Vec::new();
+        for (col, d) in w.dnms.iter().enumerate() {
+            for (row, m) in w.modules.iter().filter(|m| m.dnm == d.name).enumerate() {
+                let state = self.states.get(&m.name).map(|s| s.1);
+                ids.push(m.name.clone());
+                labels.push(format!("{} · {}", m.name, d.name));
+                colors.push(state_color(state));
+                positions.push([col as f32 * 260.0, row as f32 * 70.0]);
+            }
+        }
+        self.at_now();
+        self.rec.log(
+            "graph",
+            &rerun::GraphNodes::new(ids)
+                .with_labels(labels)
+                .with_colors(colors)
+                .with_positions(positions),
+        )?;
+        let edges: Vec<(String, String)> = w
+            .active_links()
+            .iter()
+            .map(|l| (l.from.module.clone(), l.to.module.clone()))
+            .collect();
+        self.rec.log(
+            "graph",
+            &rerun::GraphEdges::new(edges).with_directed_edges(),
+        )?;
+        Ok(())
+    }
+
+    fn sample(
+        &mut self,
+        module: &str,
+        port: &str,
+        encoding: &str,
+        bytes: &[u8],
+        unix_ns: u64,
+    ) -> anyhow::Result<()> {
+        self.rec
+            .set_timestamp_nanos_since_epoch(TIMELINE, unix_ns as i64);
+        if encoding == JPEG_ENCODING {
+            self.rec.log(
+                format!("camera/{module}/{port}"),
+                &rerun::EncodedImage::from_file_contents(bytes.to_vec())
+                    .with_media_type(rerun::MediaType::JPEG),
+            )?;
+            return Ok(());
+        }
+        let Some(message) = self.messages.get(&(module.to_string(), port.to_string())) else {
+            return Ok(());
+        };
+        let value = dnm_netlist::values::decode(message, bytes);
+        let mut fields = Vec::new();
+        numeric_fields("", &value, &mut fields);
+        for (field, v) in &fields {
+            self.rec.log(
+                format!("series/{module}/{port}/{field}"),
+                &rerun::Scalars::single(*v),
+            )?;
+        }
+        let get = |k: &str| fields.iter().find(|(f, _)| f == k).map(|(_, v)| *v);
+        if let (Some(x), Some(y), Some(yaw)) = (get("x"), get("y"), get("yaw")) {
+            let z = get("z").unwrap_or(0.0);
+            let truth = self
+                .wiring
+                .as_ref()
+                .and_then(|w| w.module(module))
+                .is_some_and(|m| m.kind == "rover_world");
+            let color = if truth {
+                rerun::Color::from_rgb(230, 230, 230)
+            } else {
+                rerun::Color::from_rgb(255, 170, 0)
+            };
+            self.rec.log(
+                format!("world/{module}"),
+                &rerun::Transform3D::from_translation_rotation(
+                    [x as f32, y as f32, z as f32],
+                    rerun::RotationAxisAngle::new(
+                        [0.0, 0.0, 1.0],
+                        rerun::Angle::from_radians(yaw as f32),
+                    ),
+                ),
+            )?;
+            self.rec.log(
+                format!("world/{module}/body"),
+                &rerun::Boxes3D::from_half_sizes([[0.3, 0.22, 0.1]])
+                    .with_centers([[0.0, 0.0, 0.1]])
+                    .with_colors([color])
+                    .with_labels([if truth { "truth" } else { module }]),
+            )?;
+            let path = self.paths.entry(module.to_string()).or_default();
+            let p = [x as f32, y as f32, z as f32];
+            let far = path.points.last().is_none_or(|q| {
+                let (dx, dy) = (q[0] - p[0], q[1] - p[1]);
+                f64::from(dx * dx + dy * dy).sqrt() >= PATH_STEP
+            });
+            if far {
+                if path.points.len() >= PATH_POINTS {
+                    // Keep every other point: the path stays whole, coarser.
+                    path.points = path.points.iter().step_by(2).copied().collect();
+                }
+                path.points.push(p);
+                path.dirty = true;
+            }
+        }
+        Ok(())
+    }
+
+    /// Paths are logged at most twice a second (they are whole strips).
+    fn flush_paths(&mut self, all: bool) -> anyhow::Result<()> {
+        let due: Vec<String> = self
+            .paths
+            .iter()
+            .filter(|(_, p)| {
+                p.dirty
+                    && (all
+                        || p.logged_at
+                            .is_none_or(|t| t.elapsed() >= Duration::from_millis(500)))
+            })
+            .map(|(m, _)| m.clone())
+            .collect();
+        for m in due {
+            let truth = self
+                .wiring
+                .as_ref()
+                .and_then(|w| w.module(&m))
+                .is_some_and(|w| w.kind == "rover_world");
+            let Some(p) = self.paths.get_mut(&m) else {
+                continue;
+            };
+            self.rec
+                .set_timestamp_nanos_since_epoch(TIMELINE, now_unix_ns() as i64);
+            self.rec.log(
+                format!("world/paths/{m}"),
+                &rerun::LineStrips3D::new([p.points.clone()])
+                    .with_colors([if truth {
+                        rerun::Color::from_rgb(230, 230, 230)
+                    } else {
+                        rerun::Color::from_rgb(255, 170, 0)
+                    }])
+                    .with_radii([0.03]),
+            )?;
+            p.dirty = false;
+            p.logged_at = Some(Instant::now());
+        }
+        Ok(())
+    }
+
+    /// The operator's layout; the time series get a tab per module once the wiring is known.
+    fn send_blueprint(&mut self) -> anyhow::Result<()> {
+        let modules: Vec<String> = self
+            .wiring
+            .as_ref()
+            .map(|w| {
+                w.modules
+                    .iter()
+                    .filter(|m| {
+                        m.outputs
+                            .iter()
+                            .any(|p| p.message.encoding != "dnm-image-rgb8")
+                    })
+                    .map(|m| m.name.clone())
+                    .collect()
+            })
+            .unwrap_or_default();
+        if !self.blueprint_modules.is_empty() && modules == self.blueprint_modules {
+            return Ok(());
+        }
+        self.blueprint_modules = modules.clone();
+        let series: ContainerLike = if modules.is_empty() {
+            TimeSeriesView::new("Time series")
+                .with_origin("series")
+                .into()
+        } else {
+            Tabs::new(modules.iter().map(|m| {
+                TimeSeriesView::new(m.as_str())
+                    .with_origin(format!("series/{m}"))
+                    .into()
+            }))
+            .into()
+        };
+        let blueprint = Blueprint::new(Horizontal::new([
+            Vertical::new([
+                Spatial3DView::new("World").with_origin("world").into(),
+                Spatial2DView::new("Camera").with_origin("camera").into(),
+            ])
+            .with_row_shares([0.6, 0.4])
+            .into(),
+            Vertical::new([
+                GraphView::new("Connection layer")
+                    .with_origin("graph")
+                    .into(),
+                series,
+                TextLogView::new("Events").with_origin("log").into(),
+            ])
+            .with_row_shares([0.4, 0.35, 0.25])
+            .into(),
+        ]))
+        // The operator's views take the screen; the panels stay a click away.
+        .with_blueprint_panel(BlueprintPanel::from_state(PanelState::Collapsed))
+        .with_selection_panel(SelectionPanel::from_state(PanelState::Collapsed))
+        .with_time_panel(TimePanel::new().with_state(PanelState::Collapsed));
+        blueprint.send(&self.rec, BlueprintActivation::default())?;
+        Ok(())
+    }
+}
+
+fn state_name(s: ModuleRunState) -> &'static str {
+    match s {
+        ModuleRunState::Starting => "starting",
+        ModuleRunState::Running => "running",
+        ModuleRunState::Hung => "hung",
+        ModuleRunState::Failed => "failed",
+        ModuleRunState::Stopped => "stopped",
+    }
+}
+
+fn state_color(s: Option<ModuleRunState>) -> rerun::Color {
+    match s {
+        Some(ModuleRunState::Running) => rerun::Color::from_rgb(60, 180, 75),
+        Some(ModuleRunState::Starting) => rerun::Color::from_rgb(230, 200, 40),
+        Some(ModuleRunState::Hung) => rerun::Color::from_rgb(245, 130, 48),
+        Some(ModuleRunState::Failed) => rerun::Color::from_rgb(220, 40, 40),
+        Some(ModuleRunState::Stopped) | None => rerun::Color::from_rgb(140, 140, 140),
+    }
+}
+
+/// Every number in `v` (booleans as 0/1), by path: `field`, `field/0`, `a/b`.
+pub fn numeric_fields(prefix: &str, v: &Value, out: &mut Vec<(String, f64)>) {
+    let join = |k: &str| {
+        if prefix.is_empty() {
+            k.to_string()
+        } else {
+            format!("{prefix}/{k}")
+        }
+    };
+    match v {
+        Value::Number(n) => {
+            if let Some(f) = n.as_f64().filter(|f| f.is_finite()) {
+                out.push((prefix.to_string(), f));
+            }
+        }
+        Value::Bool(b) => out.push((prefix.to_string(), f64::from(u8::from(*b)))),
+        Value::Array(a) => {
+            for (i, x) in a.iter().enumerate() {
+                numeric_fields(&join(&i.to_string()), x, out);
+            }
+        }
+        Value::Object(o) => {
+            for (k, x) in o {
+                // Keys become entity path parts: keep them to safe characters.
+                let k: String = k
+                    .chars()
+                    .map(|c| {
+                        if c.is_ascii_alphanumeric() || c == '_' || c == '-' {
+                            c
+                        } else {
+                            '_'
+                        }
+                    })
+                    .collect();
+                numeric_fields(&join(&k), x, out);
+            }
+        }
+        _ => {}
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_number_becomes_a_series() {
+        let v =
+            serde_json::json!({"x": 1.5, "gyro": [1, 2], "ok": true, "name": "a", "a b": {"c": 3}});
+        let mut out = Vec::new();
+        numeric_fields("", &v, &mut out);
+        out.sort_by(|a, b| a.0.cmp(&b.0));
+        assert_eq!(
+            out,
+            vec![
+                ("a_b/c".to_string(), 3.0),
+                ("gyro/0".to_string(), 1.0),
+                ("gyro/1".to_string(), 2.0),
+                ("ok".to_string(), 1.0),
+                ("x".to_string(), 1.5),
+            ]
+        );
+    }
+}
