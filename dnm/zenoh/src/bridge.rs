@@ -36,7 +36,8 @@ use dnm_module::{event_service, port_service};
 use dnm_netlist::{MessageType, Netlist, Wiring};
 
 use crate::watch::{WATCH_EVENT, WatchPort, watch_loop};
-use dnm_proto::keys::{self, SampleHeader};
+use crate::wire::{encoding, from_wire, to_wire, traffic_class};
+use dnm_proto::keys;
 use dnm_proto::{
     NetReport, NetlistState, PeerReport, RemoteCommand, Request, Response, RouteReport,
 };
@@ -50,7 +51,7 @@ use zenoh::Wait;
 use zenoh::bytes::Encoding;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Subscriber as ZSubscriber;
-use zenoh::qos::{CongestionControl, Priority};
+use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
 use zenoh::sample::{Sample, SampleKind};
 
@@ -68,47 +69,6 @@ pub const APPLIES_IN_FLIGHT: usize = 4;
 
 /// Parses and validates a netlist sent in a command (`file` names it in errors).
 pub type ParseNetlist = Arc<dyn Fn(&Path, &str) -> Result<Netlist, String> + Send + Sync>;
-
-/// Zenoh encoding of a port: the message encoding with the schema name as its schema.
-pub fn encoding(message: &MessageType) -> String {
-    format!("{};{}", message.encoding, message.schema_name)
-}
-
-/// Wall-clock time now, ns since the Unix epoch.
-fn unix_now_ns() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
-
-/// The header as it leaves this machine: its send time also in wall-clock time.
-pub(crate) fn to_wire(h: &PortHeader) -> SampleHeader {
-    let age = dnm_module::protocol::monotonic_ns().saturating_sub(h.stamp_ns);
-    SampleHeader {
-        stamp_ns: h.stamp_ns,
-        seq: h.seq,
-        task_word: h.task_word,
-        unix_ns: unix_now_ns().saturating_sub(age),
-    }
-}
-
-/// The header as it enters this machine: the send time on this machine's monotonic clock, so
-/// modules judge the sample's age as they judge local ones (assumes synchronised wall clocks;
-/// a send time ahead of this machine's clock counts as now). A sample without a wall-clock time
-/// (an older sender, a foreign publisher) is stamped with its arrival: Zenoh delivers it live.
-fn from_wire(h: SampleHeader) -> PortHeader {
-    let now = dnm_module::protocol::monotonic_ns();
-    let stamp_ns = if h.unix_ns == 0 {
-        now
-    } else {
-        now.saturating_sub(unix_now_ns().saturating_sub(h.unix_ns))
-    };
-    PortHeader {
-        stamp_ns,
-        seq: h.seq,
-        task_word: h.task_word,
-    }
-}
 
 /// Which of a DNM's queryables a query reached.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -1231,17 +1191,6 @@ fn command_loop(
     }
 }
 
-/// The Zenoh priority of a port's samples: they never hold up commands (which go at
-/// interactive-high and block), and large payloads (camera frames) go last. Every sample is
-/// dropped rather than queued when the link is congested: a newer one follows.
-pub fn traffic_class(message: &dnm_netlist::MessageType) -> Priority {
-    if message.payload.max_bytes() > LARGE_SAMPLE {
-        Priority::Background
-    } else {
-        Priority::Data
-    }
-}
-
 /// A netlist sent in a transaction, validated here and for this system.
 fn parse_here(
     parse: &ParseNetlist,
@@ -1261,9 +1210,6 @@ fn parse_here(
 
 /// How far ahead of now a decided instant may be.
 const MAX_DECISION_AHEAD: Duration = Duration::from_secs(60);
-
-/// Samples larger than this are bulk (images, point clouds).
-const LARGE_SAMPLE: usize = 16 * 1024;
 
 /// A reply for the DNM that hands the query back to the command thread with the response. The
 /// query waits in a slot, so it can be answered here if the DNM never takes the command.

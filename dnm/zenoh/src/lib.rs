@@ -17,8 +17,10 @@
 mod bridge;
 pub mod remote;
 mod watch;
+mod wire;
 
-pub use bridge::{Bridge, COMMAND_QUEUE, ParseNetlist, QUERY_QUEUE, encoding};
+pub use bridge::{Bridge, COMMAND_QUEUE, ParseNetlist, QUERY_QUEUE};
+pub use wire::encoding;
 
 /// The newest netlist the running DNMs of `system` hold, if any answers within `timeout`.
 /// A DNM that (re)starts into a running system continues from it.

@@ -28,7 +28,7 @@ use iceoryx2::prelude::*;
 use zenoh::Wait;
 use zenoh::qos::{CongestionControl, Priority};
 
-use crate::bridge::{encoding, to_wire, traffic_class};
+use crate::wire::{encoding, to_wire, traffic_class};
 
 type Svc = ipc::Service;
 type TsSvc = ipc_threadsafe::Service;
