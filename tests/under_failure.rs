@@ -508,13 +508,19 @@ fn a_recorder_that_lost_its_disk_counts_what_it_drops() {
         rec.error.is_some() && rec.dropped > 100
     });
     let rec = r.dnms[0].recording.clone().unwrap();
-    // The running system is untouched.
+    // The running system is untouched: the new revision is in force, and its modules (the
+    // replaced one may still be starting) all run.
     assert_eq!(r.dnms[0].revision, before.revision + 1);
-    assert!(
+    let r = sys.wait_for("every module running", |r| {
         r.dnms[0]
             .modules
             .iter()
             .all(|m| m.state == ModuleRunState::Running)
+    });
+    assert!(
+        r.dnms[0].modules.iter().all(|m| m.restarts == 0),
+        "{:?}",
+        r.dnms[0].modules
     );
     std::fs::remove_file(&recordings).unwrap();
     std::fs::rename(&kept, &recordings).unwrap();
