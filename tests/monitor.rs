@@ -135,8 +135,8 @@ fn the_demo_mission_saved_through_the_monitor_reads_back_in_rerun() {
     for e in [
         "/world/world",
         "/world/odometry",
-        "/world/paths/world",
-        "/world/paths/odometry",
+        "/world/paths/world/0",
+        "/world/paths/odometry/0",
         "/world/rocks",
         "/world/waypoints/autopilot",
     ] {

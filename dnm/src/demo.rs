@@ -48,6 +48,27 @@ pub enum RerunOut {
     Save(PathBuf),
 }
 
+/// Waits (a minute at most) until the monitor announces it is watching (a liveliness token
+/// under `<system>/monitor/`), so the mission it shows starts at the beginning.
+fn wait_for_monitor(session: &zenoh::Session, system: &str, quiet: bool) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while Instant::now() < deadline {
+        let found = session
+            .liveliness()
+            .get(format!("{system}/monitor/*"))
+            .timeout(Duration::from_secs(1))
+            .wait()
+            .is_ok_and(|r| r.recv().is_ok_and(|r| r.result().is_ok()));
+        if found {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    if !quiet {
+        println!("Rerun: the monitor is not watching yet; the mission starts without waiting");
+    }
+}
+
 /// Starts `dnm-monitor` on the demo's Zenoh network (reached at `endpoint`).
 fn start_monitor(
     out: &RerunOut,
@@ -453,6 +474,9 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
         }
         _ => None,
     };
+    if monitor.is_some() {
+        wait_for_monitor(host.session(), &netlist.system, args.json);
+    }
     let station = match dnm_ground::Station::start(
         host.session().clone(),
         dnm_ground::StationOptions::new(&netlist.system, "demo-station", state.join("ground.redb")),

@@ -132,9 +132,11 @@ fn status_loop(
     while !stop.load(std::sync::atomic::Ordering::Relaxed) {
         let started = Instant::now();
         let timeout = Duration::from_secs(5);
-        let wiring = collect::<Wiring>(session, &keys::wiring(system, "*"), timeout)
-            .into_iter()
-            .max_by_key(|w| w.revision);
+        let wiring = newest_wiring(collect::<Wiring>(
+            session,
+            &keys::wiring(system, "*"),
+            timeout,
+        ));
         let reports = collect::<DnmReport>(session, &keys::all_dnms(system), timeout);
         if tx.send(Event::Status { wiring, reports }).is_err() {
             return;
@@ -145,6 +147,21 @@ fn status_loop(
             std::thread::sleep(rest.min(Duration::from_millis(100)));
         }
     }
+}
+
+/// The wiring in force: the newest revision with a task, as the rover's DNMs tell it (a DNM
+/// across the radio may lag), the same DNM's answer each time.
+fn newest_wiring(all: Vec<Wiring>) -> Option<Wiring> {
+    all.into_iter()
+        .filter(|w| w.active_task.is_some())
+        .max_by(|a, b| {
+            let radio = |w: &Wiring| w.dnms.iter().any(|d| d.name == w.dnm && d.radio);
+            (a.revision, !radio(a), std::cmp::Reverse(&a.dnm)).cmp(&(
+                b.revision,
+                !radio(b),
+                std::cmp::Reverse(&b.dnm),
+            ))
+        })
 }
 
 /// Every JSON reply to `key`, decoded; replies that do not decode are skipped.
@@ -181,11 +198,16 @@ fn now_unix_ns() -> u64 {
 
 /// A pose path keeps a point per this much movement, m.
 const PATH_STEP: f64 = 0.05;
-/// Points a path keeps at most (older ones are thinned out).
-const PATH_POINTS: usize = 4000;
+/// Points in one segment of a path: a path is logged as segments (`world/paths/<module>/<n>`),
+/// and only the growing one is logged again, so what is sent stays small on a long drive.
+const SEGMENT_POINTS: usize = 200;
+/// Numeric fields of one sample drawn at most (a huge JSON array must not flood the viewer).
+const MAX_FIELDS: usize = 256;
 
 #[derive(Default)]
 struct Path {
+    /// The growing segment's number and points.
+    segment: usize,
     points: Vec<[f32; 3]>,
     logged_at: Option<Instant>,
     dirty: bool,
@@ -196,6 +218,9 @@ struct View {
     rec: RecordingStream,
     options: MonitorOptions,
     wiring: Option<Wiring>,
+    /// Declared once the first wiring is drawn: tells `dnm demo` (and anyone) the monitor
+    /// is watching.
+    ready: Option<zenoh::liveliness::LivelinessToken>,
     /// The watch subscriptions, by key.
     subscribers: BTreeMap<String, zenoh::pubsub::Subscriber<()>>,
     /// Message types of the outputs, by (module, port).
@@ -216,6 +241,7 @@ impl View {
             rec,
             options,
             wiring: None,
+            ready: None,
             subscribers: BTreeMap::new(),
             messages: BTreeMap::new(),
             states: BTreeMap::new(),
@@ -337,6 +363,13 @@ impl View {
         self.wiring = Some(w);
         self.draw_graph()?;
         self.send_blueprint()?;
+        if self.ready.is_none() {
+            let key = format!("{}/monitor/{}", self.options.system, std::process::id());
+            match session.liveliness().declare_token(key).wait() {
+                Ok(t) => self.ready = Some(t),
+                Err(e) => tracing::debug!("monitor token: {e}"),
+            }
+        }
         Ok(())
     }
 
@@ -540,6 +573,28 @@ impl View {
                 }
             }
         }
+        // Forget what the DNMs no longer report (their lists are bounded): the sets stay small
+        // on a long mission.
+        let reported: BTreeSet<_> = reports
+            .iter()
+            .flat_map(|r| {
+                r.events
+                    .iter()
+                    .map(|e| (e.dnm.clone(), e.module.clone(), e.what.clone(), e.at_ns))
+            })
+            .collect();
+        self.events_seen
+            .retain(|e| !self.dnms_seen.contains(&e.0) || reported.contains(e));
+        let reported: BTreeSet<_> = reports
+            .iter()
+            .flat_map(|r| {
+                r.switches
+                    .iter()
+                    .map(|s| (s.dnm.clone(), s.revision, s.to.clone(), s.at_ns))
+            })
+            .collect();
+        self.switches_seen
+            .retain(|s| !self.dnms_seen.contains(&s.0) || reported.contains(s));
         if changed {
             self.draw_graph()?;
         }
@@ -609,6 +664,7 @@ impl View {
         let value = dnm_netlist::values::decode(message, bytes);
         let mut fields = Vec::new();
         numeric_fields("", &value, &mut fields);
+        fields.truncate(MAX_FIELDS);
         for (field, v) in &fields {
             self.rec.log(
                 format!("series/{module}/{port}/{field}"),
@@ -652,10 +708,6 @@ impl View {
                 f64::from(dx * dx + dy * dy).sqrt() >= PATH_STEP
             });
             if far {
-                if path.points.len() >= PATH_POINTS {
-                    // Keep every other point: the path stays whole, coarser.
-                    path.points = path.points.iter().step_by(2).copied().collect();
-                }
                 path.points.push(p);
                 path.dirty = true;
             }
@@ -688,7 +740,7 @@ impl View {
             self.rec
                 .set_timestamp_nanos_since_epoch(TIMELINE, now_unix_ns() as i64);
             self.rec.log(
-                format!("world/paths/{m}"),
+                format!("world/paths/{m}/{}", p.segment),
                 &rerun::LineStrips3D::new([p.points.clone()])
                     .with_colors([if truth {
                         rerun::Color::from_rgb(230, 230, 230)
@@ -699,6 +751,11 @@ impl View {
             )?;
             p.dirty = false;
             p.logged_at = Some(Instant::now());
+            if p.points.len() >= SEGMENT_POINTS {
+                // That segment is whole: the next starts where it ends.
+                p.segment += 1;
+                p.points = p.points.last().copied().into_iter().collect();
+            }
         }
         Ok(())
     }

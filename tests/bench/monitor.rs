@@ -229,11 +229,16 @@ fn main() {
             })
             .min_by(|a, b| a.0.total_cmp(&b.0));
         println!(
-            "| {} | {:.1}% | {:.2}x | {:.1} KiB/s | {} | {} |",
+            "| {} | {:.1}% | {:.2}x | {} | {} | {} |",
             p.name,
             p.dnm_cpu_percent,
             p.dnm_cpu_percent / base.dnm_cpu_percent,
-            p.received_bytes_per_s / 1024.0,
+            // The monitor counts what it receives itself (the radio column says it in bytes).
+            if p.radio_bytes_per_s.is_some() {
+                "-".to_string()
+            } else {
+                format!("{:.1} KiB/s", p.received_bytes_per_s / 1024.0)
+            },
             p.radio_bytes_per_s.map_or("-".into(), |b| format!(
                 "{:.1} KiB/s ({:.0} kbit/s)",
                 b / 1024.0,

@@ -76,7 +76,8 @@ pub fn decode_pod(schema: &str, bytes: &[u8]) -> Option<Value> {
         max_align = max_align.max(size);
         offset = offset.next_multiple_of(size);
         let n = count.unwrap_or(1);
-        let end = offset + size * n;
+        // Counts come from a schema that may have crossed a network: no overflow.
+        let end = offset.checked_add(size.checked_mul(n)?)?;
         let field = bytes.get(offset..end)?;
         let value = match count {
             None => read(base, field),

@@ -14,7 +14,7 @@
 use std::cell::Cell;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use dnm_core::worker::{Control, Sets, dbg, err};
 use dnm_module::protocol::{PortHeader, dnm_config, monotonic_ns};
@@ -40,6 +40,10 @@ pub(crate) const WATCH_EVENT: &str = "_dnm/watch";
 const RGB8: &str = "dnm-image-rgb8";
 /// JPEG quality of watched frames (1–100).
 const JPEG_QUALITY: u8 = 70;
+/// Samples one output's reader takes per wake at most.
+const MAX_PER_WAKE: usize = 16;
+/// How long a reader that could not be opened waits before it is tried again.
+const RETRY_AFTER: Duration = Duration::from_secs(5);
 
 /// A local output that can be watched.
 #[derive(Debug, Clone, PartialEq)]
@@ -63,9 +67,9 @@ struct Watched {
     reader: Option<Reader>,
     /// Monotonic time each limited rate (10 Hz, 1 Hz) last published, ns.
     last_sent: [Cell<Option<u64>>; 2],
-    /// The (anyone, every sample) watch state a reader could not be opened for: not tried
-    /// again until it changes.
-    failed_for: Option<(bool, bool)>,
+    /// The (anyone, every sample) watch state a reader could not be opened for, and when: not
+    /// tried again for [`RETRY_AFTER`] unless it changes.
+    failed_for: Option<((bool, bool), Instant)>,
 }
 
 struct Reader {
@@ -115,14 +119,7 @@ impl Watched {
                     .wait()
                     .map_err(err("matching listener"))?;
             }
-            // A watcher that subscribed before the publisher existed.
-            if publisher
-                .matching_status()
-                .wait()
-                .is_ok_and(|s| s.matching())
-            {
-                matched.store(true, Ordering::Release);
-            }
+            // (Zenoh calls the listener at once when someone already subscribes.)
             publishers.push((rate, publisher, matched));
         }
         Ok(Self {
@@ -155,7 +152,10 @@ impl Watched {
             self.reader.is_some(),
             self.reader.as_ref().is_some_and(|r| r.listener.is_some()),
         );
-        has != wanted && self.failed_for != Some(wanted)
+        has != wanted
+            && self
+                .failed_for
+                .is_none_or(|(w, at)| w != wanted || at.elapsed() >= RETRY_AFTER)
     }
 
     /// Opens or closes the reader (and its event) to fit who watches now.
@@ -182,7 +182,7 @@ impl Watched {
                 }
                 Err(e) => {
                     tracing::warn!(module = %self.port.module, port = %self.port.port, "cannot watch: {e}");
-                    self.failed_for = Some((any, full));
+                    self.failed_for = Some(((any, full), Instant::now()));
                     return;
                 }
             }
@@ -196,7 +196,7 @@ impl Watched {
                     Ok(l) => r.listener = Some(l),
                     Err(e) => {
                         tracing::warn!("watch listener: {e}");
-                        self.failed_for = Some((any, full));
+                        self.failed_for = Some(((any, full), Instant::now()));
                     }
                 }
             } else if !full {
@@ -214,7 +214,14 @@ impl Watched {
         }
         let full = self.matched(WatchRate::Full);
         let mut newest = None;
-        while let Ok(Some(s)) = reader.subscriber.receive() {
+        // Sending every sample, a bounded number per wake: a watcher slower than the module (a
+        // large frame to encode) misses samples, and the thread still hears of new outputs and
+        // departed watchers. Only keeping the newest, everything there (taking is cheap).
+        let most = if full { MAX_PER_WAKE } else { usize::MAX };
+        for _ in 0..most {
+            let Ok(Some(s)) = reader.subscriber.receive() else {
+                break;
+            };
             if full {
                 send(
                     &self.publishers,
@@ -233,9 +240,11 @@ impl Watched {
             if !self.matched(rate) {
                 continue;
             }
-            let due = last
-                .get()
-                .is_none_or(|t| now_ns.saturating_sub(t) >= rate.period_ns());
+            // Half a tick of slack: the timer's wake-ups jitter, and a period measured from a
+            // late wake-up must not skip the next tick.
+            let due = last.get().is_none_or(|t| {
+                now_ns.saturating_sub(t) + WatchRate::Hz10.period_ns() / 2 >= rate.period_ns()
+            });
             if let (true, Some(s)) = (due, &newest) {
                 send(
                     &self.publishers,
