@@ -1,8 +1,9 @@
 //! `dnm monitor`: a ground-side Zenoh client that watches a running system and streams it to
 //! Rerun. It never runs inside a DNM or a module: it reads what any operator's tool can read.
 //!
-//! - **What it asks for.** The wiring in force (`<system>/dnm/*/wiring`) and the DNMs' reports,
-//!   every `status_every`; every output through the DNMs' on-demand watch keys
+//! - **What it asks for.** A glance at every DNM (`<system>/dnm/*?glance`: modules' states,
+//!   the last events and switches, peers) every `status_every`, and the wiring in force
+//!   (`<system>/dnm/<dnm>/wiring`) when a glance shows a new revision or task; every output through the DNMs' on-demand watch keys
 //!   (`<system>/watch/...`), numeric ones at `numeric_rate` and camera frames (JPEG) at
 //!   `camera_rate`. Nothing else crosses the radio for it.
 //! - **What it draws** (entity paths):
@@ -25,7 +26,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use dnm_netlist::{MessageType, Wiring};
 use dnm_proto::keys::{self, JPEG_ENCODING, WatchRate};
-use dnm_proto::{DnmReport, ModuleRunState};
+use dnm_proto::{DnmGlance, ModuleRunState};
 use rerun::RecordingStream;
 use rerun::blueprint::components::PanelState;
 use rerun::blueprint::{
@@ -86,7 +87,7 @@ enum Event {
     },
     Status {
         wiring: Option<Wiring>,
-        reports: Vec<DnmReport>,
+        reports: Vec<DnmGlance>,
     },
 }
 
@@ -129,15 +130,31 @@ fn status_loop(
     tx: &SyncSender<Event>,
     stop: &std::sync::atomic::AtomicBool,
 ) {
+    // The (revision, task) whose wiring was fetched last: the wiring (tens of KiB) is asked
+    // for again only when the DNMs' glances show another.
+    let mut fetched: Option<(u64, String)> = None;
     while !stop.load(std::sync::atomic::Ordering::Relaxed) {
         let started = Instant::now();
         let timeout = Duration::from_secs(5);
-        let wiring = newest_wiring(collect::<Wiring>(
+        let reports = collect::<DnmGlance>(
             session,
-            &keys::wiring(system, "*"),
+            &format!("{}?glance", keys::all_dnms(system)),
             timeout,
-        ));
-        let reports = collect::<DnmReport>(session, &keys::all_dnms(system), timeout);
+        );
+        let wiring = match in_force(&reports) {
+            Some((dnm, now)) if fetched.as_ref() != Some(&now) => {
+                let w = newest_wiring(collect::<Wiring>(
+                    session,
+                    &keys::wiring(system, &dnm),
+                    timeout,
+                ));
+                if w.is_some() {
+                    fetched = Some(now);
+                }
+                w
+            }
+            _ => None,
+        };
         if tx.send(Event::Status { wiring, reports }).is_err() {
             return;
         }
@@ -147,6 +164,26 @@ fn status_loop(
             std::thread::sleep(rest.min(Duration::from_millis(100)));
         }
     }
+}
+
+/// What the DNMs say is in force: the newest revision, and the task most of the DNMs on it
+/// run (a DNM across the radio may lag), with one DNM that says so.
+fn in_force(glances: &[DnmGlance]) -> Option<(String, (u64, String))> {
+    let newest = glances
+        .iter()
+        .filter(|g| g.active_task.is_some())
+        .map(|g| g.revision)
+        .max()?;
+    let mut votes: BTreeMap<&str, Vec<&str>> = BTreeMap::new();
+    for g in glances.iter().filter(|g| g.revision == newest) {
+        if let Some(t) = &g.active_task {
+            votes.entry(t.as_str()).or_default().push(&g.dnm);
+        }
+    }
+    let (task, dnms) = votes
+        .into_iter()
+        .max_by_key(|(t, d)| (d.len(), std::cmp::Reverse(*t)))?;
+    Some((dnms.first()?.to_string(), (newest, task.to_string())))
 }
 
 /// The wiring in force: the newest revision with a task, as the rover's DNMs tell it (a DNM
@@ -486,7 +523,7 @@ impl View {
         Ok(())
     }
 
-    fn reports(&mut self, reports: &[DnmReport]) -> anyhow::Result<()> {
+    fn reports(&mut self, reports: &[DnmGlance]) -> anyhow::Result<()> {
         let mut changed = false;
         let answering: BTreeSet<String> = reports.iter().map(|r| r.dnm.clone()).collect();
         for d in answering.difference(&self.dnms_seen.clone()) {

@@ -4,11 +4,11 @@
 //! 2. every output of every module watched at its full rate (a Zenoh subscriber on
 //!    `<system>/watch/**/full`);
 //! 3. `dnm-monitor`'s default view (numbers at 10 Hz, camera at 1 Hz as JPEG, the wiring and
-//!    the DNMs' reports every second), across `dnm linksim`, as from the ground.
+//!    the DNMs' reports every second), through a TCP proxy standing for the radio link.
 //!
 //! Reported: the DNM process's CPU against the baseline, the bytes per second the watcher
-//! receives and (phase 3) the bytes per second through the radio link in both directions (read
-//! off the link process's `/proc/<pid>/io`), and every module's step rate against the
+//! receives and (phase 3) the bytes per second through the link in both directions (counted by
+//! the proxy), and every module's step rate against the
 //! baseline: watching must never slow a module.
 //!
 //! Run: `cargo build --release --workspace && cargo bench --workspace --bench monitor`
@@ -19,7 +19,7 @@
 mod common;
 
 use std::collections::BTreeMap;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -49,14 +49,35 @@ fn steps(system: &str) -> BTreeMap<String, u64> {
         .collect()
 }
 
-/// Bytes a process has read so far (sockets included).
-fn read_bytes(pid: u32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/io"))
-        .unwrap_or_default()
-        .lines()
-        .find_map(|l| l.strip_prefix("rchar: "))
-        .and_then(|v| v.trim().parse().ok())
-        .unwrap_or(0)
+/// A TCP proxy on a free loopback port to `to`, adding every byte it carries (both ways) to
+/// `count`. Returns its port.
+fn counting_proxy(to: u16, count: Arc<AtomicU64>) -> u16 {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        for client in listener.incoming().flatten() {
+            let Ok(server) = std::net::TcpStream::connect(("127.0.0.1", to)) else {
+                continue;
+            };
+            for (mut from, mut into) in [
+                (client.try_clone().unwrap(), server.try_clone().unwrap()),
+                (server, client),
+            ] {
+                let count = count.clone();
+                std::thread::spawn(move || {
+                    let mut buf = vec![0u8; 64 * 1024];
+                    while let Ok(n) = std::io::Read::read(&mut from, &mut buf) {
+                        if n == 0 || std::io::Write::write_all(&mut into, &buf[..n]).is_err() {
+                            break;
+                        }
+                        count.fetch_add(n as u64, Ordering::Relaxed);
+                    }
+                    let _ = into.shutdown(std::net::Shutdown::Both);
+                });
+            }
+        }
+    });
+    port
 }
 
 fn measure(
@@ -64,7 +85,7 @@ fn measure(
     system: &str,
     dnm_pid: u32,
     received: &AtomicU64,
-    radio: Option<u32>,
+    radio: Option<&AtomicU64>,
 ) -> Phase {
     // Let whatever started settle first.
     std::thread::sleep(Duration::from_secs(3));
@@ -73,7 +94,7 @@ fn measure(
         steps(system),
         received.load(Ordering::Relaxed),
     );
-    let radio0 = radio.map(read_bytes);
+    let radio0 = radio.map(|r| r.load(Ordering::Relaxed));
     let t0 = Instant::now();
     std::thread::sleep(Duration::from_secs(PHASE_S));
     let dt = t0.elapsed().as_secs_f64();
@@ -82,7 +103,7 @@ fn measure(
         steps(system),
         received.load(Ordering::Relaxed),
     );
-    let radio1 = radio.map(read_bytes);
+    let radio1 = radio.map(|r| r.load(Ordering::Relaxed));
     Phase {
         name,
         dnm_cpu_percent: (cpu1 - cpu0) / dt * 100.0,
@@ -167,48 +188,47 @@ fn main() {
     ));
     drop(all);
 
-    let radio_port = free_port();
-    let radio = Kill(
-        Command::new(&exe)
-            .args([
-                "linksim",
-                "--bind",
-                &format!("127.0.0.1:{radio_port}"),
-                "--to",
-                &format!("127.0.0.1:{port}"),
-                "--delay",
-                "300ms",
-            ])
-            .stdout(Stdio::null())
-            .spawn()
-            .unwrap(),
-    );
+    // The link between the ground and the rover: a proxy that counts every byte both ways.
+    let radio_bytes = Arc::new(AtomicU64::new(0));
+    let radio_port = counting_proxy(port, radio_bytes.clone());
     let rrd = std::env::temp_dir().join(format!("{system}.rrd"));
-    let _monitor = Kill(
-        Command::new(&monitor_exe)
-            .args([
-                "--system",
-                &system,
-                "--connect",
-                &format!("tcp/127.0.0.1:{radio_port}"),
-                "--no-multicast",
-                "--save",
-            ])
-            .arg(&rrd)
-            .env("RUST_LOG", "warn")
-            .spawn()
-            .unwrap(),
-    );
-    phases.push(measure(
-        "dnm-monitor default view, across the radio",
-        &system,
-        sys.pid(),
-        &received,
-        Some(radio.0.id()),
-    ));
-    drop(_monitor);
-    let rrd_bytes = std::fs::metadata(&rrd).map_or(0, |m| m.len());
-    let _ = std::fs::remove_file(&rrd);
+    let mut rrd_bytes = 0;
+    for (name, extra) in [
+        ("dnm-monitor default view, across the link", &[][..]),
+        (
+            "dnm-monitor thin view (--rate 1hz --status-every 5)",
+            &["--rate", "1hz", "--status-every", "5"][..],
+        ),
+    ] {
+        let monitor = Kill(
+            Command::new(&monitor_exe)
+                .args([
+                    "--system",
+                    &system,
+                    "--connect",
+                    &format!("tcp/127.0.0.1:{radio_port}"),
+                    "--no-multicast",
+                    "--save",
+                ])
+                .arg(&rrd)
+                .args(extra)
+                .env("RUST_LOG", "warn")
+                .spawn()
+                .unwrap(),
+        );
+        phases.push(measure(
+            name,
+            &system,
+            sys.pid(),
+            &received,
+            Some(&radio_bytes),
+        ));
+        drop(monitor);
+        if rrd_bytes == 0 {
+            rrd_bytes = std::fs::metadata(&rrd).map_or(0, |m| m.len());
+        }
+        let _ = std::fs::remove_file(&rrd);
+    }
 
     let base = &phases[0];
     println!(
@@ -248,17 +268,14 @@ fn main() {
         );
     }
     println!(
-        "\nThe monitor's .rrd after {PHASE_S} s: {:.1} MiB",
+        "\nThe default view's .rrd after {PHASE_S} s: {:.1} MiB",
         rrd_bytes as f64 / (1 << 20) as f64
     );
     println!(
-        "\nModule step rates (steps/s), nobody watching → every output watched → default view:"
+        "\nModule step rates (steps/s), nobody watching → every output watched → default view → thin view:"
     );
     for (m, r) in &base.rates {
-        println!(
-            "- {m}: {r:.1} → {:.1} → {:.1}",
-            phases[1].rates.get(m).copied().unwrap_or(0.0),
-            phases[2].rates.get(m).copied().unwrap_or(0.0)
-        );
+        let at = |i: usize| phases[i].rates.get(m).copied().unwrap_or(0.0);
+        println!("- {m}: {r:.1} → {:.1} → {:.1} → {:.1}", at(1), at(2), at(3));
     }
 }

@@ -210,6 +210,65 @@ pub struct DnmReport {
     pub recording: Option<RecordReport>,
 }
 
+/// What a monitor shows of a DNM: `<system>/dnm/<dnm>?glance` answers it (a few KiB instead of
+/// the whole report, asked every second across the radio). A whole [`DnmReport`] reads as one.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct DnmGlance {
+    pub dnm: String,
+    #[serde(default)]
+    pub revision: u64,
+    #[serde(default)]
+    pub active_task: Option<String>,
+    #[serde(default)]
+    pub modules: Vec<ModuleGlance>,
+    /// The last module events, oldest first.
+    #[serde(default)]
+    pub events: Vec<ModuleEvent>,
+    /// The last switches, oldest first.
+    #[serde(default)]
+    pub switches: Vec<SwitchRecord>,
+    #[serde(default)]
+    pub peers: Vec<PeerReport>,
+}
+
+/// One module in a [`DnmGlance`].
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ModuleGlance {
+    pub name: String,
+    pub state: ModuleRunState,
+    #[serde(default)]
+    pub restarts: u32,
+    #[serde(default)]
+    pub rate_hz: f64,
+}
+
+/// Events and switches a glance carries at most.
+pub const GLANCE_HISTORY: usize = 16;
+
+impl DnmGlance {
+    pub fn of(r: &DnmReport) -> Self {
+        let last = |n: usize| n.saturating_sub(GLANCE_HISTORY);
+        Self {
+            dnm: r.dnm.clone(),
+            revision: r.revision,
+            active_task: r.active_task.clone(),
+            modules: r
+                .modules
+                .iter()
+                .map(|m| ModuleGlance {
+                    name: m.name.clone(),
+                    state: m.state,
+                    restarts: m.restarts,
+                    rate_hz: m.rate_hz,
+                })
+                .collect(),
+            events: r.events[last(r.events.len())..].to_vec(),
+            switches: r.switches[last(r.switches.len())..].to_vec(),
+            peers: r.peers.clone(),
+        }
+    }
+}
+
 /// What a DNM runs, in brief: `<system>/dnm/<dnm>?brief` answers it (a few hundred bytes
 /// instead of the whole report, for checks across a slow link).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]

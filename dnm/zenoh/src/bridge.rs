@@ -778,7 +778,13 @@ fn answer(
             if let Some(s) = snapshot {
                 // `?brief`: only what a DNM is running, for the authority's checks across a
                 // slow link.
-                if query.parameters().contains_key("brief") {
+                if query.parameters().contains_key("glance") {
+                    reply_json(
+                        query,
+                        keys::dnm(system, dnm),
+                        &dnm_proto::DnmGlance::of(&s.report),
+                    );
+                } else if query.parameters().contains_key("brief") {
                     reply_json(
                         query,
                         keys::dnm(system, dnm),
