@@ -50,9 +50,20 @@ pub enum RerunOut {
 
 /// Waits (a minute at most) until the monitor announces it is watching (a liveliness token
 /// under `<system>/monitor/`), so the mission it shows starts at the beginning.
-fn wait_for_monitor(session: &zenoh::Session, system: &str, quiet: bool) {
+fn wait_for_monitor(
+    session: &zenoh::Session,
+    system: &str,
+    monitor: &mut std::process::Child,
+    quiet: bool,
+) {
     let deadline = Instant::now() + Duration::from_secs(60);
     while Instant::now() < deadline {
+        if let Ok(Some(status)) = monitor.try_wait() {
+            if !quiet {
+                println!("Rerun: the monitor stopped ({status}); the mission goes on without it");
+            }
+            return;
+        }
         let found = session
             .liveliness()
             .get(format!("{system}/monitor/*"))
@@ -462,7 +473,7 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
         None => None,
     };
     let host = Host::start(netlist.clone(), &dnms, options, zenoh.config()?)?;
-    let monitor = match (&args.rerun, &monitor_endpoint) {
+    let mut monitor = match (&args.rerun, &monitor_endpoint) {
         (Some(out), Some(endpoint)) => {
             match start_monitor(out, &netlist.system, endpoint, args.json) {
                 Ok(m) => Some(m),
@@ -474,8 +485,8 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
         }
         _ => None,
     };
-    if monitor.is_some() {
-        wait_for_monitor(host.session(), &netlist.system, args.json);
+    if let Some(m) = &mut monitor {
+        wait_for_monitor(host.session(), &netlist.system, m, args.json);
     }
     let station = match dnm_ground::Station::start(
         host.session().clone(),

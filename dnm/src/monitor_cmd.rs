@@ -22,14 +22,18 @@ pub fn monitor_path() -> PathBuf {
     PathBuf::from("dnm-monitor")
 }
 
-/// Whether a Rerun viewer (`rerun`) can be started from the PATH.
+/// Whether a Rerun viewer (`rerun`) can be started: on the PATH, with a display to open on.
 pub fn viewer_available() -> bool {
-    std::env::var_os("PATH").is_some_and(|paths| {
-        std::env::split_paths(&paths).any(|d| {
-            let p = d.join("rerun");
-            std::fs::metadata(&p).is_ok_and(|m| m.is_file())
+    let display = ["DISPLAY", "WAYLAND_DISPLAY"]
+        .iter()
+        .any(|v| std::env::var_os(v).is_some_and(|d| !d.is_empty()));
+    display
+        && std::env::var_os("PATH").is_some_and(|paths| {
+            std::env::split_paths(&paths).any(|d| {
+                let p = d.join("rerun");
+                std::fs::metadata(&p).is_ok_and(|m| m.is_file())
+            })
         })
-    })
 }
 
 /// The Zenoh flags a monitor needs to join the same network as `z`.
