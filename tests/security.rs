@@ -7,6 +7,8 @@
 mod support;
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use dnm_ground::CommandState;
@@ -326,6 +328,45 @@ fn only_the_operator_commands_a_secured_system() {
             .into_iter()
             .find(|l| l.contains("CertCommonName(science)") && l.contains("Query (ingress)"))
     });
+    // It watches any output at the limited rates, never every sample.
+    let slow = Arc::new(AtomicU64::new(0));
+    let _slow = {
+        let slow = slow.clone();
+        observer
+            .declare_subscriber(s.key("watch/a/src/out/1hz"))
+            .callback(move |_| {
+                slow.fetch_add(1, Ordering::Relaxed);
+            })
+            .wait()
+            .unwrap()
+    };
+    eventually("the observer watches an output at 1 Hz", || {
+        (slow.load(Ordering::Relaxed) >= 2).then_some(())
+    });
+    let fast = Arc::new(AtomicU64::new(0));
+    let _fast = {
+        let fast = fast.clone();
+        observer
+            .declare_subscriber(s.key("watch/a/src/out/full"))
+            .callback(move |_| {
+                fast.fetch_add(1, Ordering::Relaxed);
+            })
+            .wait()
+            .unwrap()
+    };
+    eventually("the router records the refused full-rate watch", || {
+        let what = format!(
+            "Declare Subscriber (ingress) on {}",
+            s.key("watch/a/src/out/full")
+        );
+        refusals(&router.log)
+            .into_iter()
+            .find(|l| l.contains(&what))
+    });
+    // The ticker sends 10 a second: a full-rate watch would have had them.
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(fast.load(Ordering::Relaxed), 0);
+
     // Nor can it answer for a DNM (a rogue netlist) or a command.
     let _rogue = observer
         .declare_queryable(s.key("dnm/a/netlist"))

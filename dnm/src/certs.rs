@@ -524,6 +524,22 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
             "messages": ["declare_subscriber", "declare_liveliness_subscriber"],
             "key_exprs": [all],
         }),
+        // Observers watch outputs at the limited rates only: every sample of every output (and
+        // every camera frame) would cost the rover's DNMs and the radio what an operator decides.
+        json!({
+            "id": "observe",
+            "flows": ["ingress"],
+            "permission": "allow",
+            "messages": ["declare_subscriber", "declare_liveliness_subscriber"],
+            "key_exprs": [
+                format!("{sys}/dnm/**"),
+                format!("{sys}/module/**"),
+                format!("{sys}/port/**"),
+                keys::authority(sys),
+                keys::watch_all(sys, keys::WatchRate::Hz10),
+                keys::watch_all(sys, keys::WatchRate::Hz1),
+            ],
+        }),
         json!({
             "id": "command",
             "flows": ["ingress"],
@@ -558,7 +574,7 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
     let declared: BTreeSet<&str> = netlist.dnms.iter().map(|d| d.name.as_str()).collect();
     for i in &inv.identities {
         let mut granted: Vec<String> = match i.role {
-            Role::Observer => vec!["to-everyone", "read", "watch"],
+            Role::Observer => vec!["to-everyone", "read", "observe"],
             Role::Operator => vec!["to-everyone", "read", "watch", "command"],
             Role::Rover => vec!["to-everyone", "read", "watch", "to-node"],
             Role::Router => vec!["forward"],
