@@ -3,7 +3,7 @@
 //!
 //! | key                                   | Zenoh primitive      | what                                                     |
 //! |---------------------------------------|----------------------|----------------------------------------------------------|
-//! | `<system>/dnm/<dnm>`                  | queryable, liveliness | the DNM's report (JSON): revision, task, CPU, modules, peers |
+//! | `<system>/dnm/<dnm>`                  | queryable, liveliness | the DNM's report (JSON): revision, task, CPU, modules, peers; `?brief`, `?glance`: smaller forms |
 //! | `<system>/dnm/<dnm>/netlist`          | queryable            | the applied netlist (JSON: revision, digest, file, text) |
 //! | `<system>/dnm/<dnm>/cmd`              | queryable            | commands (JSON request in the query payload; JSON reply) |
 //! | `<system>/module/<dnm>/<module>`      | queryable, liveliness | one module's state and the last value of each output (JSON) |
