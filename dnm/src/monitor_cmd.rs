@@ -54,19 +54,22 @@ pub fn zenoh_flags(z: &dnm::ZenohOptions) -> Vec<String> {
     out
 }
 
+/// The monitor executable with `args`, and what to say if it cannot start.
+fn command(args: &[String]) -> (Command, String) {
+    let path = monitor_path();
+    let mut c = Command::new(&path);
+    c.args(args);
+    let why = format!(
+        "starting {} (build it with `cargo build --release -p dnm-monitor`, or set DNM_MONITOR)",
+        path.display()
+    );
+    (c, why)
+}
+
 /// Starts a monitor with `args`.
 pub fn start(args: &[String]) -> anyhow::Result<Child> {
-    let path = monitor_path();
-    Command::new(&path)
-        .args(args)
-        .stdin(Stdio::null())
-        .spawn()
-        .with_context(|| {
-            format!(
-                "starting {} (build it with `cargo build --release -p dnm-monitor`, or set DNM_MONITOR)",
-                path.display()
-            )
-        })
+    let (mut c, why) = command(args);
+    c.stdin(Stdio::null()).spawn().context(why)
 }
 
 /// Asks a monitor to finish its file and waits for it.
@@ -82,16 +85,8 @@ pub fn stop(mut child: Child) {
 pub fn run(z: &dnm::ZenohOptions, args: &[String]) -> anyhow::Result<ExitCode> {
     let mut all = zenoh_flags(z);
     all.extend(args.iter().cloned());
-    let path = monitor_path();
-    let status = Command::new(&path)
-        .args(&all)
-        .status()
-        .with_context(|| {
-            format!(
-                "starting {} (build it with `cargo build --release -p dnm-monitor`, or set DNM_MONITOR)",
-                path.display()
-            )
-        })?;
+    let (mut c, why) = command(&all);
+    let status = c.status().context(why)?;
     Ok(if status.success() {
         ExitCode::SUCCESS
     } else {

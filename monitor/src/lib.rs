@@ -262,7 +262,8 @@ struct View {
     subscribers: BTreeMap<String, zenoh::pubsub::Subscriber<()>>,
     /// Message types of the outputs, by (module, port).
     messages: BTreeMap<(String, String), MessageType>,
-    states: BTreeMap<String, (String, ModuleRunState, u32)>,
+    /// Each module's state as last reported.
+    states: BTreeMap<String, ModuleRunState>,
     dnms_seen: BTreeSet<String>,
     peers: BTreeMap<(String, String), String>,
     events_seen: BTreeSet<(String, String, String, u64)>,
@@ -538,9 +539,8 @@ impl View {
         self.dnms_seen = answering;
         for r in reports {
             for m in &r.modules {
-                let now = (r.dnm.clone(), m.state, m.restarts);
-                let before = self.states.insert(m.name.clone(), now.clone());
-                if before.as_ref().map(|b| b.1) != Some(m.state) {
+                let before = self.states.insert(m.name.clone(), m.state);
+                if before != Some(m.state) {
                     changed = true;
                     if before.is_some() {
                         let level = match m.state {
@@ -650,7 +650,7 @@ impl View {
         let mut positions = Vec::new();
         for (col, d) in w.dnms.iter().enumerate() {
             for (row, m) in w.modules.iter().filter(|m| m.dnm == d.name).enumerate() {
-                let state = self.states.get(&m.name).map(|s| s.1);
+                let state = self.states.get(&m.name).copied();
                 ids.push(m.name.clone());
                 labels.push(format!("{} · {}", m.name, d.name));
                 colors.push(state_color(state));

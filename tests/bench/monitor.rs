@@ -31,6 +31,8 @@ use zenoh::Wait;
 const BEETLE: &str = include_str!("../../configs/beetle.toml");
 /// Seconds each phase is measured.
 const PHASE_S: u64 = 20;
+/// Seconds each phase settles first.
+const SETTLE_S: u64 = 3;
 
 struct Phase {
     name: &'static str,
@@ -88,7 +90,7 @@ fn measure(
     radio: Option<&AtomicU64>,
 ) -> Phase {
     // Let whatever started settle first.
-    std::thread::sleep(Duration::from_secs(3));
+    std::thread::sleep(Duration::from_secs(SETTLE_S));
     let (cpu0, steps0, got0) = (
         cpu_seconds(dnm_pid),
         steps(system),
@@ -268,7 +270,8 @@ fn main() {
         );
     }
     println!(
-        "\nThe default view's .rrd after {PHASE_S} s: {:.1} MiB",
+        "\nThe default view's .rrd after {} s (settling and the phase): {:.1} MiB",
+        SETTLE_S + PHASE_S,
         rrd_bytes as f64 / (1 << 20) as f64
     );
     println!(
