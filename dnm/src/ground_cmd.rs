@@ -25,9 +25,14 @@ pub enum GroundCmd {
         /// The outbox database (default: <state dir>/<system>-<station>.redb).
         #[arg(long)]
         db: Option<PathBuf>,
-        /// Where the operator API listens.
+        /// Where the operator API and the web interface listen.
         #[arg(long, default_value = "127.0.0.1:7480")]
         http: std::net::SocketAddr,
+        /// The login for an API other machines can reach (required unless `--http` is a
+        /// loopback address): clients send `Authorization: Bearer TOKEN`; a browser opens
+        /// `/?token=TOKEN` once.
+        #[arg(long, env = "DNM_GROUND_TOKEN", hide_env_values = true)]
+        token: Option<String>,
         /// Also watch the rover in Rerun: `spawn` (start a viewer), a viewer's URL
         /// (rerun+http://HOST:PORT/proxy) or a path to save an .rrd to.
         #[arg(long)]
@@ -122,9 +127,20 @@ fn agent() -> ureq::Agent {
     )
 }
 
+/// `Authorization` for a station that needs a token ($DNM_GROUND_TOKEN).
+fn bearer() -> Option<String> {
+    std::env::var("DNM_GROUND_TOKEN")
+        .ok()
+        .filter(|t| !t.is_empty())
+        .map(|t| format!("Bearer {t}"))
+}
+
 fn get(url: &str) -> anyhow::Result<String> {
-    let mut r = agent()
-        .get(url)
+    let mut req = agent().get(url);
+    if let Some(b) = bearer() {
+        req = req.header("Authorization", b);
+    }
+    let mut r = req
         .call()
         .with_context(|| format!("is the ground station running? ({url})"))?;
     let status = r.status().as_u16();
@@ -146,8 +162,11 @@ fn error_of(body: &str) -> String {
 fn submit(order: &Order, common: &Common) -> anyhow::Result<ExitCode> {
     let base = url(&common.url);
     let body = serde_json::to_vec(order)?;
-    let mut r = agent()
-        .post(format!("{base}/commands"))
+    let mut req = agent().post(format!("{base}/commands"));
+    if let Some(b) = bearer() {
+        req = req.header("Authorization", b);
+    }
+    let mut r = req
         .content_type("application/json")
         .send(&body[..])
         .with_context(|| format!("is the ground station running? ({base})"))?;
@@ -247,6 +266,7 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             station,
             db,
             http,
+            token,
             monitor,
         } => {
             let db = db.unwrap_or_else(|| {
@@ -266,7 +286,8 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
                 session,
                 StationOptions::new(&system, &station, &db),
             )?);
-            let api = dnm_ground::http::Api::serve(st.clone(), http).map_err(anyhow::Error::msg)?;
+            let api = dnm_ground::http::Api::serve_with(st.clone(), http, token)
+                .map_err(anyhow::Error::msg)?;
             println!(
                 "ground station `{station}` of `{system}`: outbox {}, API http://{}; Ctrl-C to stop",
                 db.display(),

@@ -7,7 +7,14 @@
 //! | `GET /commands/N` (`?wait=30` waits up to 30 s for it to be final) | one entry |
 //! | `GET /link` | the link: up, round-trip time, last contact, loss, the rover's state and events |
 //!
+//! The web interface's page and requests are in [`crate::web`].
+//!
 //! Errors are `4xx` with `{"error": "…"}` saying what to fix.
+//!
+//! Access: bound to a loopback address (the default), requests must name that host (a web
+//! page elsewhere cannot reach it through its own domain) and a browser's request must come
+//! from the station's own page (its `Origin`). Bound to another address, a token is required:
+//! `Authorization: Bearer TOKEN`, or once in a browser `/?token=TOKEN`, which sets a cookie.
 
 use std::io::Read;
 use std::net::SocketAddr;
@@ -19,6 +26,8 @@ use dnm_proto::station::Order;
 use tiny_http::{Header, Method, Response, Server};
 
 use crate::Station;
+use crate::view::SystemView;
+use crate::web::{self, Web};
 
 /// Largest request body taken (a netlist fits many times).
 const MAX_BODY: u64 = 2 << 20;
@@ -38,14 +47,64 @@ impl std::fmt::Debug for Api {
     }
 }
 
+/// What every request is served with.
+struct Ctx {
+    station: Arc<Station>,
+    web: Web,
+    token: Option<String>,
+    /// The `Host` values a loopback-bound server answers (none: any, a token guards it).
+    hosts: Vec<String>,
+}
+
 impl Api {
-    /// Serves `station` on `addr` (port 0 picks one; see [`Api::addr`]).
+    /// Serves `station` on `addr` (port 0 picks one; see [`Api::addr`]), loopback only.
     pub fn serve(station: Arc<Station>, addr: SocketAddr) -> Result<Self, String> {
+        Self::serve_with(station, addr, None)
+    }
+
+    /// Serves `station` on `addr`; an address other machines can reach needs `token`.
+    pub fn serve_with(
+        station: Arc<Station>,
+        addr: SocketAddr,
+        token: Option<String>,
+    ) -> Result<Self, String> {
+        let token = token.filter(|t| !t.is_empty());
+        if !addr.ip().is_loopback() && token.is_none() {
+            return Err(format!(
+                "the operator API on {addr} would be reachable from other machines without a \
+                 login: give it a token (`--token`, or $DNM_GROUND_TOKEN), or listen on 127.0.0.1"
+            ));
+        }
+        if let Some(t) = &token
+            && t.len() < 16
+        {
+            return Err(
+                "a token of at least 16 characters, please (e.g. `openssl rand -hex 16`)".into(),
+            );
+        }
         let server = Arc::new(Server::http(addr).map_err(|e| format!("listening on {addr}: {e}"))?);
         let addr = server
             .server_addr()
             .to_ip()
             .ok_or_else(|| "the server has no IP address".to_string())?;
+        let hosts = if addr.ip().is_loopback() {
+            let port = addr.port();
+            vec![
+                format!("127.0.0.1:{port}"),
+                format!("localhost:{port}"),
+                format!("[::1]:{port}"),
+                addr.to_string(),
+            ]
+        } else {
+            Vec::new()
+        };
+        let view = SystemView::start(station.session().clone(), station.system())?;
+        let ctx = Arc::new(Ctx {
+            station,
+            web: Web::new(view),
+            token,
+            hosts,
+        });
         let thread = {
             let server = server.clone();
             std::thread::Builder::new()
@@ -53,10 +112,10 @@ impl Api {
                 .spawn(move || {
                     for request in server.incoming_requests() {
                         // A `?wait` holds its own thread, so it never holds up the others.
-                        let station = station.clone();
+                        let ctx = ctx.clone();
                         let _ = std::thread::Builder::new()
                             .name("ground-http-request".into())
-                            .spawn(move || handle(&station, request));
+                            .spawn(move || handle(&ctx, request));
                     }
                 })
                 .map_err(|e| e.to_string())?
@@ -83,7 +142,7 @@ impl Drop for Api {
     }
 }
 
-fn json(status: u16, body: &impl serde::Serialize) -> Response<std::io::Cursor<Vec<u8>>> {
+fn json(status: u16, body: &impl serde::Serialize) -> Resp {
     let bytes = serde_json::to_vec_pretty(body).unwrap_or_default();
     let mut r = Response::from_data(bytes).with_status_code(status);
     if let Ok(h) = Header::from_bytes(&b"Content-Type"[..], &b"application/json"[..]) {
@@ -92,49 +151,287 @@ fn json(status: u16, body: &impl serde::Serialize) -> Response<std::io::Cursor<V
     r
 }
 
-fn error(status: u16, msg: impl Into<String>) -> Response<std::io::Cursor<Vec<u8>>> {
+fn error(status: u16, msg: impl Into<String>) -> Resp {
     json(status, &serde_json::json!({ "error": msg.into() }))
 }
 
-fn query_u64(query: &str, name: &str) -> Option<u64> {
+fn query_str(query: &str, name: &str) -> Option<String> {
     query
         .split('&')
         .filter_map(|kv| kv.split_once('='))
         .find(|(k, _)| *k == name)
-        .and_then(|(_, v)| v.parse().ok())
+        .map(|(_, v)| percent_decode(v))
 }
 
-fn handle(station: &Station, mut request: tiny_http::Request) {
-    let url = request.url().to_string();
-    let (path, query) = url.split_once('?').unwrap_or((&url, ""));
-    let response = match (request.method(), path) {
-        (Method::Post, "/commands") => {
-            let mut body = Vec::new();
-            let read = request
-                .as_reader()
-                .take(MAX_BODY + 1)
-                .read_to_end(&mut body);
-            match read {
-                Err(e) => error(400, format!("reading the body: {e}")),
-                Ok(_) if body.len() as u64 > MAX_BODY => {
-                    error(413, format!("body over {MAX_BODY} bytes"))
+fn query_u64(query: &str, name: &str) -> Option<u64> {
+    query_str(query, name).and_then(|v| v.parse().ok())
+}
+
+/// `%41` and `+` decoded; an invalid escape is kept as it is.
+fn percent_decode(s: &str) -> String {
+    let b = s.as_bytes();
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        let hex = b
+            .get(i + 1..i + 3)
+            .and_then(|h| std::str::from_utf8(h).ok())
+            .and_then(|h| u8::from_str_radix(h, 16).ok());
+        match (b[i], hex) {
+            (b'+', _) => out.push(b' '),
+            (b'%', Some(v)) => {
+                out.push(v);
+                i += 2;
+            }
+            (c, _) => out.push(c),
+        }
+        i += 1;
+    }
+    String::from_utf8_lossy(&out).into_owned()
+}
+
+fn header<'a>(request: &'a tiny_http::Request, name: &'static str) -> Option<&'a str> {
+    request
+        .headers()
+        .iter()
+        .find(|h| h.field.equiv(name))
+        .map(|h| h.value.as_str())
+}
+
+/// Compares without stopping at the first difference.
+fn same_secret(a: &str, b: &str) -> bool {
+    a.len() == b.len()
+        && a.bytes()
+            .zip(b.bytes())
+            .fold(0u8, |acc, (x, y)| acc | (x ^ y))
+            == 0
+}
+
+/// Why a request is refused, if it is.
+fn refusal(ctx: &Ctx, request: &tiny_http::Request, path: &str, query: &str) -> Option<Resp> {
+    let host = header(request, "Host").unwrap_or_default();
+    if !ctx.hosts.is_empty() && !ctx.hosts.iter().any(|h| h.eq_ignore_ascii_case(host)) {
+        return Some(error(
+            403,
+            format!("this station answers only as {}", ctx.hosts[0]),
+        ));
+    }
+    if let Some(origin) = header(request, "Origin") {
+        let origin_host = origin.split_once("://").map_or(origin, |(_, h)| h);
+        if origin != "null" && !origin_host.eq_ignore_ascii_case(host) {
+            return Some(error(403, "requests from another site's page are refused"));
+        }
+        if origin == "null" && *request.method() != Method::Get {
+            return Some(error(403, "requests from an opaque origin are refused"));
+        }
+    }
+    let token = ctx.token.as_deref()?;
+    let bearer = header(request, "Authorization").and_then(|v| v.strip_prefix("Bearer "));
+    let cookie = header(request, "Cookie").and_then(|c| {
+        c.split(';')
+            .filter_map(|kv| kv.trim().split_once('='))
+            .find(|(k, _)| *k == "dnm_token")
+            .map(|(_, v)| v)
+    });
+    if bearer.or(cookie).is_some_and(|t| same_secret(t, token)) {
+        return None;
+    }
+    if path == "/"
+        && let Some(given) = query_str(query, "token")
+    {
+        if same_secret(&given, token) {
+            // Logged in: the token goes into a cookie and out of the address bar.
+            let mut r = Response::from_data(Vec::new()).with_status_code(303);
+            for (k, v) in [
+                ("Location", "/".to_string()),
+                (
+                    "Set-Cookie",
+                    format!("dnm_token={token}; HttpOnly; SameSite=Strict; Path=/"),
+                ),
+            ] {
+                if let Ok(h) = Header::from_bytes(k.as_bytes(), v.as_bytes()) {
+                    r.add_header(h);
                 }
-                Ok(_) => match serde_json::from_slice::<Order>(&body) {
-                    Err(e) => error(
-                        400,
-                        format!(
-                            "unreadable command ({e}); send e.g. {{\"cmd\":\"switch\",\"task\":\"auto\"}}, \
-                             {{\"cmd\":\"apply\",\"file\":\"x.toml\",\"text\":\"…\"}} or {{\"cmd\":\"cancel\",\"seq\":3}}"
-                        ),
+            }
+            return Some(r);
+        }
+        tracing::warn!("a wrong token for the operator API");
+    }
+    Some(error(
+        401,
+        "this station needs its token: `Authorization: Bearer TOKEN`, or open /?token=TOKEN once",
+    ))
+}
+
+type Resp = Response<std::io::Cursor<Vec<u8>>>;
+
+fn asset(body: &'static str, content_type: &'static str) -> Resp {
+    let mut r = Response::from_data(body.as_bytes().to_vec());
+    for (k, v) in [
+        ("Content-Type", content_type),
+        ("Cache-Control", "no-cache"),
+        ("X-Frame-Options", "DENY"),
+        ("X-Content-Type-Options", "nosniff"),
+    ] {
+        if let Ok(h) = Header::from_bytes(k.as_bytes(), v.as_bytes()) {
+            r.add_header(h);
+        }
+    }
+    r
+}
+
+fn read_body(request: &mut tiny_http::Request) -> Result<Vec<u8>, Resp> {
+    let mut body = Vec::new();
+    let read = request
+        .as_reader()
+        .take(MAX_BODY + 1)
+        .read_to_end(&mut body);
+    match read {
+        Err(e) => Err(error(400, format!("reading the body: {e}"))),
+        Ok(_) if body.len() as u64 > MAX_BODY => {
+            Err(error(413, format!("body over {MAX_BODY} bytes")))
+        }
+        Ok(_) => Ok(body),
+    }
+}
+
+/// The web interface's requests (`None`: not one of them).
+fn handle_web(
+    ctx: &Ctx,
+    request: &mut tiny_http::Request,
+    path: &str,
+    query: &str,
+) -> Option<Resp> {
+    let web = &ctx.web;
+    Some(match (request.method(), path) {
+        (Method::Get, "/" | "/index.html") => asset(web::INDEX_HTML, "text/html; charset=utf-8"),
+        (Method::Get, "/app.js") => asset(web::APP_JS, "text/javascript; charset=utf-8"),
+        (Method::Get, "/style.css") => asset(web::STYLE_CSS, "text/css; charset=utf-8"),
+        (Method::Get, "/api/live") => json(
+            200,
+            &serde_json::json!({
+                "system": ctx.station.system(),
+                "station": ctx.station.name(),
+                "link": ctx.station.link(),
+                "live": web.view.live(),
+            }),
+        ),
+        (Method::Get, "/api/netlist") => match web.view.netlist() {
+            None => error(
+                503,
+                "no DNM of the rover has answered with its netlist yet; is the link up?",
+            ),
+            Some(n) => {
+                let text = n.text.clone().unwrap_or_default();
+                match web::document(&text) {
+                    Ok(doc) => json(
+                        200,
+                        &serde_json::json!({
+                            "revision": n.revision,
+                            "file": n.file,
+                            "active_task": n.active_task,
+                            "text": text,
+                            "doc": doc,
+                        }),
                     ),
-                    Ok(order) => match station.submit(order) {
-                        Ok(e) => json(201, &e),
-                        Err(crate::StationError::Invalid(e)) => error(400, e),
-                        Err(e) => error(500, e.to_string()),
-                    },
-                },
+                    Err(e) => error(
+                        502,
+                        format!("the netlist in force does not read as TOML: {e}"),
+                    ),
+                }
+            }
+        },
+        (Method::Get, "/api/kinds") => {
+            let kinds = web.kinds();
+            json(200, &kinds.iter().collect::<Vec<_>>())
+        }
+        (Method::Post, "/api/check") => {
+            let body = match read_body(request) {
+                Ok(b) => b,
+                Err(r) => return Some(r),
+            };
+            #[derive(serde::Deserialize)]
+            struct Draft {
+                #[serde(default)]
+                file: String,
+                doc: serde_json::Value,
+            }
+            match serde_json::from_slice::<Draft>(&body) {
+                Err(e) => error(
+                    400,
+                    format!("unreadable draft ({e}); send {{\"file\":\"x.toml\",\"doc\":{{…}}}}"),
+                ),
+                Ok(d) => json(200, &web::check(&d.doc, &d.file, &web.kinds())),
             }
         }
+        (Method::Get, "/api/watch") => {
+            let (Some(module), Some(port)) = (query_str(query, "module"), query_str(query, "port"))
+            else {
+                return Some(error(400, "name the output: /api/watch?module=M&port=P"));
+            };
+            let since = query_u64(query, "since").unwrap_or(0);
+            match web.view.watch(&module, &port, since) {
+                Ok(r) => json(200, &r),
+                Err(e) => error(404, e),
+            }
+        }
+        (Method::Get, "/api/frame") => {
+            let (Some(module), Some(port)) = (query_str(query, "module"), query_str(query, "port"))
+            else {
+                return Some(error(400, "name the output: /api/frame?module=M&port=P"));
+            };
+            match web.view.frame(&module, &port) {
+                None => error(
+                    404,
+                    format!("no frame of {module}.{port} yet (watch it first)"),
+                ),
+                Some(jpeg) => {
+                    let mut r = Response::from_data(jpeg);
+                    if let Ok(h) = Header::from_bytes(&b"Content-Type"[..], &b"image/jpeg"[..]) {
+                        r.add_header(h);
+                    }
+                    r
+                }
+            }
+        }
+        _ => return None,
+    })
+}
+
+fn handle(ctx: &Ctx, mut request: tiny_http::Request) {
+    let url = request.url().to_string();
+    let (path, query) = url.split_once('?').unwrap_or((&url, ""));
+    let station = &*ctx.station;
+    if let Some(r) = refusal(ctx, &request, path, query) {
+        if let Err(e) = request.respond(r) {
+            tracing::debug!("answering an operator: {e}");
+        }
+        return;
+    }
+    if let Some(r) = handle_web(ctx, &mut request, path, query) {
+        if let Err(e) = request.respond(r) {
+            tracing::debug!("answering an operator: {e}");
+        }
+        return;
+    }
+    let response = match (request.method(), path) {
+        (Method::Post, "/commands") => match read_body(&mut request) {
+            Err(r) => r,
+            Ok(body) => match serde_json::from_slice::<Order>(&body) {
+                Err(e) => error(
+                    400,
+                    format!(
+                        "unreadable command ({e}); send e.g. {{\"cmd\":\"switch\",\"task\":\"auto\"}}, \
+                             {{\"cmd\":\"apply\",\"file\":\"x.toml\",\"text\":\"…\"}} or {{\"cmd\":\"cancel\",\"seq\":3}}"
+                    ),
+                ),
+                Ok(order) => match station.submit(order) {
+                    Ok(e) => json(201, &e),
+                    Err(crate::StationError::Invalid(e)) => error(400, e),
+                    Err(e) => error(500, e.to_string()),
+                },
+            },
+        },
         (Method::Get, "/commands") => json(
             200,
             &station.entries(query_u64(query, "since").unwrap_or(1)),

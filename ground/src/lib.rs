@@ -21,6 +21,8 @@
 //! ```
 
 pub mod http;
+pub mod view;
+pub mod web;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
@@ -295,6 +297,11 @@ impl Station {
 
     pub fn name(&self) -> &str {
         &self.shared.options.name
+    }
+
+    /// The station's Zenoh session (the web interface's view of the system uses it).
+    pub fn session(&self) -> &zenoh::Session {
+        &self.shared.session
     }
 
     pub fn system(&self) -> &str {

@@ -240,6 +240,11 @@ pub struct ModuleGlance {
     pub restarts: u32,
     #[serde(default)]
     pub rate_hz: f64,
+    /// Times it was found hung.
+    #[serde(default)]
+    pub hangs: u32,
+    #[serde(default)]
+    pub cpu_percent: f64,
 }
 
 /// Events and switches a glance carries at most.
@@ -260,6 +265,8 @@ impl DnmGlance {
                     state: m.state,
                     restarts: m.restarts,
                     rate_hz: m.rate_hz,
+                    hangs: m.hangs,
+                    cpu_percent: m.cpu_percent,
                 })
                 .collect(),
             events: r.events[last(r.events.len())..].to_vec(),

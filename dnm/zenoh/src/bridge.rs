@@ -89,6 +89,8 @@ struct Shared {
     outputs: Mutex<Option<Vec<(String, MessageType)>>>,
     /// The wiring of the revision committed last.
     wiring: Mutex<Option<Wiring>>,
+    /// The kinds that revision could use (built in and the executables it declares).
+    kinds: Mutex<Option<Arc<dnm_netlist::Catalog>>>,
     queries_in_flight: AtomicUsize,
     commands_in_flight: AtomicUsize,
     applies_in_flight: Arc<AtomicUsize>,
@@ -546,6 +548,9 @@ impl Plugin for Bridge {
         if let Ok(mut w) = self.shared.wiring.lock() {
             *w = Some(Wiring::of(netlist, &self.dnm, revision, None));
         }
+        if let Ok(mut k) = self.shared.kinds.lock() {
+            *k = Some(Arc::new(netlist.catalog.clone()));
+        }
 
         let watch = self.watchable(netlist);
         if watch != self.watch {
@@ -722,9 +727,7 @@ fn query_loop(
             target,
             &query,
             snapshot.as_deref(),
-            (target == Target::Wiring)
-                .then(|| shared.wiring.lock().ok().and_then(|w| w.clone()))
-                .flatten(),
+            shared,
             &mut monitors,
         );
         drop(query);
@@ -770,7 +773,7 @@ fn answer(
     target: Target,
     query: &Query,
     snapshot: Option<&Snapshot>,
-    wiring: Option<Wiring>,
+    shared: &Shared,
     monitors: &mut BTreeMap<String, Monitor>,
 ) {
     match target {
@@ -801,7 +804,14 @@ fn answer(
             }
         }
         Target::Wiring => {
-            if let Some(mut w) = wiring {
+            // `?kinds`: every kind this DNM can run (ports, message types, parameters), for
+            // editors that compose netlists away from the rover.
+            if query.parameters().contains_key("kinds") {
+                let kinds = shared.kinds.lock().ok().and_then(|k| k.clone());
+                if let Some(k) = kinds {
+                    reply_json(query, keys::wiring(system, dnm), &*k);
+                }
+            } else if let Some(mut w) = shared.wiring.lock().ok().and_then(|w| w.clone()) {
                 // The task in force now (switches do not commit a new revision).
                 if let Some(s) = snapshot.filter(|s| s.report.revision == w.revision) {
                     w.active_task = s.report.active_task.clone();

@@ -1,0 +1,793 @@
+// The ground station's web interface: task generation and the module connection view.
+// Plain JavaScript served by the station; everything it knows comes from the station's API.
+'use strict';
+
+const S = {
+  view: 'tasks',
+  kinds: {},          // kind name -> spec (ports, message types, params)
+  live: null,         // /api/live
+  base: null,         // the netlist in force: {revision, doc, text}
+  draft: null,        // the netlist document being edited
+  draftFile: 'draft.toml',
+  task: null,         // the task shown in the editor
+  selected: null,     // {type: 'module', name} | {type: 'link', index}
+  check: null,        // the last check of the draft
+  checkSeq: 0,
+  checkTimer: null,
+  drag: null,         // a link being drawn
+  layout: null,       // where every module and port is drawn
+  watch: null,        // the watched output
+  outbox: [],
+  perf: { renders: [], lastRenderMs: 0, checks: [] },
+};
+window.__dnm = S;
+
+const $ = (id) => document.getElementById(id);
+const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;', "'": '&#39;' }[c]));
+
+async function api(path, body) {
+  const init = body === undefined ? {} : {
+    method: 'POST', headers: { 'Content-Type': 'application/json' }, body: JSON.stringify(body),
+  };
+  const r = await fetch(path, init);
+  let j = null;
+  try { j = await r.json(); } catch (_) { /* not JSON */ }
+  if (!r.ok) throw new Error((j && j.error) || `${path}: HTTP ${r.status}`);
+  return j;
+}
+
+function say(text, kind) {
+  const m = $('message');
+  m.textContent = text;
+  m.className = kind || '';
+  m.dataset.kind = kind || '';
+}
+
+// ---- the draft ------------------------------------------------------------------------------
+
+function modules() { return (S.draft && S.draft.module) || []; }
+function dnms() { return (S.draft && S.draft.dnm) || []; }
+function tasks() { return (S.draft && S.draft.task) || {}; }
+function moduleByName(n) { return modules().find((m) => m.name === n); }
+function kindOf(n) { const m = moduleByName(n); return m ? S.kinds[m.kind] : null; }
+function dnmOf(m) { return m.dnm || (dnms()[0] && dnms()[0].name) || '?'; }
+
+function parseLink(s) {
+  const m = /^\s*([\w-]+)\.([\w-]+)\s*->\s*([\w-]+)\.([\w-]+)\s*$/.exec(s);
+  return m ? { from: { module: m[1], port: m[2] }, to: { module: m[3], port: m[4] } } : null;
+}
+function linkText(l) { return `${l.from.module}.${l.from.port} -> ${l.to.module}.${l.to.port}`; }
+
+function portSpec(module, port, dir) {
+  const k = kindOf(module);
+  if (!k) return null;
+  return (dir === 'out' ? k.outputs : k.inputs).find((p) => p.name === port) || null;
+}
+
+function typeText(t) {
+  if (!t) return 'an unknown type';
+  const p = t.payload || {};
+  return p.layout === 'fixed' ? `${t.schema_name} (${p.size_bytes} B)` : `${t.schema_name} (bytes)`;
+}
+
+// Two ports may be linked when the producer's type is the consumer's (as `dnm check` says).
+function compatible(a, b) {
+  if (!a || !b) return false;
+  if (a.schema_name !== b.schema_name || a.encoding !== b.encoding) return false;
+  const pa = a.payload || {}, pb = b.payload || {};
+  if (pa.layout !== pb.layout) return false;
+  return pa.layout !== 'fixed' || pa.size_bytes === pb.size_bytes;
+}
+
+function changed(what) {
+  if (what) say(what, 'ok');
+  scheduleCheck();
+  render();
+}
+
+function scheduleCheck() {
+  clearTimeout(S.checkTimer);
+  $('check-state').className = 'pending';
+  $('check-state').textContent = 'checking…';
+  $('draft-apply').disabled = true;
+  S.checkTimer = setTimeout(runCheck, 200);
+}
+
+async function runCheck() {
+  const seq = ++S.checkSeq;
+  const t0 = performance.now();
+  try {
+    const c = await api('/api/check', { file: S.draftFile, doc: S.draft });
+    if (seq !== S.checkSeq) return;
+    S.perf.checks.push(performance.now() - t0);
+    S.check = c;
+    const st = $('check-state');
+    st.className = c.ok ? 'ok' : 'bad';
+    st.textContent = c.ok ? 'valid' : `${c.errors.length} problem${c.errors.length === 1 ? '' : 's'}`;
+    $('draft-apply').disabled = !c.ok;
+    $('problems').innerHTML = c.errors.map((e) =>
+      `<li><span class="where">${e.line ? `line ${e.line}` : ''}${e.field ? ` ${esc(e.field)}` : ''}</span>: ${esc(e.message)}${e.help ? ` <i>(${esc(e.help)})</i>` : ''}</li>`).join('');
+  } catch (e) {
+    if (seq !== S.checkSeq) return;
+    $('check-state').className = 'bad';
+    $('check-state').textContent = 'cannot check';
+    $('problems').innerHTML = `<li>${esc(e.message)}</li>`;
+  }
+}
+
+// An operator's link from an output to an input: refused with the reason when it cannot be.
+function tryLink(from, to) {
+  const t = tasks()[S.task];
+  if (!t) { say('create a task first', 'refused'); return false; }
+  const out = portSpec(from.module, from.port, 'out');
+  const inp = portSpec(to.module, to.port, 'in');
+  if (!out || !inp) { say(`refused: ${from.module}.${from.port} or ${to.module}.${to.port} is not a port of its kind`, 'refused'); return false; }
+  if (!compatible(out, inp)) {
+    say(`refused: ${from.module}.${from.port} sends ${typeText(out.message)} but ${to.module}.${to.port} takes ${typeText(inp.message)}`, 'refused');
+    return false;
+  }
+  t.links = t.links || [];
+  const fed = t.links.map(parseLink).find((l) => l && l.to.module === to.module && l.to.port === to.port);
+  if (fed) {
+    say(`refused: ${to.module}.${to.port} is already fed by ${fed.from.module}.${fed.from.port} in task ${S.task}; remove that link first`, 'refused');
+    return false;
+  }
+  const text = linkText({ from, to });
+  t.links.push(text);
+  changed(`linked ${text} in task ${S.task}`);
+  return true;
+}
+
+function uniqueName(base, taken) {
+  let n = base, i = 2;
+  while (taken(n)) n = `${base}_${i++}`;
+  return n;
+}
+
+function taskAction(action) {
+  const name = $('task-name').value.trim();
+  const all = tasks();
+  const valid = /^[A-Za-z_][\w-]*$/.test(name);
+  if (action !== 'delete' && !valid) { say('type a task name first (letters, digits, _ and -)', 'refused'); return; }
+  if (action !== 'delete' && all[name]) { say(`task ${name} exists already`, 'refused'); return; }
+  S.draft.task = all;
+  if (action === 'new') {
+    all[name] = { description: 'composed in the ground station', links: [] };
+    S.task = name;
+    changed(`task ${name} created: draw its links`);
+  } else if (action === 'copy') {
+    if (!all[S.task]) return;
+    all[name] = JSON.parse(JSON.stringify(all[S.task]));
+    S.task = name;
+    changed(`task ${name} copied`);
+  } else if (action === 'rename') {
+    if (!all[S.task]) return;
+    all[name] = all[S.task];
+    delete all[S.task];
+    const sys = S.draft.system || {};
+    if (sys.default_task === S.task) sys.default_task = name;
+    if (sys.on_link_loss && sys.on_link_loss.task === S.task) sys.on_link_loss.task = name;
+    S.task = name;
+    changed(`task renamed to ${name}`);
+  } else if (action === 'delete') {
+    if (!all[S.task]) return;
+    const gone = S.task;
+    delete all[gone];
+    S.task = Object.keys(all)[0] || null;
+    changed(`task ${gone} deleted`);
+  }
+  $('task-name').value = '';
+  fillTaskSelect();
+}
+
+function addModule(kind) {
+  const dnm = $('add-dnm').value;
+  const name = uniqueName(kind, (n) => !!moduleByName(n));
+  S.draft.module = modules();
+  S.draft.module.push({ name, kind, dnm });
+  S.selected = { type: 'module', name };
+  changed(`module ${name} (${kind}) added on ${dnm}`);
+}
+
+function forEachTask(fn) { for (const [name, t] of Object.entries(tasks())) fn(name, t); }
+
+function removeModule(name) {
+  S.draft.module = modules().filter((m) => m.name !== name);
+  let dropped = 0;
+  forEachTask((_, t) => {
+    const before = (t.links || []).length;
+    t.links = (t.links || []).filter((s) => { const l = parseLink(s); return !l || (l.from.module !== name && l.to.module !== name); });
+    dropped += before - t.links.length;
+  });
+  S.selected = null;
+  changed(`module ${name} removed with ${dropped} link${dropped === 1 ? '' : 's'}`);
+}
+
+function renameModule(old, name) {
+  if (!/^[A-Za-z_][\w]*$/.test(name)) { say(`${name}: a module name is letters, digits and _`, 'refused'); return; }
+  if (moduleByName(name)) { say(`a module ${name} exists already`, 'refused'); return; }
+  moduleByName(old).name = name;
+  forEachTask((_, t) => {
+    t.links = (t.links || []).map((s) => {
+      const l = parseLink(s);
+      if (!l) return s;
+      if (l.from.module === old) l.from.module = name;
+      if (l.to.module === old) l.to.module = name;
+      return linkText(l);
+    });
+  });
+  S.selected = { type: 'module', name };
+  changed(`module ${old} renamed ${name}`);
+}
+
+// Another kind for a module: links to ports the new kind lacks (or types it changes) go.
+function replaceKind(name, kind) {
+  const m = moduleByName(name);
+  m.kind = kind;
+  const k = S.kinds[kind];
+  if (m.params) for (const p of Object.keys(m.params)) if (!k.params.some((q) => q.name === p)) delete m.params[p];
+  let dropped = 0;
+  forEachTask((_, t) => {
+    const before = (t.links || []).length;
+    t.links = (t.links || []).filter((s) => {
+      const l = parseLink(s);
+      if (!l) return true;
+      const out = portSpec(l.from.module, l.from.port, 'out');
+      const inp = portSpec(l.to.module, l.to.port, 'in');
+      return out && inp && compatible(out.message, inp.message);
+    });
+    dropped += before - t.links.length;
+  });
+  changed(`module ${name} replaced by a ${kind}${dropped ? `; ${dropped} link${dropped === 1 ? '' : 's'} it cannot keep removed` : ''}`);
+}
+
+function setParam(name, p, raw) {
+  const m = moduleByName(name);
+  m.params = m.params || {};
+  if (raw === '' || raw === null) { delete m.params[p.name]; changed(`${name}.${p.name} back to its default`); return; }
+  let v = raw;
+  if (p.kind === 'float') v = Number(raw);
+  else if (p.kind === 'int') v = Number.isInteger(Number(raw)) ? Number(raw) : raw;
+  else if (p.kind === 'bool') v = raw === true || raw === 'true';
+  if ((p.kind === 'float' || p.kind === 'int') && !Number.isFinite(v)) {
+    m.params[p.name] = raw; // kept as text: the check names the field and the fix
+  } else {
+    m.params[p.name] = v;
+  }
+  changed(`${name}.${p.name} = ${JSON.stringify(m.params[p.name])}`);
+}
+
+// ---- layout and drawing -----------------------------------------------------------------------
+
+const COL_W = 250, BOX_W = 200, ROW_H = 15, HEAD_H = 34, GAP = 12, TOP = 44, LEFT = 70;
+
+// DNMs in hierarchy order: each after its parent.
+function dnmOrder(list) {
+  const names = list.map((d) => d.name);
+  const out = [];
+  const visit = (parent, depth) => {
+    for (const d of list) {
+      if ((d.parent || null) === parent && !out.some((o) => o.name === d.name)) {
+        out.push({ ...d, depth });
+        visit(d.name, depth + 1);
+      }
+    }
+  };
+  visit(null, 0);
+  for (const d of list) if (!out.some((o) => o.name === d.name)) out.push({ ...d, depth: 0, orphan: !names.includes(d.parent) });
+  return out;
+}
+
+// mods: [{name, kind, dnm, inputs:[port], outputs:[port]}]
+function layout(dnmList, mods) {
+  const cols = dnmOrder(dnmList);
+  const at = {}, ports = {};
+  let height = 0;
+  cols.forEach((d, i) => {
+    d.x = LEFT + i * COL_W;
+    let y = TOP;
+    for (const m of mods.filter((m) => m.dnm === d.name)) {
+      const rows = Math.max(m.inputs.length, m.outputs.length, 1);
+      const h = HEAD_H + rows * ROW_H + 6;
+      at[m.name] = { x: d.x + (COL_W - BOX_W) / 2 - 10, y, h, m };
+      m.inputs.forEach((p, j) => { ports[`in:${m.name}.${p.name}`] = { x: at[m.name].x, y: y + HEAD_H + j * ROW_H + 6 }; });
+      m.outputs.forEach((p, j) => { ports[`out:${m.name}.${p.name}`] = { x: at[m.name].x + BOX_W, y: y + HEAD_H + j * ROW_H + 6 }; });
+      y += h + GAP;
+    }
+    d.bottom = y;
+    height = Math.max(height, y);
+  });
+  return { cols, at, ports, width: LEFT + cols.length * COL_W + 20, height: height + 20 };
+}
+
+function curve(a, b) {
+  const dx = Math.max(40, Math.abs(b.x - a.x) / 2);
+  return `M${a.x},${a.y} C${a.x + dx},${a.y} ${b.x - dx},${b.y} ${b.x},${b.y}`;
+}
+
+function drawColumns(L) {
+  return L.cols.map((d) => `<g class="dnm-col"><rect class="col" x="${d.x}" y="6" width="${COL_W - 20}" height="${Math.max(d.bottom, L.height - 20) - 6}" rx="6"/>`
+    + `<text class="col-title" x="${d.x + 8}" y="22">${'↳ '.repeat(d.depth ? 1 : 0)}${esc(d.name)}</text>`
+    + `<text class="col-sub" x="${d.x + 8}" y="36">${d.parent ? `under ${esc(d.parent)}` : 'root'}${d.radio ? ' · across the radio' : ''}</text></g>`).join('');
+}
+
+function drawModule(box, cls, lines) {
+  const m = box.m;
+  let s = `<g class="module ${cls}" data-module="${esc(m.name)}"><rect class="box" x="${box.x}" y="${box.y}" width="${BOX_W}" height="${box.h}"/>`
+    + `<rect class="head" x="${box.x}" y="${box.y}" width="${BOX_W}" height="${HEAD_H - 4}"/>`
+    + `<text class="title" x="${box.x + 6}" y="${box.y + 13}">${esc(m.name)}</text>`
+    + `<text class="kind" x="${box.x + 6}" y="${box.y + 26}">${esc(lines)}</text>`;
+  m.inputs.forEach((p, j) => {
+    const y = box.y + HEAD_H + j * ROW_H + 6;
+    s += `<circle class="port in" r="5" cx="${box.x}" cy="${y}" data-port="${esc(m.name)}.${esc(p.name)}" data-dir="in"><title>${esc(p.name)}: ${esc(typeText(p.message))}</title></circle>`
+      + `<text x="${box.x + 8}" y="${y + 4}">${esc(p.name)}</text>`;
+  });
+  m.outputs.forEach((p, j) => {
+    const y = box.y + HEAD_H + j * ROW_H + 6;
+    s += `<circle class="port out" r="5" cx="${box.x + BOX_W}" cy="${y}" data-port="${esc(m.name)}.${esc(p.name)}" data-dir="out"><title>${esc(p.name)}: ${esc(typeText(p.message))}</title></circle>`
+      + `<text x="${box.x + BOX_W - 8}" y="${y + 4}" text-anchor="end">${esc(p.name)}</text>`;
+  });
+  return s + '</g>';
+}
+
+function draftModules() {
+  return modules().map((m) => {
+    const k = S.kinds[m.kind];
+    return { name: m.name, kind: m.kind, dnm: dnmOf(m), inputs: k ? k.inputs : [], outputs: k ? k.outputs : [] };
+  });
+}
+
+function renderTasks() {
+  if (!S.draft) return;
+  const mods = draftModules();
+  const L = layout(dnms(), mods);
+  S.layout = L;
+  const t = tasks()[S.task];
+  let links = '';
+  ((t && t.links) || []).forEach((s, i) => {
+    const l = parseLink(s);
+    const a = l && L.ports[`out:${l.from.module}.${l.from.port}`];
+    const b = l && L.ports[`in:${l.to.module}.${l.to.port}`];
+    if (!a || !b) return;
+    const sel = S.selected && S.selected.type === 'link' && S.selected.index === i;
+    links += `<path class="link${sel ? ' selected' : ''}" d="${curve(a, b)}" data-link="${i}"><title>${esc(s)}</title></path>`;
+  });
+  let boxes = '';
+  for (const m of mods) {
+    const k = S.kinds[m.kind];
+    const sel = S.selected && S.selected.type === 'module' && S.selected.name === m.name;
+    boxes += drawModule(L.at[m.name], `draft${sel ? ' selected' : ''}`, k ? m.kind : `${m.kind} (not on the rover)`);
+  }
+  const svg = $('canvas');
+  svg.setAttribute('width', L.width);
+  svg.setAttribute('height', L.height);
+  svg.innerHTML = drawColumns(L) + `<g id="links">${links}</g>` + boxes + '<path id="drag-line" d=""/>';
+  renderInspector();
+}
+
+function stateOf(name, dnm) {
+  const g = S.live && S.live.live.glances[dnm];
+  const m = g && g.modules.find((x) => x.name === name);
+  return m || null;
+}
+
+function renderConnections() {
+  const w = S.live && S.live.live.wiring;
+  const svg = $('canvas');
+  if (!w) { svg.innerHTML = '<text x="20" y="30">No wiring heard from the rover yet.</text>'; return; }
+  const mods = w.modules.map((m) => ({ name: m.name, kind: m.kind, dnm: m.dnm, inputs: m.inputs, outputs: m.outputs }));
+  const L = layout(w.dnms, mods);
+  S.layout = L;
+  const radio = Object.fromEntries(w.dnms.map((d) => [d.name, !!d.radio]));
+  const dnmOfMod = Object.fromEntries(w.modules.map((m) => [m.name, m.dnm]));
+  const active = (w.active_task && w.tasks[w.active_task]) || [];
+  let links = '';
+  for (const l of active) {
+    const a = L.ports[`out:${l.from.module}.${l.from.port}`];
+    const b = L.ports[`in:${l.to.module}.${l.to.port}`];
+    if (!a || !b) continue;
+    const da = dnmOfMod[l.from.module], db = dnmOfMod[l.to.module];
+    const crossesRadio = da !== db && (radio[da] || radio[db]);
+    const src = stateOf(l.from.module, da);
+    const hz = src ? src.rate_hz : 0;
+    const text = `${l.from.module}.${l.from.port} -> ${l.to.module}.${l.to.port}`;
+    links += `<path class="link${crossesRadio ? ' radio' : ''}" d="${curve(a, b)}" style="stroke-width:${(1.2 + Math.min(4, Math.log10(1 + hz))).toFixed(1)}" data-active-link="${esc(text)}" data-radio="${crossesRadio ? 1 : 0}"><title>${esc(text)}: ${hz.toFixed(1)} Hz${crossesRadio ? ', across the radio' : ''}</title></path>`;
+    const mx = (a.x + b.x) / 2, my = (a.y + b.y) / 2;
+    links += `<text class="link-label${crossesRadio ? ' radio' : ''}" x="${mx}" y="${my - 3}" text-anchor="middle">${hz.toFixed(0)} Hz${crossesRadio ? ' · radio' : ''}</text>`;
+  }
+  let boxes = '';
+  let counts = {};
+  for (const m of mods) {
+    const st = stateOf(m.name, m.dnm);
+    const state = st ? st.state : 'unknown';
+    counts[state] = (counts[state] || 0) + 1;
+    const line = st ? `${m.kind} · ${st.rate_hz.toFixed(1)} Hz · ${st.cpu_percent.toFixed(1)}% CPU${st.restarts ? ` · ${st.restarts} restart${st.restarts === 1 ? '' : 's'}` : ''}${st.hangs ? ` · hung ${st.hangs}×` : ''}` : `${m.kind} · no answer`;
+    boxes += drawModule(L.at[m.name], state, line).replace('<g class="module', `<g data-state="${state}" data-restarts="${st ? st.restarts : 0}" class="module`);
+  }
+  svg.setAttribute('width', L.width);
+  svg.setAttribute('height', L.height);
+  svg.innerHTML = drawColumns(L) + links + boxes;
+  $('conn-summary').textContent = `revision ${w.revision} · task ${w.active_task || '—'} · ${mods.length} modules: `
+    + Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(', ')
+    + (S.live.live.silent.length ? ` · silent DNMs: ${S.live.live.silent.join(', ')}` : '');
+}
+
+function renderHierarchy() {
+  const w = S.live && S.live.live.wiring;
+  if (!w) return;
+  const silent = new Set(S.live.live.silent);
+  const tree = (parent) => w.dnms.filter((d) => (d.parent || null) === parent).map((d) => {
+    const g = S.live.live.glances[d.name];
+    const n = w.modules.filter((m) => m.dnm === d.name).length;
+    return `<li class="${silent.has(d.name) ? 'silent' : ''}" data-dnm="${esc(d.name)}">${esc(d.name)}${d.radio ? ' (radio)' : ''} · ${n} modules${g ? ` · rev ${g.revision} · ${esc(g.active_task || '—')}` : ' · silent'}<ul>${tree(d.name)}</ul></li>`;
+  }).join('');
+  $('hierarchy').innerHTML = tree(null);
+  const l = S.live.link;
+  const rover = l.rover || {};
+  $('link-detail').innerHTML = [
+    ['state', l.up ? 'up' : 'down'],
+    ['round trip', l.rtt_ms == null ? '—' : `${l.rtt_ms.toFixed(0)} ms`],
+    ['last heard', l.last_contact_ms == null ? 'never' : `${(l.last_contact_ms / 1000).toFixed(1)} s ago`],
+    ['loss', `${(100 * l.loss).toFixed(0)} %`],
+    ['pending', String(l.pending)],
+    ['rover task', rover.task || '—'],
+    ['revision', rover.revision == null ? '—' : String(rover.revision)],
+  ].map(([k, v]) => `<dt>${k}</dt><dd>${esc(v)}</dd>`).join('');
+  // What the station commanded (wall time), the switches the DNMs performed (each DNM's own
+  // clock: grouped, not timed) and the last module events.
+  const commanded = S.outbox.filter((e) => e.order.cmd !== 'cancel').slice(-12).reverse().map((e) => {
+    const o = e.order;
+    const what = o.cmd === 'switch' ? `switch to ${o.task}` : o.cmd === 'apply' ? `apply ${o.file}` : `${o.edit.op} ${o.edit.name}`;
+    const f = e.fate || {};
+    return `<li>${new Date(e.queued_unix_ns / 1e6).toLocaleTimeString()} #${e.seq} ${esc(what)}: <span class="state ${e.state}">${e.state}</span>${f.revision ? ` rev ${f.revision}` : ''}${f.reason ? ` — ${esc(f.reason)}` : ''}</li>`;
+  });
+  const switches = new Map();
+  for (const g of Object.values(S.live.live.glances)) {
+    for (const s of g.switches || []) {
+      const key = `${s.revision}:${s.from || ''}:${s.to}`;
+      const e = switches.get(key) || { s, dnms: [], at: s.at_ns };
+      e.dnms.push(g.dnm);
+      switches.set(key, e);
+    }
+  }
+  const performed = [...switches.values()].sort((a, b) => b.s.revision - a.s.revision || b.at - a.at).slice(0, 12)
+    .map((e) => `<li class="switch">rev ${e.s.revision}: ${esc(e.s.from || '—')} → <b>${esc(e.s.to)}</b> on ${esc(e.dnms.sort().join(', '))}</li>`);
+  const events = [];
+  for (const g of Object.values(S.live.live.glances)) for (const e of g.events || []) events.push(e);
+  events.sort((a, b) => b.at_ns - a.at_ns);
+  const evs = events.slice(0, 16).map((e) => `<li class="event">${esc(e.dnm)}: ${esc(e.module)} ${esc(e.what)}${e.detail ? ` (${esc(e.detail)})` : ''}</li>`);
+  $('history').innerHTML = `<li><h2>Commanded</h2><ol>${commanded.join('') || '<li class="hint">nothing yet</li>'}</ol></li>`
+    + `<li><h2>Switches performed</h2><ol>${performed.join('') || '<li class="hint">none yet</li>'}</ol></li>`
+    + `<li><h2>Module events</h2><ol>${evs.join('') || '<li class="hint">none</li>'}</ol></li>`;
+}
+
+function renderInspector() {
+  const body = $('inspector-body');
+  if (!S.draft) return;
+  if (S.selected && S.selected.type === 'module' && moduleByName(S.selected.name)) {
+    const m = moduleByName(S.selected.name);
+    const k = S.kinds[m.kind];
+    const kinds = Object.keys(S.kinds).sort();
+    let h = `<div class="field"><span>name</span><input id="mod-name" value="${esc(m.name)}"></div>`
+      + `<div class="field"><span>kind</span><select id="mod-kind">${kinds.map((n) => `<option${n === m.kind ? ' selected' : ''}>${esc(n)}</option>`).join('')}</select></div>`
+      + `<div class="field"><span>DNM</span><select id="mod-dnm">${dnms().map((d) => `<option${d.name === dnmOf(m) ? ' selected' : ''}>${esc(d.name)}</option>`).join('')}</select></div>`;
+    if (k) {
+      h += '<h2>Parameters</h2>';
+      for (const p of k.params) {
+        const v = m.params && p.name in m.params ? m.params[p.name] : '';
+        const def = p.default == null ? 'required' : `default ${p.default}`;
+        h += p.kind === 'bool'
+          ? `<div class="field"><span title="${esc(p.doc)}">${esc(p.name)}</span><select data-param="${esc(p.name)}"><option value=""${v === '' ? ' selected' : ''}>(${esc(def)})</option><option${v === true ? ' selected' : ''}>true</option><option${v === false ? ' selected' : ''}>false</option></select></div>`
+          : `<div class="field"><span title="${esc(p.doc)}">${esc(p.name)}</span><input data-param="${esc(p.name)}" value="${esc(v)}" placeholder="${esc(p.kind)}, ${esc(def)}"></div>`;
+      }
+    }
+    h += `<p><button id="mod-remove">Remove module</button></p>`;
+    body.innerHTML = h;
+    $('mod-name').onchange = (e) => renameModule(m.name, e.target.value.trim());
+    $('mod-kind').onchange = (e) => replaceKind(m.name, e.target.value);
+    $('mod-dnm').onchange = (e) => { m.dnm = e.target.value; changed(`module ${m.name} moved to ${m.dnm}`); };
+    $('mod-remove').onclick = () => removeModule(m.name);
+    body.querySelectorAll('[data-param]').forEach((el) => {
+      el.onchange = () => setParam(m.name, k.params.find((p) => p.name === el.dataset.param), el.value);
+    });
+    return;
+  }
+  const t = tasks()[S.task];
+  const links = (t && t.links) || [];
+  body.innerHTML = `<p class="hint">Drag from an output (right) to an input (left) to link them. Click a module to edit it.</p>`
+    + `<h2>Links of ${esc(S.task || '—')} (${links.length})</h2><ul class="links-list">`
+    + links.map((s, i) => `<li class="${S.selected && S.selected.type === 'link' && S.selected.index === i ? 'selected' : ''}"><span>${esc(s)}</span><button data-unlink="${i}" title="remove this link">×</button></li>`).join('')
+    + '</ul>';
+  body.querySelectorAll('[data-unlink]').forEach((b) => {
+    b.onclick = () => {
+      const i = Number(b.dataset.unlink);
+      const [gone] = t.links.splice(i, 1);
+      S.selected = null;
+      changed(`link ${gone} removed`);
+    };
+  });
+}
+
+function render() {
+  const t0 = performance.now();
+  if (S.view === 'tasks') renderTasks(); else { renderConnections(); renderHierarchy(); }
+  const ms = performance.now() - t0;
+  S.perf.lastRenderMs = ms;
+  S.perf.renders.push({ view: S.view, ms });
+  if (S.perf.renders.length > 200) S.perf.renders.shift();
+}
+
+function fillTaskSelect() {
+  const sel = $('task-select');
+  const names = Object.keys(tasks());
+  if (!names.includes(S.task)) S.task = names[0] || null;
+  const active = S.live && S.live.live.wiring && S.live.live.wiring.active_task;
+  sel.innerHTML = names.map((n) => `<option value="${esc(n)}"${n === S.task ? ' selected' : ''}>${esc(n)}${n === active ? ' (in force)' : ''}</option>`).join('');
+}
+
+function fillPalette() {
+  const names = Object.keys(S.kinds).sort();
+  const ports = (ps) => ps.map((p) => esc(p.name)).join(', ') || '—';
+  $('palette').innerHTML = names.map((n) => {
+    const k = S.kinds[n];
+    return `<li data-kind="${esc(n)}"><button data-add="${esc(n)}" title="add a ${esc(n)} module">+</button><span class="name">${esc(n)}</span><div class="ports">in: ${ports(k.inputs)}<br>out: ${ports(k.outputs)}${k.params.length ? `<br>params: ${k.params.map((p) => `${esc(p.name)} (${esc(p.kind)})`).join(', ')}` : ''}</div></li>`;
+  }).join('');
+  $('palette').querySelectorAll('[data-add]').forEach((b) => { b.onclick = () => addModule(b.dataset.add); });
+  $('add-dnm').innerHTML = dnms().map((d) => `<option>${esc(d.name)}</option>`).join('');
+}
+
+// ---- watching an output -----------------------------------------------------------------------
+
+function flatten(prefix, v, out) {
+  if (typeof v === 'number') out.push([prefix, v]);
+  else if (typeof v === 'boolean') out.push([prefix, v ? 1 : 0]);
+  else if (Array.isArray(v)) v.slice(0, 16).forEach((x, i) => flatten(`${prefix}[${i}]`, x, out));
+  else if (v && typeof v === 'object') for (const [k, x] of Object.entries(v)) flatten(prefix ? `${prefix}.${k}` : k, x, out);
+}
+
+function startWatch(module, port) {
+  S.watch = { module, port, since: 0, samples: [], frame: null, error: null };
+  renderWatch();
+  pollWatch();
+}
+
+async function pollWatch() {
+  const w = S.watch;
+  if (!w) return;
+  try {
+    const r = await api(`/api/watch?module=${encodeURIComponent(w.module)}&port=${encodeURIComponent(w.port)}&since=${w.since}`);
+    if (S.watch !== w) return;
+    w.error = null;
+    w.schema = r.schema_name;
+    w.rate = r.rate;
+    for (const s of r.samples) { w.samples.push(s); w.since = Math.max(w.since, s.seq); }
+    if (w.samples.length > 200) w.samples.splice(0, w.samples.length - 200);
+    w.frame = r.frame;
+  } catch (e) {
+    w.error = e.message;
+  }
+  renderWatch();
+  clearTimeout(w.timer);
+  w.timer = setTimeout(pollWatch, 500);
+}
+
+function spark(values) {
+  if (values.length < 2) return '';
+  const lo = Math.min(...values), hi = Math.max(...values), span = hi - lo || 1;
+  const pts = values.map((v, i) => `${(i / (values.length - 1) * 88 + 1).toFixed(1)},${(17 - (v - lo) / span * 16).toFixed(1)}`).join(' ');
+  return `<svg class="spark" viewBox="0 0 90 18"><polyline points="${pts}"/></svg>`;
+}
+
+function renderWatch() {
+  const w = S.watch;
+  const body = $('watch-body');
+  if (!w) return;
+  let h = `<p><b id="watch-title">${esc(w.module)}.${esc(w.port)}</b> ${w.schema ? `<span class="hint">${esc(w.schema)} at ${esc(w.rate)}</span>` : ''} <button id="watch-stop">stop</button></p>`;
+  if (w.error) h += `<p class="hint">${esc(w.error)}</p>`;
+  if (w.frame) h += `<img id="watch-frame" alt="camera" src="/api/frame?module=${encodeURIComponent(w.module)}&port=${encodeURIComponent(w.port)}&n=${w.frame}">`;
+  const last = w.samples[w.samples.length - 1];
+  if (last) {
+    const fields = [];
+    flatten('', last.value, fields);
+    const series = (f) => w.samples.map((s) => { const o = []; flatten('', s.value, o); const x = o.find((p) => p[0] === f); return x ? x[1] : 0; });
+    h += `<p class="hint">${w.samples.length} samples, latest ${new Date(last.unix_ns / 1e6).toLocaleTimeString()}</p><table id="watch-values">`
+      + fields.slice(0, 24).map(([f, v], i) => `<tr><td>${esc(f || 'value')}</td><td class="v">${Number.isInteger(v) ? v : v.toFixed(4)}</td><td>${i < 12 ? spark(series(f)) : ''}</td></tr>`).join('')
+      + '</table>';
+    if (!fields.length) h += `<pre>${esc(JSON.stringify(last.value, null, 1)).slice(0, 2000)}</pre>`;
+  } else if (!w.frame && !w.error) {
+    h += '<p class="hint">waiting for the first sample…</p>';
+  }
+  body.innerHTML = h;
+  $('watch-stop').onclick = () => { clearTimeout(w.timer); S.watch = null; body.innerHTML = '<p class="hint">Click an output port in the connection view to watch it.</p>'; };
+}
+
+// ---- pointer: drawing links, selecting ----------------------------------------------------------
+
+function svgPoint(ev) {
+  const r = $('canvas').getBoundingClientRect();
+  return { x: ev.clientX - r.left, y: ev.clientY - r.top };
+}
+
+function markTargets(from) {
+  const out = portSpec(from.module, from.port, 'out');
+  document.querySelectorAll('.port.in').forEach((c) => {
+    const [m, p] = c.dataset.port.split('.');
+    const inp = portSpec(m, p, 'in');
+    c.classList.add(out && inp && compatible(out.message, inp.message) ? 'compatible' : 'incompatible');
+  });
+}
+
+function portOf(el) {
+  if (!el || !el.dataset || !el.dataset.port) return null;
+  const [module, port] = el.dataset.port.split('.');
+  return { module, port, dir: el.dataset.dir };
+}
+
+function onPointerDown(ev) {
+  const p = portOf(ev.target);
+  if (S.view === 'connections') {
+    if (p && p.dir === 'out') startWatch(p.module, p.port);
+    return;
+  }
+  if (p && p.dir === 'out') {
+    ev.preventDefault();
+    S.drag = { from: p, start: S.layout.ports[`out:${p.module}.${p.port}`] };
+    markTargets(p);
+    say(`drawing a link from ${p.module}.${p.port} (${typeText(portSpec(p.module, p.port, 'out').message)}): drop it on an input`, '');
+    return;
+  }
+  if (p && p.dir === 'in') { say('a link starts at an output (the right side of a module)', 'refused'); return; }
+  const link = ev.target.closest && ev.target.closest('[data-link]');
+  if (link) { S.selected = { type: 'link', index: Number(link.dataset.link) }; say(`link ${tasks()[S.task].links[S.selected.index]} selected: press Delete or × in the list to remove it`, ''); render(); return; }
+  const mod = ev.target.closest && ev.target.closest('[data-module]');
+  S.selected = mod ? { type: 'module', name: mod.dataset.module } : null;
+  render();
+}
+
+function onPointerMove(ev) {
+  if (!S.drag) return;
+  const b = svgPoint(ev);
+  const line = $('drag-line');
+  if (line) line.setAttribute('d', curve(S.drag.start, b));
+}
+
+function onPointerUp(ev) {
+  if (!S.drag) return;
+  const drag = S.drag;
+  S.drag = null;
+  const target = portOf(document.elementFromPoint(ev.clientX, ev.clientY));
+  if (target && target.dir === 'in') {
+    tryLink(drag.from, { module: target.module, port: target.port });
+    if ($('message').dataset.kind === 'refused') renderTasks();
+  } else {
+    say('no link: drop the line on an input port (the left side of a module)', 'refused');
+    renderTasks();
+  }
+}
+
+// ---- polling ----------------------------------------------------------------------------------
+
+async function pollLive() {
+  try {
+    S.live = await api('/api/live');
+    $('system-name').textContent = `· ${S.live.system} (${S.live.station})`;
+    const l = S.live.link;
+    const ls = $('link-status');
+    ls.className = l.up ? 'up' : 'down';
+    ls.textContent = l.up ? `rover link up · ${l.rtt_ms == null ? '?' : l.rtt_ms.toFixed(0)} ms · loss ${(100 * l.loss).toFixed(0)} %` : `rover link DOWN${l.last_contact_ms == null ? '' : ` · last heard ${(l.last_contact_ms / 1000).toFixed(0)} s ago`}`;
+    if (!S.draft) await loadNetlist(false);
+    if (S.view === 'connections') render(); else fillTaskSelect();
+  } catch (e) {
+    $('link-status').className = 'down';
+    $('link-status').textContent = `station: ${e.message}`;
+  }
+  setTimeout(pollLive, 1000);
+}
+
+async function pollOutbox() {
+  try {
+    const first = Math.max(1, (S.outbox.length ? S.outbox[S.outbox.length - 1].seq : 1) - 30);
+    const got = await api(`/commands?since=${first}`);
+    const bySeq = new Map(S.outbox.map((e) => [e.seq, e]));
+    for (const e of got) bySeq.set(e.seq, e);
+    S.outbox = [...bySeq.values()].sort((a, b) => a.seq - b.seq).slice(-30);
+    $('outbox').innerHTML = S.outbox.slice().reverse().map((e) => {
+      const o = e.order;
+      const what = o.cmd === 'switch' ? `switch to ${o.task}` : o.cmd === 'apply' ? `apply ${o.file}` : o.cmd === 'module' ? `${o.edit.op} ${o.edit.name}` : `cancel #${o.seq}`;
+      const f = e.fate || {};
+      const detail = f.reason ? ` — ${f.reason}` : f.revision ? ` — revision ${f.revision}${f.task ? `, task ${f.task}` : ''}` : '';
+      return `<li data-seq="${e.seq}" data-state="${e.state}">#${e.seq} ${esc(what)} <span class="state ${e.state}">${e.state}</span>${esc(detail)}</li>`;
+    }).join('');
+  } catch (_) { /* the next poll tries again */ }
+  setTimeout(pollOutbox, 1000);
+}
+
+async function loadKinds() {
+  const list = await api('/api/kinds');
+  S.kinds = Object.fromEntries(list.map((e) => [e.spec.name, e.spec]));
+}
+
+async function loadNetlist(force) {
+  if (S.draft && !force) return;
+  try {
+    if (!Object.keys(S.kinds).length) await loadKinds();
+    const n = await api('/api/netlist');
+    S.base = n;
+    S.draft = JSON.parse(JSON.stringify(n.doc));
+    S.draftFile = (n.file || 'draft.toml').split('/').pop();
+    S.task = n.active_task || Object.keys(tasks())[0] || null;
+    S.selected = null;
+    fillTaskSelect();
+    fillPalette();
+    say(`draft from the netlist in force (revision ${n.revision}, ${modules().length} modules)`, 'ok');
+    scheduleCheck();
+    render();
+  } catch (e) {
+    say(`no netlist yet: ${e.message}`, 'error');
+  }
+}
+
+async function submit(order, what) {
+  try {
+    const e = await api('/commands', order);
+    say(`${what}: command #${e.seq} ${e.state}; the outbox shows what the rover does with it`, 'ok');
+  } catch (e) {
+    say(`${what} refused: ${e.message}`, 'refused');
+  }
+}
+
+function setView(v) {
+  S.view = v;
+  document.body.className = `view-${v}`;
+  $('tab-tasks').classList.toggle('active', v === 'tasks');
+  $('tab-connections').classList.toggle('active', v === 'connections');
+  render();
+}
+
+function init() {
+  document.body.className = 'view-tasks';
+  $('tab-tasks').onclick = () => { location.hash = '#tasks'; };
+  $('tab-connections').onclick = () => { location.hash = '#connections'; };
+  $('task-select').onchange = (e) => { S.task = e.target.value; S.selected = null; render(); };
+  $('task-new').onclick = () => taskAction('new');
+  $('task-copy').onclick = () => taskAction('copy');
+  $('task-rename').onclick = () => taskAction('rename');
+  $('task-delete').onclick = () => taskAction('delete');
+  $('draft-reset').onclick = () => loadNetlist(true);
+  $('draft-apply').onclick = () => {
+    if (!S.check || !S.check.ok) return;
+    submit({ cmd: 'apply', file: S.check.file, text: S.check.toml }, 'apply');
+  };
+  $('task-switch').onclick = () => {
+    const live = S.live && S.live.live.wiring;
+    if (live && !live.tasks[S.task]) { say(`refused: task ${S.task} is not in the netlist in force; apply the draft first`, 'refused'); return; }
+    submit({ cmd: 'switch', task: S.task }, `switch to ${S.task}`);
+  };
+  $('draft-export').onclick = () => {
+    if (!S.check) return;
+    $('export-file').textContent = S.check.file + (S.check.ok ? '' : ' (not valid yet)');
+    $('export-text').textContent = S.check.toml;
+    const a = $('export-download');
+    a.download = S.check.file;
+    a.href = URL.createObjectURL(new Blob([S.check.toml], { type: 'application/toml' }));
+    $('export-dialog').showModal();
+  };
+  $('export-close').onclick = () => $('export-dialog').close();
+  const svg = $('canvas');
+  svg.addEventListener('pointerdown', onPointerDown);
+  window.addEventListener('pointermove', onPointerMove);
+  window.addEventListener('pointerup', onPointerUp);
+  window.addEventListener('keydown', (ev) => {
+    if (ev.key !== 'Delete' || S.view !== 'tasks' || !S.selected || S.selected.type !== 'link') return;
+    if (document.activeElement && /INPUT|SELECT/.test(document.activeElement.tagName)) return;
+    const [gone] = tasks()[S.task].links.splice(S.selected.index, 1);
+    S.selected = null;
+    changed(`link ${gone} removed`);
+  });
+  window.addEventListener('hashchange', () => setView(location.hash === '#connections' ? 'connections' : 'tasks'));
+  if (location.hash === '#connections') setView('connections');
+  pollLive();
+  pollOutbox();
+}
+
+init();
