@@ -85,6 +85,19 @@ fn layers_depend_only_downwards() {
         }
     }
     assert!(dependencies("dnm-monitor").contains("rerun"));
+    // The ground station (its web interface included) speaks the protocol and reads netlists:
+    // it runs no DNM, no module and no shared memory.
+    let ground = dependencies("dnm-ground");
+    let ours: Vec<&String> = ground.iter().filter(|p| p.starts_with("dnm")).collect();
+    assert_eq!(
+        ours,
+        ["dnm-ground", "dnm-netlist", "dnm-proto"],
+        "dnm-ground depends on our crates"
+    );
+    assert!(
+        !ground.contains("iceoryx2"),
+        "dnm-ground depends on iceoryx2"
+    );
     let proto = dependencies("dnm-proto");
     let ours: Vec<&String> = proto.iter().filter(|p| p.starts_with("dnm")).collect();
     assert_eq!(ours, ["dnm-proto"], "dnm-proto depends on our crates");

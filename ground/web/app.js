@@ -18,7 +18,9 @@ const S = {
   layout: null,       // where every module and port is drawn
   watch: null,        // the watched output
   outbox: [],
-  perf: { renders: [], lastRenderMs: 0, checks: [] },
+  seen: {},           // module -> {restarts, hangs} at the last poll
+  sticky: {},         // module -> {state, until, note}: a failure stays visible a while
+  perf: { renders: [], lastRenderMs: 0, checks: [], firstDraftMs: 0, longTasks: [], events: [] },
 };
 window.__dnm = S;
 
@@ -39,6 +41,7 @@ async function api(path, body) {
 function say(text, kind) {
   const m = $('message');
   m.textContent = text;
+  m.title = text;
   m.className = kind || '';
   m.dataset.kind = kind || '';
 }
@@ -122,7 +125,7 @@ function tryLink(from, to) {
   const out = portSpec(from.module, from.port, 'out');
   const inp = portSpec(to.module, to.port, 'in');
   if (!out || !inp) { say(`refused: ${from.module}.${from.port} or ${to.module}.${to.port} is not a port of its kind`, 'refused'); return false; }
-  if (!compatible(out, inp)) {
+  if (!compatible(out.message, inp.message)) {
     say(`refused: ${from.module}.${from.port} sends ${typeText(out.message)} but ${to.module}.${to.port} takes ${typeText(inp.message)}`, 'refused');
     return false;
   }
@@ -371,6 +374,33 @@ function stateOf(name, dnm) {
   return m || null;
 }
 
+// How long a failure or hang stays shown after the module is back: a restart takes 100 ms,
+// less than a poll, and an operator must still see that it happened.
+const STICKY_MS = 4000;
+
+// Notes failures and hangs, including those that came and went between two polls (the
+// restart or hang count went up).
+function noteFailures() {
+  const now = Date.now();
+  for (const g of Object.values(S.live.live.glances)) {
+    for (const m of g.modules) {
+      const prev = S.seen[m.name];
+      let state = null, note = '';
+      if (m.state === 'failed' || m.state === 'hung') state = m.state;
+      else if (prev && m.hangs > prev.hangs) { state = 'hung'; note = 'recovered'; }
+      else if (prev && m.restarts > prev.restarts) { state = 'failed'; note = 'restarted'; }
+      if (state) S.sticky[m.name] = { state, until: now + STICKY_MS, note };
+      S.seen[m.name] = { restarts: m.restarts, hangs: m.hangs };
+    }
+  }
+}
+
+function shownState(name, st) {
+  const s = S.sticky[name];
+  if (s && s.until > Date.now() && st && st.state !== 'failed' && st.state !== 'hung') return s;
+  return st ? { state: st.state, note: '' } : { state: 'unknown', note: '' };
+}
+
 function renderConnections() {
   const w = S.live && S.live.live.wiring;
   const svg = $('canvas');
@@ -399,9 +429,10 @@ function renderConnections() {
   let counts = {};
   for (const m of mods) {
     const st = stateOf(m.name, m.dnm);
-    const state = st ? st.state : 'unknown';
+    const shown = shownState(m.name, st);
+    const state = shown.state;
     counts[state] = (counts[state] || 0) + 1;
-    const line = st ? `${m.kind} · ${st.rate_hz.toFixed(1)} Hz · ${st.cpu_percent.toFixed(1)}% CPU${st.restarts ? ` · ${st.restarts} restart${st.restarts === 1 ? '' : 's'}` : ''}${st.hangs ? ` · hung ${st.hangs}×` : ''}` : `${m.kind} · no answer`;
+    const line = st ? `${shown.note ? `${shown.note} · ` : ''}${m.kind} · ${st.rate_hz.toFixed(1)} Hz · ${st.cpu_percent.toFixed(1)}% CPU${st.restarts ? ` · ${st.restarts} restart${st.restarts === 1 ? '' : 's'}` : ''}${st.hangs ? ` · hung ${st.hangs}×` : ''}` : `${m.kind} · no answer`;
     boxes += drawModule(L.at[m.name], state, line).replace('<g class="module', `<g data-state="${state}" data-restarts="${st ? st.restarts : 0}" class="module`);
   }
   svg.setAttribute('width', L.width);
@@ -670,6 +701,7 @@ function onPointerUp(ev) {
 async function pollLive() {
   try {
     S.live = await api('/api/live');
+    noteFailures();
     $('system-name').textContent = `· ${S.live.system} (${S.live.station})`;
     const l = S.live.link;
     const ls = $('link-status');
@@ -722,6 +754,7 @@ async function loadNetlist(force) {
     say(`draft from the netlist in force (revision ${n.revision}, ${modules().length} modules)`, 'ok');
     scheduleCheck();
     render();
+    if (!S.perf.firstDraftMs) S.perf.firstDraftMs = performance.now();
   } catch (e) {
     say(`no netlist yet: ${e.message}`, 'error');
   }
@@ -744,7 +777,22 @@ function setView(v) {
   render();
 }
 
+// What the page costs the browser: tasks over 50 ms, and how long input events take to be
+// answered (Event Timing), kept for whoever measures the page.
+function observePerformance() {
+  const keep = (list, v) => { list.push(v); if (list.length > 500) list.shift(); };
+  try {
+    new PerformanceObserver((l) => l.getEntries().forEach((e) => keep(S.perf.longTasks, e.duration)))
+      .observe({ type: 'longtask', buffered: true });
+  } catch (_) { /* not supported */ }
+  try {
+    new PerformanceObserver((l) => l.getEntries().forEach((e) => keep(S.perf.events, e.duration)))
+      .observe({ type: 'event', durationThreshold: 16, buffered: true });
+  } catch (_) { /* not supported */ }
+}
+
 function init() {
+  observePerformance();
   document.body.className = 'view-tasks';
   $('tab-tasks').onclick = () => { location.hash = '#tasks'; };
   $('tab-connections').onclick = () => { location.hash = '#connections'; };

@@ -4,6 +4,7 @@
 
 pub mod ground;
 pub mod system;
+pub mod webdriver;
 
 use std::net::TcpListener;
 use std::time::{Duration, Instant};

@@ -21,6 +21,10 @@ use dnm_proto::ModuleRunState;
 use crate::command::{CommandKey, Reply};
 use crate::error::DnmError;
 use crate::node::{COMMAND_QUEUE, Dnm};
+
+/// Time to prepare added to the DNM's `prepare_timeout` for each module process an apply
+/// starts.
+const PREPARE_PER_START: std::time::Duration = std::time::Duration::from_millis(200);
 use crate::pending::{Outcome, PendingApply};
 use crate::plan::{module_plan, task_slots};
 use crate::plugin::{Context, Plugin};
@@ -132,6 +136,10 @@ impl Dnm {
             .filter(|m| !self.modules.contains_key(m.as_str()))
             .cloned()
             .collect();
+        // Every process this apply starts gets its share of the time: 200 modules starting at
+        // once on a small computer take longer than a few.
+        let starting = (added.len() + replaced.len()) as u32;
+        let prepare_for = self.options.prepare_timeout + PREPARE_PER_START * starting;
         let mut pending = PendingApply {
             netlist,
             revision,
@@ -140,7 +148,8 @@ impl Dnm {
             staged: BTreeMap::new(),
             new_ports: Vec::new(),
             prepared_plugins: 0,
-            deadline: Instant::now() + self.options.prepare_timeout,
+            deadline: Instant::now() + prepare_for,
+            prepare_for,
             key,
             replies: Vec::new(),
             txn: None,
@@ -344,7 +353,7 @@ impl Dnm {
         } else if Instant::now() >= p.deadline {
             let e = DnmError::PrepareTimeout {
                 revision,
-                timeout_ms: self.options.prepare_timeout.as_millis(),
+                timeout_ms: p.prepare_for.as_millis(),
                 modules: waiting.join(", "),
             };
             self.fail_apply(e);

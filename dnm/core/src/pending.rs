@@ -22,6 +22,8 @@ pub(crate) struct PendingApply {
     pub(crate) new_ports: Vec<String>,
     /// Plugins that prepared (aborted in reverse if the apply fails).
     pub(crate) prepared_plugins: usize,
+    /// How long modules get to prepare (the DNM's timeout and a share per process started).
+    pub(crate) prepare_for: std::time::Duration,
     pub(crate) deadline: Instant,
     pub(crate) key: Option<CommandKey>,
     pub(crate) replies: Vec<Reply<Result<u64, String>>>,

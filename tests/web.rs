@@ -1,0 +1,422 @@
+//! The ground station's web interface in a real headless Chromium (over WebDriver), against a
+//! running system and a real station: an operator composes a task by drawing links, applies
+//! it and switches to it through the outbox; a link between mismatched types is refused in the
+//! page; a killed module shows failed and then running again; an output is watched. And the
+//! page's responsiveness with a system of 200 modules, measured in the browser.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod support;
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde_json::{Value, json};
+use support::eventually;
+use support::ground::{Api, Proc, report, wait_in_step, zenoh_args};
+use support::webdriver::Browser;
+
+/// One browser test at a time: each runs a whole system and a browser, and this machine may
+/// have two cores.
+static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn exclusive() -> std::sync::MutexGuard<'static, ()> {
+    ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Where the screenshots go (`target/tmp/web/`).
+fn shots() -> PathBuf {
+    Path::new(env!("CARGO_TARGET_TMPDIR")).join("web")
+}
+
+/// A router, the system's DNMs (one `dnm up`) and a ground station, on loopback.
+struct Rig {
+    system: String,
+    dir: PathBuf,
+    port: u16,
+    http: String,
+    _procs: Vec<Proc>,
+}
+
+impl Rig {
+    fn start(tag: &str, netlist: &str) -> Self {
+        let system = format!("w{tag}{}", std::process::id());
+        let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("netlist.toml");
+        std::fs::write(&file, netlist.replace("SYSTEM", &system)).unwrap();
+        let port = support::free_port();
+        let http = format!("127.0.0.1:{}", support::free_port());
+        let router = Proc::dnm(
+            &dir,
+            "router",
+            &[
+                "--no-multicast".into(),
+                "--listen".into(),
+                support::endpoint(port),
+                "router".into(),
+            ],
+        );
+        eventually("the router listening", || {
+            std::net::TcpStream::connect(("127.0.0.1", port)).ok()
+        });
+        let mut up = zenoh_args("peer", port);
+        up.extend([
+            "up".into(),
+            file.display().to_string(),
+            "--no-record".into(),
+            "--state-dir".into(),
+            dir.join("state").display().to_string(),
+        ]);
+        let up = Proc::dnm(&dir, "up", &up);
+        let mut st = zenoh_args("client", port);
+        st.extend([
+            "ground".into(),
+            "serve".into(),
+            "--system".into(),
+            system.clone(),
+            "--db".into(),
+            dir.join("ground.redb").display().to_string(),
+            "--http".into(),
+            http.clone(),
+        ]);
+        let station = Proc::dnm(&dir, "station", &st);
+        let api = Api(format!("http://{http}"));
+        eventually("the station's API", || api.up().then_some(()));
+        Self {
+            system,
+            dir,
+            port,
+            http,
+            _procs: vec![station, up, router],
+        }
+    }
+
+    fn url(&self, hash: &str) -> String {
+        format!("http://{}/{hash}", self.http)
+    }
+
+    fn api(&self) -> Api {
+        Api(format!("http://{}", self.http))
+    }
+}
+
+/// Waits until `js` (an expression) is truthy in the page and returns its value.
+fn until(b: &Browser, what: &str, js: &str) -> Value {
+    let script = format!("try {{ return ({js}); }} catch (e) {{ return null; }}");
+    eventually(what, || {
+        let v = b.js(&script, json!([]));
+        let truthy = match &v {
+            Value::Null => false,
+            Value::Bool(x) => *x,
+            Value::String(s) => !s.is_empty(),
+            Value::Number(n) => n.as_f64() != Some(0.0),
+            _ => true,
+        };
+        truthy.then_some(v)
+    })
+}
+
+fn port(p: &str, dir: &str) -> String {
+    format!("circle.port[data-port=\"{p}\"][data-dir=\"{dir}\"]")
+}
+
+/// The links of the task shown in the editor.
+fn draft_links(b: &Browser) -> Vec<String> {
+    serde_json::from_value(b.js(
+        "const S = window.__dnm; return (S.draft.task[S.task].links || []);",
+        json!([]),
+    ))
+    .unwrap()
+}
+
+const CREEP: [(&str, &str); 8] = [
+    ("watchdog.twist", "mixer.twist"),
+    ("mixer.left", "motor_left.command"),
+    ("mixer.right", "motor_right.command"),
+    ("motor_left.state", "world.left"),
+    ("motor_right.state", "world.right"),
+    ("world.state", "encoders.world"),
+    ("encoders.ticks", "odometry.ticks"),
+    ("world.state", "range.world"),
+];
+
+#[test]
+fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_and_watches_a_module_fail()
+{
+    let _one = exclusive();
+    let beetle = std::fs::read_to_string(
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/beetle.toml"),
+    )
+    .unwrap()
+    .replace("name = \"beetle\"", "name = \"SYSTEM\"");
+    let rig = Rig::start("ui", &beetle);
+    let dnms = ["rover", "drive", "vision", "ground"];
+    let z = support::zenoh_client(rig.port);
+    let b = Browser::start(&rig.dir, 1600, 1000);
+    b.goto(&rig.url(""));
+    until(
+        &b,
+        "the draft loaded from the netlist in force and checked valid",
+        "window.__dnm.check && window.__dnm.check.ok && window.__dnm.draft.module.length === 15",
+    );
+
+    // A link between mismatched types is refused in the page, with the reason.
+    let before = draft_links(&b);
+    b.drag(&port("odometry.odom", "out"), &port("mixer.twist", "in"));
+    let msg = b.text("#message");
+    assert_eq!(
+        b.js(
+            "return document.getElementById('message').dataset.kind",
+            json!([])
+        ),
+        "refused",
+        "{msg}"
+    );
+    assert!(
+        msg.contains("beetle_msgs/Odometry") && msg.contains("mixer.twist takes"),
+        "the reason names both types: {msg}"
+    );
+    assert_eq!(draft_links(&b), before, "nothing was linked");
+
+    // A new task, drawn link by link.
+    b.type_into("#task-name", "creep");
+    b.click("#task-new");
+    until(&b, "task creep selected", "window.__dnm.task === 'creep'");
+    assert!(draft_links(&b).is_empty());
+    for (from, to) in CREEP {
+        b.drag(&port(from, "out"), &port(to, "in"));
+        let msg = b.text("#message");
+        assert!(msg.starts_with("linked"), "{from} -> {to}: {msg}");
+    }
+    let drawn = draft_links(&b);
+    let want: Vec<String> = CREEP.iter().map(|(f, t)| format!("{f} -> {t}")).collect();
+    assert_eq!(drawn, want);
+    until(
+        &b,
+        "the draft checked valid",
+        "window.__dnm.check && window.__dnm.check.ok && window.__dnm.check.toml.includes('[task.creep]')",
+    );
+    b.screenshot(&shots().join("tasks.png"));
+
+    // The exported netlist is what is applied.
+    b.click("#draft-export");
+    let exported = b.text("#export-text");
+    assert!(
+        exported.contains("[task.creep]") && exported.contains("encoders.ticks -> odometry.ticks"),
+        "{exported}"
+    );
+    b.click("#export-close");
+
+    // Applied through the outbox, then switched to; the page shows each command's state.
+    b.click("#draft-apply");
+    let applied = until(
+        &b,
+        "the apply applied (outbox in the page)",
+        "[...document.querySelectorAll('#outbox li')].find(li => li.textContent.includes('apply') && li.dataset.state === 'applied')?.dataset.seq",
+    );
+    let seq: u64 = applied.as_str().unwrap().parse().unwrap();
+    let entry = rig.api().entry(seq, 0);
+    assert_eq!(entry.state, dnm_ground::CommandState::Applied, "{entry:?}");
+    b.click("#task-switch");
+    until(
+        &b,
+        "the switch applied (outbox in the page)",
+        "[...document.querySelectorAll('#outbox li')].some(li => li.textContent.includes('switch to creep') && li.dataset.state === 'applied')",
+    );
+    // Every DNM reports it.
+    let revision = wait_in_step(&z, &rig.system, &dnms, "creep");
+    for d in dnms {
+        let r = report(&z, &rig.system, d).unwrap();
+        assert_eq!(r.active_task.as_deref(), Some("creep"), "{d}");
+        assert_eq!(r.revision, revision, "{d}");
+    }
+
+    // The connection view: the task in force, every module running.
+    b.click("#tab-connections");
+    until(
+        &b,
+        "the connection view on task creep",
+        "document.getElementById('conn-summary').textContent.includes('task creep') && document.querySelectorAll('g.module[data-state=running]').length === 15",
+    );
+    let active: Vec<String> = serde_json::from_value(b.js(
+        "return [...document.querySelectorAll('[data-active-link]')].map(e => e.dataset.activeLink)",
+        json!([]),
+    ))
+    .unwrap();
+    let mut want_sorted = want.clone();
+    want_sorted.sort();
+    let mut active_sorted = active.clone();
+    active_sorted.sort();
+    assert_eq!(
+        active_sorted, want_sorted,
+        "the links in force are highlighted"
+    );
+
+    // Killing a module: failed in the view, then running after its restart.
+    let pid = report(&z, &rig.system, "rover")
+        .unwrap()
+        .modules
+        .iter()
+        .find(|m| m.name == "range")
+        .and_then(|m| m.pid)
+        .unwrap();
+    // SAFETY: kill(2) on a module process this test's system started.
+    unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    until(
+        &b,
+        "range shown failed",
+        "document.querySelector('g.module[data-module=range]').dataset.state === 'failed'",
+    );
+    until(
+        &b,
+        "range running again after its restart",
+        "(g => g.dataset.state === 'running' && g.dataset.restarts === '1')(document.querySelector('g.module[data-module=range]'))",
+    );
+    let events = b.text("#history");
+    assert!(events.contains("range exited"), "{events}");
+
+    // Watching an output: its values through the on-demand feed.
+    b.click(&port("odometry.odom", "out"));
+    until(
+        &b,
+        "odometry.odom's values in the watch panel",
+        "window.__dnm.watch && window.__dnm.watch.samples.length >= 3 && document.querySelector('#watch-values')",
+    );
+    let values = b.text("#watch-values");
+    assert!(values.contains('x') && values.contains("yaw"), "{values}");
+    b.screenshot(&shots().join("connections.png"));
+    eprintln!("screenshots in {}", shots().display());
+}
+
+/// 200 modules on 4 DNMs: 100 tickers, each feeding a relay; task `u` shifts every link.
+fn big_netlist() -> String {
+    let mut s = String::from(
+        "[system]\nname = \"SYSTEM\"\ndefault_task = \"t\"\n\n[[dnm]]\nname = \"main\"\n\n[[dnm]]\nname = \"a\"\nparent = \"main\"\n\n[[dnm]]\nname = \"b\"\nparent = \"main\"\n\n[[dnm]]\nname = \"c\"\nparent = \"main\"\n",
+    );
+    let dnm = |i: usize| ["main", "a", "b", "c"][i % 4];
+    for i in 0..100 {
+        s += &format!(
+            "\n[[module]]\nname = \"src{i}\"\nkind = \"ticker\"\ndnm = \"{}\"\nrate_hz = 2\nparams = {{ origin = {i} }}\n",
+            dnm(i)
+        );
+        s += &format!(
+            "\n[[module]]\nname = \"relay{i}\"\nkind = \"relay\"\ndnm = \"{}\"\n",
+            dnm(i + 1)
+        );
+    }
+    let links = |shift: usize| {
+        (0..100)
+            .map(|i| format!("\"src{i}.out -> relay{}.in\"", (i + shift) % 100))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    s += &format!("\n[task.t]\nlinks = [{}]\n", links(0));
+    s += &format!("\n[task.u]\nlinks = [{}]\n", links(1));
+    s
+}
+
+#[test]
+fn the_page_stays_responsive_with_a_system_of_200_modules() {
+    let _one = exclusive();
+    let rig = Rig::start("big", &big_netlist());
+    let z = support::zenoh_client(rig.port);
+    wait_in_step(&z, &rig.system, &["main", "a", "b", "c"], "t");
+    let b = Browser::start(&rig.dir, 1600, 1000);
+    b.goto(&rig.url(""));
+    let loaded = until(
+        &b,
+        "the 200-module draft rendered and checked",
+        "window.__dnm.draft && window.__dnm.draft.module.length === 200 && window.__dnm.check && window.__dnm.check.ok && window.__dnm.perf.firstDraftMs",
+    );
+
+    // An edit: a new task and one drawn link, until the check of the changed draft is back.
+    b.type_into("#task-name", "probe");
+    b.click("#task-new");
+    until(&b, "task probe selected", "window.__dnm.task === 'probe'");
+    until(
+        &b,
+        "the new task checked",
+        "window.__dnm.check && window.__dnm.check.ok && window.__dnm.check.toml.includes('[task.probe]')",
+    );
+    b.js(
+        "window.__dnm.perf.checks = []; window.__dnm.perf.renders = [];",
+        json!([]),
+    );
+    b.drag(&port("src99.out", "out"), &port("relay0.in", "in"));
+    let msg = b.text("#message");
+    assert!(msg.starts_with("linked"), "{msg}");
+    until(
+        &b,
+        "the drawn link checked",
+        "window.__dnm.check.ok && window.__dnm.check.toml.includes('src99.out -> relay0.in') && window.__dnm.perf.checks.length",
+    );
+    let edit: Value = b.js(
+        "const p = window.__dnm.perf; return {render_ms: p.renders.filter(r => r.view === 'tasks').map(r => r.ms), check_ms: p.checks};",
+        json!([]),
+    );
+
+    // The live view, redrawn at every poll for a while.
+    b.click("#tab-connections");
+    until(
+        &b,
+        "200 modules running in the connection view",
+        "document.querySelectorAll('g.module[data-state=running]').length === 200",
+    );
+    b.js("window.__dnm.perf.renders = []; window.__dnm.perf.events = []; window.__dnm.perf.longTasks = [];", json!([]));
+    std::thread::sleep(Duration::from_secs(12));
+    // Clicks while it redraws: how long the page takes to answer them.
+    for _ in 0..5 {
+        b.click("#tab-tasks");
+        b.click("#tab-connections");
+    }
+    std::thread::sleep(Duration::from_secs(2));
+    let live: Value = b.js(
+        "const p = window.__dnm.perf; return {render_ms: p.renders.filter(r => r.view === 'connections').map(r => r.ms), long_tasks_ms: p.longTasks, event_ms: p.events};",
+        json!([]),
+    );
+    b.screenshot(&shots().join("connections-200.png"));
+
+    let stats = |v: &Value| {
+        let mut xs: Vec<f64> = v
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(Value::as_f64)
+            .collect();
+        xs.sort_by(f64::total_cmp);
+        if xs.is_empty() {
+            return json!({"n": 0});
+        }
+        let q = |f: f64| xs[((xs.len() - 1) as f64 * f).round() as usize];
+        json!({"n": xs.len(), "median": q(0.5), "max": q(1.0)})
+    };
+    let result = json!({
+        "modules": 200,
+        "first_render_after_load_ms": loaded,
+        "tasks_view_render_ms": stats(&edit["render_ms"]),
+        "check_round_trip_ms": stats(&edit["check_ms"]),
+        "connection_view_render_ms": stats(&live["render_ms"]),
+        "long_tasks_ms": stats(&live["long_tasks_ms"]),
+        "input_event_duration_ms": stats(&live["event_ms"]),
+    });
+    eprintln!(
+        "web interface with 200 modules:\n{}",
+        serde_json::to_string_pretty(&result).unwrap()
+    );
+    std::fs::create_dir_all(shots()).unwrap();
+    std::fs::write(
+        shots().join("responsiveness.json"),
+        serde_json::to_vec_pretty(&result).unwrap(),
+    )
+    .unwrap();
+    // The measurement happened: renders at every poll and the clicks answered.
+    assert!(
+        result["connection_view_render_ms"]["n"].as_u64().unwrap() >= 8,
+        "{result}"
+    );
+    assert!(
+        b.js("return document.body.className", json!([])) == "view-connections",
+        "the last click was answered"
+    );
+}
