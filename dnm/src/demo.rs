@@ -38,6 +38,8 @@ pub struct DemoArgs {
     pub record: Option<dnm::record::RecordOptions>,
     /// Watch the mission in Rerun.
     pub rerun: Option<RerunOut>,
+    /// Serve the station's web interface here while the demo runs.
+    pub web: Option<std::net::SocketAddr>,
 }
 
 /// Where `dnm demo --rerun` shows the mission.
@@ -501,6 +503,27 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
             return Err(e.into());
         }
     };
+    let station = std::sync::Arc::new(station);
+    let web = match args.web {
+        None => None,
+        Some(addr) => match dnm_ground::http::Api::serve(station.clone(), addr) {
+            Ok(api) => {
+                eprintln!(
+                    "the ground station's web interface: http://{}/",
+                    api.addr()
+                );
+                Some(api)
+            }
+            Err(e) => {
+                if let Some(m) = monitor {
+                    crate::monitor_cmd::stop(m);
+                }
+                drop(station);
+                host.stop();
+                return Err(anyhow::anyhow!(e));
+            }
+        },
+    };
     let result = mission(&host, &station, &netlist, args, tty);
     let summary = match result {
         Ok(s) => s,
@@ -508,7 +531,8 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
             if let Some(m) = monitor {
                 crate::monitor_cmd::stop(m);
             }
-            station.stop();
+            drop(web);
+            drop(station);
             host.stop();
             let _ = std::fs::remove_dir_all(&state);
             return Err(e);
@@ -533,7 +557,8 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
     if let Some(m) = monitor {
         crate::monitor_cmd::stop(m);
     }
-    station.stop();
+    drop(web);
+    drop(station);
     let _ = std::fs::remove_dir_all(&state);
     Ok(if summary.ok {
         ExitCode::SUCCESS

@@ -192,6 +192,10 @@ enum Cmd {
         /// Save the Rerun stream to this .rrd file instead of starting a viewer.
         #[arg(long)]
         rerun_save: Option<PathBuf>,
+        /// Serve the ground station's web interface on this address while the demo runs
+        /// (`--web 127.0.0.1:7480`; with `--keep-running`, until Ctrl-C).
+        #[arg(long)]
+        web: Option<std::net::SocketAddr>,
         #[command(flatten)]
         record: RecordArgs,
     },
@@ -413,6 +417,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             json,
             rerun,
             rerun_save,
+            web,
             record,
         } => demo::run(
             &z.options(),
@@ -427,6 +432,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     (true, None) => Some(demo::RerunOut::Auto),
                     (false, None) => None,
                 },
+                web,
             },
         ),
         Cmd::Place(args) => place_cmd::run(&args),
