@@ -189,6 +189,15 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_and_watc
         let msg = b.text("#message");
         assert!(msg.starts_with("linked"), "{from} -> {to}: {msg}");
     }
+    // A parameter edited in the inspector: the watchdog stops the rover sooner.
+    b.click("g.module[data-module=watchdog]");
+    b.retype("input[data-param=timeout]", "0.4");
+    b.click("#task-name"); // leaving the field commits the edit
+    until(
+        &b,
+        "the watchdog's timeout in the draft",
+        "window.__dnm.draft.module.find(m => m.name === 'watchdog').params.timeout === 0.4",
+    );
     let drawn = draft_links(&b);
     let want: Vec<String> = CREEP.iter().map(|(f, t)| format!("{f} -> {t}")).collect();
     assert_eq!(drawn, want);
@@ -218,6 +227,22 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_and_watc
     let seq: u64 = applied.as_str().unwrap().parse().unwrap();
     let entry = rig.api().entry(seq, 0);
     assert_eq!(entry.state, dnm_ground::CommandState::Applied, "{entry:?}");
+    let in_force: Value = serde_json::from_str(
+        &ureq::get(format!("http://{}/api/netlist", rig.http))
+            .call()
+            .unwrap()
+            .body_mut()
+            .read_to_string()
+            .unwrap(),
+    )
+    .unwrap();
+    let watchdog = in_force["doc"]["module"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == "watchdog")
+        .unwrap();
+    assert_eq!(watchdog["params"]["timeout"], 0.4, "{watchdog}");
     b.click("#task-switch");
     until(
         &b,

@@ -508,10 +508,7 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
         None => None,
         Some(addr) => match dnm_ground::http::Api::serve(station.clone(), addr) {
             Ok(api) => {
-                eprintln!(
-                    "the ground station's web interface: http://{}/",
-                    api.addr()
-                );
+                eprintln!("the ground station's web interface: http://{}/", api.addr());
                 Some(api)
             }
             Err(e) => {

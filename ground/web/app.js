@@ -420,8 +420,12 @@ function renderConnections() {
     const crossesRadio = da !== db && (radio[da] || radio[db]);
     const src = stateOf(l.from.module, da);
     const hz = src ? src.rate_hz : 0;
+    const srcMod = w.modules.find((m) => m.name === l.from.module);
+    const outPort = srcMod && srcMod.outputs.find((p) => p.name === l.from.port);
+    const size = outPort && outPort.message.payload.layout === 'fixed' ? outPort.message.payload.size_bytes : null;
+    const traffic = size == null ? '' : `, ~${(hz * size / 1000).toFixed(1)} kB/s`;
     const text = `${l.from.module}.${l.from.port} -> ${l.to.module}.${l.to.port}`;
-    links += `<path class="link${crossesRadio ? ' radio' : ''}" d="${curve(a, b)}" style="stroke-width:${(1.2 + Math.min(4, Math.log10(1 + hz))).toFixed(1)}" data-active-link="${esc(text)}" data-radio="${crossesRadio ? 1 : 0}"><title>${esc(text)}: ${hz.toFixed(1)} Hz${crossesRadio ? ', across the radio' : ''}</title></path>`;
+    links += `<path class="link${crossesRadio ? ' radio' : ''}" d="${curve(a, b)}" style="stroke-width:${(1.2 + Math.min(4, Math.log10(1 + hz))).toFixed(1)}" data-active-link="${esc(text)}" data-radio="${crossesRadio ? 1 : 0}"><title>${esc(text)}: ${hz.toFixed(1)} Hz${traffic}${crossesRadio ? ', across the radio' : ''}</title></path>`;
     const mx = (a.x + b.x) / 2, my = (a.y + b.y) / 2;
     links += `<text class="link-label${crossesRadio ? ' radio' : ''}" x="${mx}" y="${my - 3}" text-anchor="middle">${hz.toFixed(0)} Hz${crossesRadio ? ' · radio' : ''}</text>`;
   }

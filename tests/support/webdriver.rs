@@ -171,6 +171,21 @@ impl Browser {
         );
     }
 
+    /// Types `text` over a field's current value (selected first, so the field never
+    /// passes through empty as a clear would).
+    pub fn retype(&self, css: &str, text: &str) {
+        let e = self.element(css);
+        self.js(
+            "arguments[0].focus(); arguments[0].select();",
+            json!([{ ELEMENT: e }]),
+        );
+        self.call(
+            "POST",
+            &format!("/element/{e}/value"),
+            Some(json!({ "text": text })),
+        );
+    }
+
     pub fn text(&self, css: &str) -> String {
         let e = self.element(css);
         self.call("GET", &format!("/element/{e}/text"), None)
