@@ -3,7 +3,7 @@
 //! | request | answer |
 //! |---|---|
 //! | `POST /commands` with an order (`{"cmd":"switch","task":"auto"}`, `{"cmd":"switch","task":"auto","at_unix_ns":…}`, `{"cmd":"apply","file":"x.toml","text":"…"}`, `{"cmd":"module","edit":{"op":"replace","name":"camera","params":["fov_deg=60"]}}`, `{"cmd":"cancel","seq":12}`) | `201` and the entry, `queued` (stored) |
-//! | `GET /commands?since=N` | the entries from `N` on |
+//! | `GET /commands?since=N` | the entries from `N` on (`&last=K`: only the last `K`; `&brief`: applies without their netlist text) |
 //! | `GET /commands/N` (`?wait=30` waits up to 30 s for it to be final) | one entry |
 //! | `GET /link` | the link: up, round-trip time, last contact, loss, the rover's state and events |
 //!
@@ -33,6 +33,8 @@ use crate::web::{self, Web};
 const MAX_BODY: u64 = 2 << 20;
 /// Longest `?wait=` honoured, s.
 const MAX_WAIT_S: u64 = 300;
+/// Requests served at once (each holds a thread; a `?wait` holds it long); more get `503`.
+const MAX_IN_FLIGHT: usize = 64;
 
 /// The HTTP server of a station.
 pub struct Api {
@@ -49,6 +51,7 @@ impl std::fmt::Debug for Api {
 
 /// What every request is served with.
 struct Ctx {
+    in_flight: std::sync::atomic::AtomicUsize,
     station: Arc<Station>,
     web: Web,
     token: Option<String>,
@@ -100,6 +103,7 @@ impl Api {
         };
         let view = SystemView::start(station.session().clone(), station.system())?;
         let ctx = Arc::new(Ctx {
+            in_flight: std::sync::atomic::AtomicUsize::new(0),
             station,
             web: Web::new(view),
             token,
@@ -110,12 +114,28 @@ impl Api {
             std::thread::Builder::new()
                 .name("ground-http".into())
                 .spawn(move || {
+                    use std::sync::atomic::Ordering;
                     for request in server.incoming_requests() {
+                        if ctx.in_flight.fetch_add(1, Ordering::AcqRel) >= MAX_IN_FLIGHT {
+                            ctx.in_flight.fetch_sub(1, Ordering::AcqRel);
+                            let _ = request.respond(error(
+                                503,
+                                format!("{MAX_IN_FLIGHT} requests in progress; try again"),
+                            ));
+                            continue;
+                        }
                         // A `?wait` holds its own thread, so it never holds up the others.
-                        let ctx = ctx.clone();
-                        let _ = std::thread::Builder::new()
+                        let c = ctx.clone();
+                        let spawned = std::thread::Builder::new()
                             .name("ground-http-request".into())
-                            .spawn(move || handle(&ctx, request));
+                            .spawn(move || {
+                                handle(&c, request);
+                                c.in_flight.fetch_sub(1, Ordering::AcqRel);
+                            });
+                        if let Err(e) = spawned {
+                            ctx.in_flight.fetch_sub(1, Ordering::AcqRel);
+                            tracing::warn!("no thread for an operator's request: {e}");
+                        }
                     }
                 })
                 .map_err(|e| e.to_string())?
@@ -143,10 +163,22 @@ impl Drop for Api {
 }
 
 fn json(status: u16, body: &impl serde::Serialize) -> Resp {
-    let bytes = serde_json::to_vec_pretty(body).unwrap_or_default();
-    let mut r = Response::from_data(bytes).with_status_code(status);
-    if let Ok(h) = Header::from_bytes(&b"Content-Type"[..], &b"application/json"[..]) {
-        r.add_header(h);
+    let bytes = serde_json::to_vec(body).unwrap_or_default();
+    with_headers(
+        Response::from_data(bytes).with_status_code(status),
+        &[
+            ("Content-Type", "application/json"),
+            ("X-Content-Type-Options", "nosniff"),
+            ("Cache-Control", "no-store"),
+        ],
+    )
+}
+
+fn with_headers(mut r: Resp, headers: &[(&str, &str)]) -> Resp {
+    for (k, v) in headers {
+        if let Ok(h) = Header::from_bytes(k.as_bytes(), v.as_bytes()) {
+            r.add_header(h);
+        }
     }
     r
 }
@@ -216,6 +248,13 @@ fn refusal(ctx: &Ctx, request: &tiny_http::Request, path: &str, query: &str) -> 
             format!("this station answers only as {}", ctx.hosts[0]),
         ));
     }
+    // Browsers say where a request comes from; only the station's own page (or the operator
+    // typing the address) may use it: another site's page cannot even read an output.
+    if let Some(site) = header(request, "Sec-Fetch-Site")
+        && !matches!(site, "same-origin" | "none")
+    {
+        return Some(error(403, "requests from another site's page are refused"));
+    }
     if let Some(origin) = header(request, "Origin") {
         let origin_host = origin.split_once("://").map_or(origin, |(_, h)| h);
         if origin != "null" && !origin_host.eq_ignore_ascii_case(host) {
@@ -266,18 +305,21 @@ fn refusal(ctx: &Ctx, request: &tiny_http::Request, path: &str, query: &str) -> 
 type Resp = Response<std::io::Cursor<Vec<u8>>>;
 
 fn asset(body: &'static str, content_type: &'static str) -> Resp {
-    let mut r = Response::from_data(body.as_bytes().to_vec());
-    for (k, v) in [
-        ("Content-Type", content_type),
-        ("Cache-Control", "no-cache"),
-        ("X-Frame-Options", "DENY"),
-        ("X-Content-Type-Options", "nosniff"),
-    ] {
-        if let Ok(h) = Header::from_bytes(k.as_bytes(), v.as_bytes()) {
-            r.add_header(h);
-        }
-    }
-    r
+    with_headers(
+        Response::from_data(body.as_bytes().to_vec()),
+        &[
+            ("Content-Type", content_type),
+            ("Cache-Control", "no-cache"),
+            ("X-Frame-Options", "DENY"),
+            ("X-Content-Type-Options", "nosniff"),
+            ("Referrer-Policy", "no-referrer"),
+            (
+                "Content-Security-Policy",
+                "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; \
+                 img-src 'self' blob: data:; connect-src 'self'; frame-ancestors 'none'",
+            ),
+        ],
+    )
 }
 
 fn read_body(request: &mut tiny_http::Request) -> Result<Vec<u8>, Resp> {
@@ -385,13 +427,14 @@ fn handle_web(
                     404,
                     format!("no frame of {module}.{port} yet (watch it first)"),
                 ),
-                Some(jpeg) => {
-                    let mut r = Response::from_data(jpeg);
-                    if let Ok(h) = Header::from_bytes(&b"Content-Type"[..], &b"image/jpeg"[..]) {
-                        r.add_header(h);
-                    }
-                    r
-                }
+                Some(jpeg) => with_headers(
+                    Response::from_data(jpeg),
+                    &[
+                        ("Content-Type", "image/jpeg"),
+                        ("X-Content-Type-Options", "nosniff"),
+                        ("Cache-Control", "no-store"),
+                    ],
+                ),
             }
         }
         _ => return None,
@@ -432,10 +475,22 @@ fn handle(ctx: &Ctx, mut request: tiny_http::Request) {
                 },
             },
         },
-        (Method::Get, "/commands") => json(
-            200,
-            &station.entries(query_u64(query, "since").unwrap_or(1)),
-        ),
+        (Method::Get, "/commands") => {
+            let mut entries = station.entries(query_u64(query, "since").unwrap_or(1));
+            if let Some(last) = query_u64(query, "last") {
+                let skip = entries.len().saturating_sub(last as usize);
+                entries.drain(..skip);
+            }
+            // `brief`: applies without their netlist text (a page polling its outbox).
+            if query.split('&').any(|kv| kv == "brief") {
+                for e in &mut entries {
+                    if let Order::Apply { text, .. } = &mut e.order {
+                        *text = format!("({} bytes)", text.len());
+                    }
+                }
+            }
+            json(200, &entries)
+        }
         (Method::Get, "/link") => json(200, &station.link()),
         (Method::Get, p) if p.starts_with("/commands/") => {
             match p["/commands/".len()..].parse::<u64>() {

@@ -25,6 +25,10 @@ const QUERY_TIMEOUT: Duration = Duration::from_secs(3);
 const WATCH_KEEP: usize = 300;
 /// Outputs watched at once by one station.
 const MAX_WATCHES: usize = 16;
+/// A decoded sample larger than this (as JSON) is kept as its size only.
+const MAX_SAMPLE_JSON: usize = 16 << 10;
+
+static NEXT_WATCH: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
 
 /// The live connection layer as the station last saw it.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -47,6 +51,9 @@ struct Cached {
 
 /// One watched output.
 struct Watch {
+    /// Numbers this watch apart from an earlier one of the same output (its samples are
+    /// numbered from 1 again).
+    id: u64,
     message: MessageType,
     rate: WatchRate,
     samples: Arc<Mutex<WatchBuf>>,
@@ -72,6 +79,8 @@ pub struct WatchSample {
 /// What a page gets for a watched output.
 #[derive(Debug, Clone, Serialize)]
 pub struct WatchReply {
+    /// Changes when the station watches the output anew: samples are numbered afresh.
+    pub watch: u64,
     pub dnm: String,
     pub module: String,
     pub port: String,
@@ -248,6 +257,7 @@ impl SystemView {
         }
         let buf = watch.samples.lock().map_err(|e| e.to_string())?;
         Ok(WatchReply {
+            watch: watch.id,
             dnm: key.0,
             module: key.1,
             port: key.2,
@@ -301,7 +311,14 @@ impl SystemView {
                         b.frame = Some((seq, bytes.to_vec()));
                         return;
                     }
-                    let value = dnm_netlist::values::decode(&message, &bytes);
+                    let mut value = dnm_netlist::values::decode(&message, &bytes);
+                    let json_len = serde_json::to_vec(&value).map_or(usize::MAX, |v| v.len());
+                    if json_len > MAX_SAMPLE_JSON {
+                        value = serde_json::json!({
+                            "bytes": bytes.len(),
+                            "note": "too large to show here; record it or watch it in Rerun",
+                        });
+                    }
                     if b.values.len() >= WATCH_KEEP {
                         b.values.pop_front();
                     }
@@ -316,6 +333,7 @@ impl SystemView {
         };
         tracing::info!(key = %zkey, "watching an output for the web interface");
         Ok(Arc::new(Watch {
+            id: NEXT_WATCH.fetch_add(1, Ordering::Relaxed),
             message,
             rate,
             samples,
@@ -335,9 +353,17 @@ impl Drop for SystemView {
     }
 }
 
+/// Drops the watches nobody polled lately (their DNMs then stop sending them).
+fn drop_unpolled(inner: &Inner) {
+    if let Ok(mut w) = inner.watches.lock() {
+        w.retain(|_, w| w.polled.lock().is_ok_and(|t| t.elapsed() < IDLE));
+    }
+}
+
 fn refresh_loop(inner: &Inner) {
     while !inner.stop.load(Ordering::Relaxed) {
-        // Sleep while nobody looks.
+        drop_unpolled(inner);
+        // Sleep while nobody looks (waking now and then to drop watches left behind).
         {
             let Ok(mut c) = inner.cache.lock() else {
                 return;
@@ -347,40 +373,56 @@ fn refresh_loop(inner: &Inner) {
                     Ok((c, _)) => c,
                     Err(_) => return,
                 };
+                drop(c);
+                drop_unpolled(inner);
+                c = match inner.cache.lock() {
+                    Ok(c) => c,
+                    Err(_) => return,
+                };
             }
         }
         let started = Instant::now();
-        let wirings: Vec<Wiring> = collect(&inner.session, &keys::wiring(&inner.system, "*"));
-        let glances: Vec<DnmGlance> = collect(
-            &inner.session,
-            &format!("{}?glance", keys::dnm(&inner.system, "*")),
+        // Both asked at once: a slow radio DNM costs one timeout, not two.
+        let (wirings, glances) = std::thread::scope(|s| {
+            let w =
+                s.spawn(|| collect::<Wiring>(&inner.session, &keys::wiring(&inner.system, "*")));
+            let glances: Vec<DnmGlance> = collect(
+                &inner.session,
+                &format!("{}?glance", keys::dnm(&inner.system, "*")),
+            );
+            (w.join().unwrap_or_default(), glances)
+        });
+        let wiring = consensus(
+            wirings
+                .into_iter()
+                .filter(|w| w.system == inner.system)
+                .collect(),
         );
-        let wiring = consensus(wirings);
         let glances: BTreeMap<String, DnmGlance> =
             glances.into_iter().map(|g| (g.dnm.clone(), g)).collect();
-        let silent = wiring
-            .as_ref()
-            .map(|w| {
-                w.dnms
-                    .iter()
-                    .filter(|d| !glances.contains_key(&d.name))
-                    .map(|d| d.name.clone())
-                    .collect()
-            })
-            .unwrap_or_default();
         if let Ok(mut c) = inner.cache.lock() {
             // Keep the last wiring heard when a refresh gets none (the radio is out).
             if wiring.is_some() || c.live.wiring.is_none() {
                 c.live.wiring = wiring;
             }
+            // The DNMs that did not answer, against the wiring kept: all of them when the
+            // radio is out.
+            c.live.silent = c
+                .live
+                .wiring
+                .as_ref()
+                .map(|w| {
+                    w.dnms
+                        .iter()
+                        .filter(|d| !glances.contains_key(&d.name))
+                        .map(|d| d.name.clone())
+                        .collect()
+                })
+                .unwrap_or_default();
             if !glances.is_empty() {
                 c.live.glances = glances;
                 c.at = Some(Instant::now());
             }
-            c.live.silent = silent;
-        }
-        if let Ok(mut w) = inner.watches.lock() {
-            w.retain(|_, w| w.polled.lock().is_ok_and(|t| t.elapsed() < IDLE));
         }
         let rest = REFRESH.saturating_sub(started.elapsed());
         if let Ok(c) = inner.cache.lock() {

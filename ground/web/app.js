@@ -53,7 +53,7 @@ function dnms() { return (S.draft && S.draft.dnm) || []; }
 function tasks() { return (S.draft && S.draft.task) || {}; }
 function moduleByName(n) { return modules().find((m) => m.name === n); }
 function kindOf(n) { const m = moduleByName(n); return m ? S.kinds[m.kind] : null; }
-function dnmOf(m) { return m.dnm || (dnms()[0] && dnms()[0].name) || '?'; }
+function dnmOf(m) { return m.dnm || (dnms()[0] && dnms()[0].name) || '(no DNM)'; }
 
 function parseLink(s) {
   const m = /^\s*([\w-]+)\.([\w-]+)\s*->\s*([\w-]+)\.([\w-]+)\s*$/.exec(s);
@@ -141,6 +141,9 @@ function tryLink(from, to) {
   return true;
 }
 
+// As the netlist's own rule says: a letter, then letters, digits, `_` or `-`; 48 at most.
+const NAME = /^[A-Za-z][A-Za-z0-9_-]{0,47}$/;
+
 function uniqueName(base, taken) {
   let n = base, i = 2;
   while (taken(n)) n = `${base}_${i++}`;
@@ -150,10 +153,11 @@ function uniqueName(base, taken) {
 function taskAction(action) {
   const name = $('task-name').value.trim();
   const all = tasks();
-  const valid = /^[A-Za-z_][\w-]*$/.test(name);
-  if (action !== 'delete' && !valid) { say('type a task name first (letters, digits, _ and -)', 'refused'); return; }
+  const valid = NAME.test(name);
+  if (action !== 'delete' && !valid) { say('type a task name first: a letter, then letters, digits, _ or - (48 at most)', 'refused'); return; }
   if (action !== 'delete' && all[name]) { say(`task ${name} exists already`, 'refused'); return; }
   S.draft.task = all;
+  S.selected = null;
   if (action === 'new') {
     all[name] = { description: 'composed in the ground station', links: [] };
     S.task = name;
@@ -207,7 +211,7 @@ function removeModule(name) {
 }
 
 function renameModule(old, name) {
-  if (!/^[A-Za-z_][\w]*$/.test(name)) { say(`${name}: a module name is letters, digits and _`, 'refused'); return; }
+  if (!NAME.test(name)) { say(`${name}: a module name is a letter, then letters, digits, _ or - (48 at most)`, 'refused'); return; }
   if (moduleByName(name)) { say(`a module ${name} exists already`, 'refused'); return; }
   moduleByName(old).name = name;
   forEachTask((_, t) => {
@@ -234,7 +238,7 @@ function replaceKind(name, kind) {
     const before = (t.links || []).length;
     t.links = (t.links || []).filter((s) => {
       const l = parseLink(s);
-      if (!l) return true;
+      if (!l || (l.from.module !== name && l.to.module !== name)) return true;
       const out = portSpec(l.from.module, l.from.port, 'out');
       const inp = portSpec(l.to.module, l.to.port, 'in');
       return out && inp && compatible(out.message, inp.message);
@@ -247,13 +251,14 @@ function replaceKind(name, kind) {
 function setParam(name, p, raw) {
   const m = moduleByName(name);
   m.params = m.params || {};
-  if (raw === '' || raw === null) { delete m.params[p.name]; changed(`${name}.${p.name} back to its default`); return; }
-  let v = raw;
-  if (p.kind === 'float') v = Number(raw);
-  else if (p.kind === 'int') v = Number.isInteger(Number(raw)) ? Number(raw) : raw;
-  else if (p.kind === 'bool') v = raw === true || raw === 'true';
+  const text = typeof raw === 'string' && p.kind !== 'string' ? raw.trim() : raw;
+  if (text === '' || text === null) { delete m.params[p.name]; changed(`${name}.${p.name} back to its default`); return; }
+  let v = text;
+  if (p.kind === 'float') v = /^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$/.test(text) ? Number(text) : NaN;
+  else if (p.kind === 'int') v = /^[-+]?\d{1,15}$/.test(text) ? Number(text) : NaN;
+  else if (p.kind === 'bool') v = text === true || text === 'true';
   if ((p.kind === 'float' || p.kind === 'int') && !Number.isFinite(v)) {
-    m.params[p.name] = raw; // kept as text: the check names the field and the fix
+    m.params[p.name] = text; // kept as text: the check names the field and the fix
   } else {
     m.params[p.name] = v;
   }
@@ -283,7 +288,9 @@ function dnmOrder(list) {
 
 // mods: [{name, kind, dnm, inputs:[port], outputs:[port]}]
 function layout(dnmList, mods) {
-  const cols = dnmOrder(dnmList);
+  const declared = new Set(dnmList.map((d) => d.name));
+  const extra = [...new Set(mods.map((m) => m.dnm).filter((d) => !declared.has(d)))].map((name) => ({ name, undeclared: true }));
+  const cols = dnmOrder(dnmList.concat(extra));
   const at = {}, ports = {};
   let height = 0;
   cols.forEach((d, i) => {
@@ -311,7 +318,7 @@ function curve(a, b) {
 function drawColumns(L) {
   return L.cols.map((d) => `<g class="dnm-col"><rect class="col" x="${d.x}" y="6" width="${COL_W - 20}" height="${Math.max(d.bottom, L.height - 20) - 6}" rx="6"/>`
     + `<text class="col-title" x="${d.x + 8}" y="22">${'↳ '.repeat(d.depth ? 1 : 0)}${esc(d.name)}</text>`
-    + `<text class="col-sub" x="${d.x + 8}" y="36">${d.parent ? `under ${esc(d.parent)}` : 'root'}${d.radio ? ' · across the radio' : ''}</text></g>`).join('');
+    + `<text class="col-sub" x="${d.x + 8}" y="36">${d.undeclared ? 'not declared: add it to [[dnm]]' : d.parent ? `under ${esc(d.parent)}` : 'root'}${d.radio ? ' · across the radio' : ''}</text></g>`).join('');
 }
 
 function drawModule(box, cls, lines) {
@@ -359,7 +366,7 @@ function renderTasks() {
   for (const m of mods) {
     const k = S.kinds[m.kind];
     const sel = S.selected && S.selected.type === 'module' && S.selected.name === m.name;
-    boxes += drawModule(L.at[m.name], `draft${sel ? ' selected' : ''}`, k ? m.kind : `${m.kind} (not on the rover)`);
+    if (L.at[m.name]) boxes += drawModule(L.at[m.name], `draft${sel ? ' selected' : ''}`, k ? m.kind : `${m.kind} (not on the rover)`);
   }
   const svg = $('canvas');
   svg.setAttribute('width', L.width);
@@ -437,12 +444,14 @@ function renderConnections() {
     const state = shown.state;
     counts[state] = (counts[state] || 0) + 1;
     const line = st ? `${shown.note ? `${shown.note} · ` : ''}${m.kind} · ${st.rate_hz.toFixed(1)} Hz · ${st.cpu_percent.toFixed(1)}% CPU${st.restarts ? ` · ${st.restarts} restart${st.restarts === 1 ? '' : 's'}` : ''}${st.hangs ? ` · hung ${st.hangs}×` : ''}` : `${m.kind} · no answer`;
-    boxes += drawModule(L.at[m.name], state, line).replace('<g class="module', `<g data-state="${state}" data-restarts="${st ? st.restarts : 0}" class="module`);
+    if (L.at[m.name]) boxes += drawModule(L.at[m.name], state, line).replace('<g class="module', `<g data-state="${state}" data-restarts="${st ? st.restarts : 0}" class="module`);
   }
   svg.setAttribute('width', L.width);
   svg.setAttribute('height', L.height);
   svg.innerHTML = drawColumns(L) + links + boxes;
-  $('conn-summary').textContent = `revision ${w.revision} · task ${w.active_task || '—'} · ${mods.length} modules: `
+  const age = S.live.live.age_ms;
+  $('conn-summary').textContent = (age == null || age > 3000 ? `AS OF ${age == null ? '—' : (age / 1000).toFixed(0) + ' s'} AGO · ` : '')
+    + `revision ${w.revision} · task ${w.active_task || '—'} · ${mods.length} modules: `
     + Object.entries(counts).map(([k, v]) => `${v} ${k}`).join(', ')
     + (S.live.live.silent.length ? ` · silent DNMs: ${S.live.live.silent.join(', ')}` : '');
 }
@@ -593,6 +602,7 @@ async function pollWatch() {
     const r = await api(`/api/watch?module=${encodeURIComponent(w.module)}&port=${encodeURIComponent(w.port)}&since=${w.since}`);
     if (S.watch !== w) return;
     w.error = null;
+    if (w.id !== r.watch) { w.id = r.watch; w.since = 0; w.samples = []; }
     w.schema = r.schema_name;
     w.rate = r.rate;
     for (const s of r.samples) { w.samples.push(s); w.since = Math.max(w.since, s.seq); }
@@ -712,6 +722,8 @@ async function pollLive() {
     ls.className = l.up ? 'up' : 'down';
     ls.textContent = l.up ? `rover link up · ${l.rtt_ms == null ? '?' : l.rtt_ms.toFixed(0)} ms · loss ${(100 * l.loss).toFixed(0)} %` : `rover link DOWN${l.last_contact_ms == null ? '' : ` · last heard ${(l.last_contact_ms / 1000).toFixed(0)} s ago`}`;
     if (!S.draft) await loadNetlist(false);
+    else if (!Object.keys(S.kinds).length) { await loadKinds(); fillPalette(); render(); }
+    showDraftBase();
     if (S.view === 'connections') render(); else fillTaskSelect();
   } catch (e) {
     $('link-status').className = 'down';
@@ -722,8 +734,8 @@ async function pollLive() {
 
 async function pollOutbox() {
   try {
-    const first = Math.max(1, (S.outbox.length ? S.outbox[S.outbox.length - 1].seq : 1) - 30);
-    const got = await api(`/commands?since=${first}`);
+    // The last commands, applies without their text: a page must not pull netlists each second.
+    const got = await api('/commands?last=30&brief');
     const bySeq = new Map(S.outbox.map((e) => [e.seq, e]));
     for (const e of got) bySeq.set(e.seq, e);
     S.outbox = [...bySeq.values()].sort((a, b) => a.seq - b.seq).slice(-30);
@@ -736,6 +748,19 @@ async function pollOutbox() {
     }).join('');
   } catch (_) { /* the next poll tries again */ }
   setTimeout(pollOutbox, 1000);
+}
+
+// Which revision the draft was taken from, and what applying it would do to the task in force.
+function showDraftBase() {
+  const el = $('draft-base');
+  const w = S.live && S.live.live.wiring;
+  if (!el || !S.base) return;
+  const notes = [];
+  if (w && w.revision !== S.base.revision) notes.push(`the rover is now at revision ${w.revision}: “From rover” takes it`);
+  const active = w && w.active_task;
+  if (active && S.draft && !tasks()[active]) notes.push(`the task in force (${active}) is not in the draft: applying it switches the rover to ${(S.draft.system && S.draft.system.default_task) || Object.keys(tasks())[0] || 'no task'}`);
+  el.textContent = `draft of revision ${S.base.revision}${notes.length ? ' — ' + notes.join('; ') : ''}`;
+  el.className = notes.length ? 'warn' : '';
 }
 
 async function loadKinds() {
@@ -811,8 +836,8 @@ function init() {
     submit({ cmd: 'apply', file: S.check.file, text: S.check.toml }, 'apply');
   };
   $('task-switch').onclick = () => {
-    const live = S.live && S.live.live.wiring;
-    if (live && !live.tasks[S.task]) { say(`refused: task ${S.task} is not in the netlist in force; apply the draft first`, 'refused'); return; }
+    // The rover decides: a task it does not have is refused there, with the reason, in the
+    // outbox (the page's view of the netlist in force may be a second behind an apply).
     submit({ cmd: 'switch', task: S.task }, `switch to ${S.task}`);
   };
   $('draft-export').onclick = () => {
@@ -832,7 +857,9 @@ function init() {
   window.addEventListener('keydown', (ev) => {
     if (ev.key !== 'Delete' || S.view !== 'tasks' || !S.selected || S.selected.type !== 'link') return;
     if (document.activeElement && /INPUT|SELECT/.test(document.activeElement.tagName)) return;
-    const [gone] = tasks()[S.task].links.splice(S.selected.index, 1);
+    const t = tasks()[S.task];
+    if (!t || !t.links || !t.links[S.selected.index]) return;
+    const [gone] = t.links.splice(S.selected.index, 1);
     S.selected = null;
     changed(`link ${gone} removed`);
   });

@@ -24,7 +24,9 @@ use crate::node::{COMMAND_QUEUE, Dnm};
 
 /// Time to prepare added to the DNM's `prepare_timeout` for each module process an apply
 /// starts.
-const PREPARE_PER_START: std::time::Duration = std::time::Duration::from_millis(200);
+const PREPARE_PER_START: std::time::Duration = std::time::Duration::from_millis(500);
+/// The most that share adds up to: a stuck apply is still reported within a minute.
+const MAX_PREPARE: std::time::Duration = std::time::Duration::from_secs(60);
 use crate::pending::{Outcome, PendingApply};
 use crate::plan::{module_plan, task_slots};
 use crate::plugin::{Context, Plugin};
@@ -139,7 +141,8 @@ impl Dnm {
         // Every process this apply starts gets its share of the time: 200 modules starting at
         // once on a small computer take longer than a few.
         let starting = (added.len() + replaced.len()) as u32;
-        let prepare_for = self.options.prepare_timeout + PREPARE_PER_START * starting;
+        let prepare_for = (self.options.prepare_timeout + PREPARE_PER_START * starting)
+            .min(self.options.prepare_timeout.max(MAX_PREPARE));
         let mut pending = PendingApply {
             netlist,
             revision,
