@@ -97,8 +97,89 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
     assert!(s["replaced"].as_str().unwrap().starts_with("camera"));
     assert!(s["zenoh_messages"].as_u64().unwrap() > 1000);
     assert_eq!(s["watchdog_trips"], 0);
+
+    // The mission is one session folder: every DNM's files and a manifest listing exactly
+    // them, whose counts are what the files hold (read back with the mcap crate).
+    let root = path.parent().unwrap().join("recordings");
+    let sessions: Vec<PathBuf> = std::fs::read_dir(&root)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.is_dir())
+        .collect();
+    assert_eq!(sessions.len(), 1, "{sessions:?}");
+    let session = &sessions[0];
+    let name = session.file_name().unwrap().to_string_lossy().into_owned();
+    assert!(name.starts_with(&format!("{system}-")), "{name}");
+    let manifest: Value = serde_json::from_slice(
+        &std::fs::read(session.join("manifest.json")).expect("a manifest in the session"),
+    )
+    .unwrap();
+    let mut on_disk: Vec<String> = std::fs::read_dir(session)
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".mcap"))
+        .collect();
+    on_disk.sort();
+    let mut listed: Vec<String> = manifest["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f["name"].as_str().unwrap().to_string())
+        .collect();
+    listed.sort();
+    assert_eq!(
+        listed, on_disk,
+        "the manifest lists exactly the session's files"
+    );
+    assert_eq!(
+        manifest["dnms"],
+        serde_json::json!(["drive", "ground", "rover", "vision"])
+    );
+    assert_eq!(
+        manifest["revisions"],
+        serde_json::json!([1, 2]),
+        "the camera replaced"
+    );
+    let mut total = 0u64;
+    for f in manifest["files"].as_array().unwrap() {
+        assert_eq!(f["complete"], true, "{f}");
+        let bytes = std::fs::read(session.join(f["name"].as_str().unwrap())).unwrap();
+        let n = mcap::MessageStream::new(&bytes).unwrap().count() as u64;
+        assert_eq!(f["messages"].as_u64().unwrap(), n, "{f}");
+        total += n;
+    }
+    assert_eq!(manifest["messages"].as_u64().unwrap(), total);
+    let netlists = manifest["netlists"].as_array().unwrap();
+    assert_eq!(netlists.len(), 2);
+    assert!(
+        netlists
+            .iter()
+            .all(|n| n["text"].as_str().unwrap().contains("[task.auto]"))
+    );
+    // `dnm recordings` lists it; `dnm stats` reads the folder.
+    let listed = Command::new(DNM)
+        .args(["recordings", "--json"])
+        .arg(&root)
+        .output()
+        .unwrap();
+    assert!(listed.status.success());
+    let listed: Value = serde_json::from_slice(&listed.stdout).unwrap();
+    assert_eq!(listed[0]["session"], name.as_str());
+    let stats = Command::new(DNM)
+        .args(["stats", "--json"])
+        .arg(session)
+        .output()
+        .unwrap();
+    assert!(
+        stats.status.success(),
+        "{}",
+        String::from_utf8_lossy(&stats.stderr)
+    );
+    let stats: Value = serde_json::from_slice(&stats.stdout).unwrap();
+    assert_eq!(stats.as_array().unwrap().len(), on_disk.len());
     let _ = std::fs::remove_dir_all(path.parent().unwrap());
-    let _ = system;
 }
 
 /// A module's entry in a DNM report.

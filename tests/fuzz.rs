@@ -443,11 +443,9 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         });
     }
     // The recording the system just made, mutated.
-    let recording = std::fs::read_dir(&dir)
-        .unwrap()
-        .flatten()
-        .map(|e| e.path())
-        .find(|p| p.extension().is_some_and(|x| x == "mcap"))
+    let recording = support::mcap_files(&dir)
+        .into_iter()
+        .next()
         .expect("the system recorded");
     let mcap = std::fs::read(&recording).unwrap();
     assert!(

@@ -69,10 +69,9 @@ fn start(tag: &str, netlist: &str) -> (Child, PathBuf, String) {
 
 fn recording(dir: &Path) -> PathBuf {
     eventually("a recording file", || {
-        std::fs::read_dir(dir.join("recordings"))
-            .ok()?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .find(|p| p.extension().is_some_and(|e| e == "mcap"))
+        support::mcap_files(&dir.join("recordings"))
+            .into_iter()
+            .next()
     })
 }
 

@@ -386,11 +386,8 @@ fn a_stopped_module_is_reported_hung_and_handled_by_its_restart_policy() {
 /// The JSON messages of `topic` in every recording in `dir` (open files included).
 fn mcap_json(dir: &Path, topic: &str) -> Vec<serde_json::Value> {
     let mut out = Vec::new();
-    for f in std::fs::read_dir(dir).unwrap().filter_map(|e| e.ok()) {
-        if f.path().extension().is_none_or(|e| e != "mcap") {
-            continue;
-        }
-        let bytes = std::fs::read(f.path()).unwrap();
+    for f in support::mcap_files(dir) {
+        let bytes = std::fs::read(&f).unwrap();
         let options = enumset::enum_set!(mcap::read::Options::IgnoreEndMagic);
         let Ok(stream) = mcap::MessageStream::new_with_options(&bytes, options) else {
             continue;

@@ -431,7 +431,7 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
     let netlist = load(args)?;
     let dnms: Vec<String> = netlist.dnms.iter().map(|d| d.name.clone()).collect();
     let mut options = HostOptions::standard().context("locating the module host")?;
-    options.record = args.record.clone();
+    options.record = args.record.clone().map(|o| o.into_session(&netlist.system));
     let tty = std::io::stdout().is_terminal() && !args.json;
     if !args.json {
         println!(
@@ -440,11 +440,10 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
             dnms.join(", "),
             netlist.modules.len()
         );
-        if let Some(r) = &args.record {
+        if let Some(r) = &options.record {
             println!(
-                "recording every port to {}/{}-<dnm>.mcap",
-                r.dir.display(),
-                r.stem
+                "recording the session to {}/ (every DNM's files and manifest.json)",
+                r.dir.display()
             );
         }
     }

@@ -203,7 +203,8 @@ enum Cmd {
     /// weighted by traffic), and compare the predicted traffic between DNMs.
     Place(place_cmd::PlaceArgs),
     /// Analyse a recording: per channel count, rate, gaps, bytes; task switches; latency
-    /// through linked modules; optionally export channels to CSV.
+    /// through linked modules; optionally export channels to CSV. FILE is an MCAP file or a
+    /// session folder (each of its files in turn).
     Stats {
         file: PathBuf,
         /// Export this channel (topic) to CSV (repeatable).
@@ -212,6 +213,14 @@ enum Cmd {
         /// Folder for the CSV files.
         #[arg(long, default_value = ".")]
         out: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// List the recording sessions under a folder (default: $DNM_RECORD_DIR, else
+    /// `recordings`), or show one session's manifest (its files, DNMs, revisions, time range,
+    /// message counts), written again from its files.
+    Recordings {
+        dir: Option<PathBuf>,
         #[arg(long)]
         json: bool,
     },
@@ -351,15 +360,17 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 dnms
             };
             let mut options = HostOptions::standard().context("locating the module host")?;
-            options.record = record.options();
+            options.record = record.options().map(|o| o.into_session(&n.system));
             if let Some(d) = state_dir {
                 options.state_dir = d;
             }
             if let Some(r) = &options.record {
                 println!(
-                    "recording every port to {}/{}-<dnm>.mcap",
+                    "recording every port to {}/{}-<dnm>.mcap (the session's manifest: {}/{})",
                     r.dir.display(),
-                    r.stem
+                    r.stem,
+                    r.dir.display(),
+                    dnm::session::MANIFEST
                 );
             }
             println!(
@@ -442,35 +453,61 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             out,
             json,
         } => {
-            let bytes =
-                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-            let s = dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text).map_err(|e| {
-                anyhow::anyhow!("{}: not a readable MCAP file: {e}", file.display())
-            })?;
-            if !csv.is_empty() {
-                let written =
-                    dnm::stats::export_csv(&bytes, &csv, &out).map_err(anyhow::Error::msg)?;
-                for t in &csv {
-                    if !written.contains(t) {
-                        bail!(
-                            "{}: no channel `{t}`; channels: {}",
-                            file.display(),
-                            s.channels
-                                .iter()
-                                .map(|c| c.topic.as_str())
-                                .collect::<Vec<_>>()
-                                .join(", ")
-                        );
+            let files = recording_files(&file)?;
+            if files.len() > 1 && !csv.is_empty() {
+                bail!(
+                    "{}: CSV export takes one file of the session (each file has its own rows): {}",
+                    file.display(),
+                    files
+                        .iter()
+                        .map(|f| f.display().to_string())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                );
+            }
+            let mut all = Vec::new();
+            for f in &files {
+                let bytes = std::fs::read(f).with_context(|| format!("reading {}", f.display()))?;
+                let s =
+                    dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text).map_err(|e| {
+                        anyhow::anyhow!("{}: not a readable MCAP file: {e}", f.display())
+                    })?;
+                if !csv.is_empty() {
+                    let written =
+                        dnm::stats::export_csv(&bytes, &csv, &out).map_err(anyhow::Error::msg)?;
+                    for t in &csv {
+                        if !written.contains(t) {
+                            bail!(
+                                "{}: no channel `{t}`; channels: {}",
+                                f.display(),
+                                s.channels
+                                    .iter()
+                                    .map(|c| c.topic.as_str())
+                                    .collect::<Vec<_>>()
+                                    .join(", ")
+                            );
+                        }
                     }
                 }
+                if !json {
+                    print_stats(f, &s);
+                }
+                all.push((f.display().to_string(), s));
             }
             if json {
-                println!("{}", serde_json::to_string_pretty(&s)?);
-            } else {
-                print_stats(&file, &s);
+                if all.len() == 1 && file.is_file() {
+                    println!("{}", serde_json::to_string_pretty(&all[0].1)?);
+                } else {
+                    let v: Vec<_> = all
+                        .iter()
+                        .map(|(f, s)| serde_json::json!({"file": f, "stats": s}))
+                        .collect();
+                    println!("{}", serde_json::to_string_pretty(&v)?);
+                }
             }
             Ok(ExitCode::SUCCESS)
         }
+        Cmd::Recordings { dir, json } => recordings(dir, json),
         Cmd::Replay {
             file,
             system,
@@ -479,6 +516,14 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             fast,
             json,
         } => {
+            if file.is_dir() {
+                bail!(
+                    "{}: replay takes one file of a session for now (`dnm recordings {}` lists them); \
+                     a whole session is not replayed in time order yet",
+                    file.display(),
+                    file.display()
+                );
+            }
             let bytes =
                 std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
             let pace = if fast {
@@ -702,6 +747,93 @@ fn print_dnm(d: &DnmReport) {
             );
         }
     }
+}
+
+/// The MCAP files a path names: itself, or every file of a session folder.
+pub(crate) fn recording_files(path: &Path) -> anyhow::Result<Vec<PathBuf>> {
+    if !path.is_dir() {
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let files = dnm::session::files(path).map_err(anyhow::Error::msg)?;
+    if files.is_empty() {
+        bail!("{}: no .mcap files in this folder", path.display());
+    }
+    Ok(files)
+}
+
+fn unix_time(ns: Option<u64>) -> String {
+    ns.map_or_else(
+        || "—".into(),
+        |ns| {
+            let name = dnm::session::session_name("", ns / 1_000_000_000);
+            name.trim_start_matches('-').to_string()
+        },
+    )
+}
+
+/// `dnm recordings [DIR]`: the sessions under a folder, or one session's manifest.
+fn recordings(dir: Option<PathBuf>, json: bool) -> anyhow::Result<ExitCode> {
+    let dir = dir.unwrap_or_else(|| {
+        std::env::var_os("DNM_RECORD_DIR")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("recordings"))
+    });
+    let is_session = dnm::session::files(&dir).is_ok_and(|f| !f.is_empty());
+    if is_session {
+        let m = dnm::session::write_manifest(&dir).map_err(anyhow::Error::msg)?;
+        if json {
+            println!("{}", serde_json::to_string_pretty(&m)?);
+            return Ok(ExitCode::SUCCESS);
+        }
+        println!(
+            "session {}: {} to {}, DNMs {}, revisions {:?}, {} messages, {:.1} MB in {} files (manifest: {})",
+            m.session,
+            unix_time(m.start_unix_ns),
+            unix_time(m.end_unix_ns),
+            m.dnms.join(", "),
+            m.revisions,
+            m.messages,
+            m.bytes as f64 / 1e6,
+            m.files.len(),
+            dir.join(dnm::session::MANIFEST).display()
+        );
+        for f in &m.files {
+            println!(
+                "  {:<28} {:<8} revisions {:?}: {} messages, {:.1} MB{}",
+                f.name,
+                f.dnm.as_deref().unwrap_or("?"),
+                f.revisions,
+                f.messages,
+                f.bytes as f64 / 1e6,
+                f.error
+                    .as_ref()
+                    .map(|e| format!(" — {e}"))
+                    .unwrap_or_default()
+            );
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    let sessions = dnm::session::sessions(&dir).map_err(anyhow::Error::msg)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&sessions)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    if sessions.is_empty() {
+        println!("no recording sessions under {}", dir.display());
+    }
+    for m in &sessions {
+        println!(
+            "{:<40} {} to {}  DNMs {:<28} {:>9} messages {:>8.1} MB  {} files",
+            m.session,
+            unix_time(m.start_unix_ns),
+            unix_time(m.end_unix_ns),
+            m.dnms.join(","),
+            m.messages,
+            m.bytes as f64 / 1e6,
+            m.files.len()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn print_stats(file: &Path, s: &dnm::stats::Stats) {

@@ -75,24 +75,40 @@ fn row(
 }
 
 /// Bytes per message and rate of every recorded port, from a recording's channels.
-fn measured(file: &Path) -> anyhow::Result<dnm_place::Measured> {
-    let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
-    let stats = dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text)
-        .map_err(|e| anyhow::anyhow!("{}: not a readable recording: {e}", file.display()))?;
-    let mut out = dnm_place::Measured::new();
-    for c in stats.channels {
-        let mut parts = c.topic.trim_start_matches('/').splitn(3, '/');
-        if let (Some(_dnm), Some(module), Some(port)) = (parts.next(), parts.next(), parts.next())
-            && c.messages > 0
-        {
-            out.insert(
-                (module.to_string(), port.to_string()),
-                (c.bytes as f64 / c.messages as f64, c.rate_hz),
-            );
+/// Bytes and rate per output, measured in a recording: one file, or every file of a session
+/// folder (counts summed, rates over the time each file covers).
+fn measured(path: &Path) -> anyhow::Result<dnm_place::Measured> {
+    // (module, port) -> (messages, bytes, seconds)
+    let mut sums: BTreeMap<(String, String), (u64, u64, f64)> = BTreeMap::new();
+    for file in crate::recording_files(path)? {
+        let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+        let stats = dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text)
+            .map_err(|e| anyhow::anyhow!("{}: not a readable recording: {e}", file.display()))?;
+        for c in stats.channels {
+            let mut parts = c.topic.trim_start_matches('/').splitn(3, '/');
+            if let (Some(_dnm), Some(module), Some(port)) =
+                (parts.next(), parts.next(), parts.next())
+                && c.messages > 0
+                && c.rate_hz > 0.0
+            {
+                let e = sums
+                    .entry((module.to_string(), port.to_string()))
+                    .or_default();
+                e.0 += c.messages;
+                e.1 += c.bytes;
+                e.2 += c.messages as f64 / c.rate_hz;
+            }
         }
     }
+    let mut out = dnm_place::Measured::new();
+    for (key, (messages, bytes, seconds)) in sums {
+        out.insert(
+            key,
+            (bytes as f64 / messages as f64, messages as f64 / seconds),
+        );
+    }
     if out.is_empty() {
-        anyhow::bail!("{}: the recording has no port data", file.display());
+        anyhow::bail!("{}: the recording has no port data", path.display());
     }
     Ok(out)
 }

@@ -42,6 +42,23 @@ pub fn eventually_within<T>(what: &str, guard: Duration, mut f: impl FnMut() -> 
     }
 }
 
+/// The MCAP files in `dir` and in its session folders (`<system>-<time>/`), by path.
+pub fn mcap_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return out;
+    };
+    for p in entries.flatten().map(|e| e.path()) {
+        if p.is_dir() {
+            out.extend(mcap_files(&p));
+        } else if p.extension().is_some_and(|e| e == "mcap") {
+            out.push(p);
+        }
+    }
+    out.sort();
+    out
+}
+
 /// A Zenoh client session connected to `port` on loopback, without scouting.
 pub fn zenoh_client(port: u16) -> zenoh::Session {
     use zenoh::Wait;

@@ -1,6 +1,6 @@
 //! Recordings: every output port of a DNM written to MCAP by the [`record::Recorder`] (a DNM
-//! plugin, off the modules' path), recordings replayed into a running system ([`replay`]), and
-//! their statistics ([`stats`]).
+//! plugin, off the modules' path), one folder and manifest per session ([`session`]),
+//! recordings replayed into a running system ([`replay`]), and their statistics ([`stats`]).
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -13,6 +13,7 @@
 
 pub mod record;
 pub mod replay;
+pub mod session;
 pub mod stats;
 
 /// Parses and validates a netlist stored in a recording (`file` names it in errors).

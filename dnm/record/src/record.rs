@@ -60,6 +60,8 @@ pub struct RecordOptions {
     pub rotate_bytes: u64,
     /// ...or this long.
     pub rotate_after: Duration,
+    /// `dir` is a session folder: keep its manifest current as files close.
+    pub session: bool,
 }
 
 impl RecordOptions {
@@ -74,6 +76,31 @@ impl RecordOptions {
             only: Vec::new(),
             rotate_bytes: 1 << 30,
             rotate_after: Duration::from_secs(3600),
+            session: false,
+        }
+    }
+
+    /// A session of `system` under `root`: `root/<system>-<UTC time>/rec-<dnm>[-<n>].mcap` and
+    /// its manifest (see [`crate::session`]), 1 GiB or 1 hour per file.
+    pub fn session(root: &Path, system: &str) -> Self {
+        let secs = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        Self {
+            dir: root.join(crate::session::session_name(system, secs)),
+            stem: "rec".into(),
+            session: true,
+            ..Self::timestamped(root)
+        }
+    }
+
+    /// These options, recording into a session of `system` under their folder.
+    pub fn into_session(self, system: &str) -> Self {
+        Self {
+            only: self.only,
+            rotate_bytes: self.rotate_bytes,
+            rotate_after: self.rotate_after,
+            ..Self::session(&self.dir, system)
         }
     }
 
@@ -623,8 +650,9 @@ fn open_file(
     Ok(f)
 }
 
-/// Writes the summary and footer and flushes the file, reporting any error (a full disk).
-fn close(f: OpenFile) -> Result<(), String> {
+/// Writes the summary and footer and flushes the file, reporting any error (a full disk);
+/// then, in a session, its manifest.
+fn close(f: OpenFile, options: &RecordOptions) -> Result<(), String> {
     use std::io::Write;
     let path = f.path.clone();
     let mut writer = f.writer;
@@ -634,7 +662,13 @@ fn close(f: OpenFile) -> Result<(), String> {
     writer
         .into_inner()
         .flush()
-        .map_err(|e| format!("{}: {e}", path.display()))
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    if options.session
+        && let Err(e) = crate::session::write_manifest(&options.dir)
+    {
+        tracing::warn!("the session's manifest: {e}");
+    }
+    Ok(())
 }
 
 fn write_netlist(f: &mut OpenFile, revision: u64, file: &str, text: &str) -> Result<(), String> {
@@ -682,7 +716,7 @@ fn write_loop(
             Some(Item::Ports(p)) => {
                 // A new port set starts a new file: channels are fixed per file.
                 if let Some(f) = file.take() {
-                    close(f)?;
+                    close(f, options)?;
                     index += 1;
                 }
                 ports = p;
@@ -768,7 +802,7 @@ fn write_loop(
                 || f.opened.elapsed() >= options.rotate_after
         });
         if rotate && let Some(f) = file.take() {
-            close(f)?;
+            close(f, options)?;
             index += 1;
             let f = open_file(dnm, options, index, &ports, netlist.as_ref())?;
             counters.files.fetch_add(1, Ordering::Relaxed);
@@ -779,7 +813,7 @@ fn write_loop(
         }
     }
     if let Some(f) = file.take() {
-        close(f)?;
+        close(f, options)?;
     }
     Ok(())
 }
@@ -823,6 +857,7 @@ mod tests {
             only: Vec::new(),
             rotate_bytes,
             rotate_after: Duration::from_secs(3600),
+            session: true,
         };
         let (tx, rx) = mpsc::sync_channel(n as usize + 2);
         tx.send(Item::Netlist {
@@ -856,8 +891,30 @@ mod tests {
         let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
             .unwrap()
             .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
             .collect();
         files.sort();
+        // The session's manifest lists exactly these files, closed, with every message.
+        let manifest: crate::session::Manifest =
+            serde_json::from_slice(&std::fs::read(dir.join(crate::session::MANIFEST)).unwrap())
+                .unwrap();
+        let names: Vec<String> = files
+            .iter()
+            .map(|f| f.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        let mut listed: Vec<String> = manifest.files.iter().map(|f| f.name.clone()).collect();
+        listed.sort();
+        assert_eq!(listed, names);
+        assert!(
+            manifest
+                .files
+                .iter()
+                .all(|f| f.complete && f.revisions == [1])
+        );
+        assert_eq!(manifest.messages, n);
+        assert_eq!(manifest.dnms, ["d"]);
+        assert_eq!(manifest.netlists.len(), 1);
+        assert!(manifest.netlists[0].text.contains("name = \"t\""));
         let mut seqs = Vec::new();
         for f in &files {
             let bytes = std::fs::read(f).unwrap();
