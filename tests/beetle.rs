@@ -151,6 +151,18 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
         total += n;
     }
     assert_eq!(manifest["messages"].as_u64().unwrap(), total);
+    // Per channel and in time: odometry on the rover's files, over the mission's span.
+    let odom: u64 = manifest["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|f| f["channels"]["/rover/odometry/odom"].as_u64())
+        .sum();
+    assert!(odom > 100, "{manifest:#}");
+    let span_s = (manifest["end_unix_ns"].as_u64().unwrap()
+        - manifest["start_unix_ns"].as_u64().unwrap()) as f64
+        / 1e9;
+    assert!(span_s > 10.0, "the session spans the mission: {span_s} s");
     let netlists = manifest["netlists"].as_array().unwrap();
     assert_eq!(netlists.len(), 2);
     assert!(

@@ -453,11 +453,19 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         "the unmutated recording reads"
     );
     let csv = dir.join("csv");
+    // A session folder holding the mutated file: its manifest is built from the file's summary
+    // and attachments (each round a new name: closed files are cached by name).
+    let session = dir.join("session");
+    std::fs::create_dir_all(&session).unwrap();
     for n in 0..300 * rounds() {
         let input = mutate(&mut rng, &mcap, &[]);
         must_not_panic("mcap", n, &input, |b| {
             let _ = dnm_record::stats::stats(b, &dnm::parse_recorded_netlist_text);
             let _ = dnm_record::stats::export_csv(b, &[], &csv);
+            let file = session.join(format!("rec-x.{n}.mcap"));
+            std::fs::write(&file, b).unwrap();
+            let _ = dnm_record::session::index(&session);
+            std::fs::remove_file(&file).unwrap();
         });
     }
 }

@@ -221,6 +221,9 @@ enum Cmd {
     /// message counts), written again from its files.
     Recordings {
         dir: Option<PathBuf>,
+        /// Write the session's manifest again from its files (when they are all closed).
+        #[arg(long)]
+        write: bool,
         #[arg(long)]
         json: bool,
     },
@@ -507,7 +510,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
-        Cmd::Recordings { dir, json } => recordings(dir, json),
+        Cmd::Recordings { dir, write, json } => recordings(dir, write, json),
         Cmd::Replay {
             file,
             system,
@@ -771,25 +774,46 @@ fn unix_time(ns: Option<u64>) -> String {
     )
 }
 
+fn duration(start: Option<u64>, end: Option<u64>) -> String {
+    match (start, end) {
+        (Some(a), Some(b)) if b >= a => format!("{:.1} s", (b - a) as f64 / 1e9),
+        _ => "—".into(),
+    }
+}
+
 /// `dnm recordings [DIR]`: the sessions under a folder, or one session's manifest.
-fn recordings(dir: Option<PathBuf>, json: bool) -> anyhow::Result<ExitCode> {
+fn recordings(dir: Option<PathBuf>, write: bool, json: bool) -> anyhow::Result<ExitCode> {
     let dir = dir.unwrap_or_else(|| {
         std::env::var_os("DNM_RECORD_DIR")
             .map(PathBuf::from)
             .unwrap_or_else(|| PathBuf::from("recordings"))
     });
-    let is_session = dnm::session::files(&dir).is_ok_and(|f| !f.is_empty());
+    // A session: its manifest is there, or its files are and no session folders are.
+    let sessions = dnm::session::sessions(&dir).unwrap_or_default();
+    let is_session = dir.join(dnm::session::MANIFEST).is_file()
+        || (sessions.is_empty() && dnm::session::files(&dir).is_ok_and(|f| !f.is_empty()));
     if is_session {
-        let m = dnm::session::write_manifest(&dir).map_err(anyhow::Error::msg)?;
+        let mut m = dnm::session::manifest(&dir).map_err(anyhow::Error::msg)?;
+        if write {
+            if m.files.iter().all(|f| f.complete) {
+                m = dnm::session::write_manifest(&dir).map_err(anyhow::Error::msg)?;
+            } else {
+                bail!(
+                    "{}: not every file is closed (still recording, or cut short): the manifest is left as it is",
+                    dir.display()
+                );
+            }
+        }
         if json {
             println!("{}", serde_json::to_string_pretty(&m)?);
             return Ok(ExitCode::SUCCESS);
         }
         println!(
-            "session {}: {} to {}, DNMs {}, revisions {:?}, {} messages, {:.1} MB in {} files (manifest: {})",
+            "session {}: {} to {} ({}), DNMs {}, revisions {:?}, {} messages, {:.1} MB in {} files (manifest: {})",
             m.session,
             unix_time(m.start_unix_ns),
             unix_time(m.end_unix_ns),
+            duration(m.start_unix_ns, m.end_unix_ns),
             m.dnms.join(", "),
             m.revisions,
             m.messages,
@@ -799,11 +823,13 @@ fn recordings(dir: Option<PathBuf>, json: bool) -> anyhow::Result<ExitCode> {
         );
         for f in &m.files {
             println!(
-                "  {:<28} {:<8} revisions {:?}: {} messages, {:.1} MB{}",
+                "  {:<28} {:<8} {} revisions {:?}: {} messages over {}, {:.1} MB{}",
                 f.name,
                 f.dnm.as_deref().unwrap_or("?"),
+                if f.complete { "closed" } else { "OPEN/CUT" },
                 f.revisions,
                 f.messages,
+                duration(f.start_unix_ns, f.end_unix_ns),
                 f.bytes as f64 / 1e6,
                 f.error
                     .as_ref()
@@ -813,7 +839,12 @@ fn recordings(dir: Option<PathBuf>, json: bool) -> anyhow::Result<ExitCode> {
         }
         return Ok(ExitCode::SUCCESS);
     }
-    let sessions = dnm::session::sessions(&dir).map_err(anyhow::Error::msg)?;
+    if !dir.is_dir() {
+        bail!(
+            "{}: no such folder (recordings go to $DNM_RECORD_DIR, else recordings/)",
+            dir.display()
+        );
+    }
     if json {
         println!("{}", serde_json::to_string_pretty(&sessions)?);
         return Ok(ExitCode::SUCCESS);
@@ -822,15 +853,21 @@ fn recordings(dir: Option<PathBuf>, json: bool) -> anyhow::Result<ExitCode> {
         println!("no recording sessions under {}", dir.display());
     }
     for m in &sessions {
+        let open = m.files.iter().filter(|f| !f.complete).count();
         println!(
-            "{:<40} {} to {}  DNMs {:<28} {:>9} messages {:>8.1} MB  {} files",
+            "{:<40} {} {:>8}  DNMs {:<28} {:>9} messages {:>8.1} MB  {} files{}",
             m.session,
             unix_time(m.start_unix_ns),
-            unix_time(m.end_unix_ns),
+            duration(m.start_unix_ns, m.end_unix_ns),
             m.dnms.join(","),
             m.messages,
             m.bytes as f64 / 1e6,
-            m.files.len()
+            m.files.len(),
+            if open > 0 {
+                format!(" ({open} not closed)")
+            } else {
+                String::new()
+            }
         );
     }
     Ok(ExitCode::SUCCESS)

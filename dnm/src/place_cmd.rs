@@ -82,30 +82,40 @@ fn measured(path: &Path) -> anyhow::Result<dnm_place::Measured> {
     let mut sums: BTreeMap<(String, String), (u64, u64, f64)> = BTreeMap::new();
     for file in crate::recording_files(path)? {
         let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-        let stats = dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text)
-            .map_err(|e| anyhow::anyhow!("{}: not a readable recording: {e}", file.display()))?;
+        let stats = match dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text) {
+            Ok(s) => s,
+            Err(e) if path.is_dir() => {
+                eprintln!("{}: not a readable recording, skipped: {e}", file.display());
+                continue;
+            }
+            Err(e) => anyhow::bail!("{}: not a readable recording: {e}", file.display()),
+        };
         for c in stats.channels {
             let mut parts = c.topic.trim_start_matches('/').splitn(3, '/');
             if let (Some(_dnm), Some(module), Some(port)) =
                 (parts.next(), parts.next(), parts.next())
                 && c.messages > 0
-                && c.rate_hz > 0.0
             {
                 let e = sums
                     .entry((module.to_string(), port.to_string()))
                     .or_default();
                 e.0 += c.messages;
                 e.1 += c.bytes;
-                e.2 += c.messages as f64 / c.rate_hz;
+                // A channel with one message has no rate: its size still counts.
+                if c.rate_hz > 0.0 {
+                    e.2 += c.messages as f64 / c.rate_hz;
+                }
             }
         }
     }
     let mut out = dnm_place::Measured::new();
     for (key, (messages, bytes, seconds)) in sums {
-        out.insert(
-            key,
-            (bytes as f64 / messages as f64, messages as f64 / seconds),
-        );
+        let rate = if seconds > 0.0 {
+            messages as f64 / seconds
+        } else {
+            0.0
+        };
+        out.insert(key, (bytes as f64 / messages as f64, rate));
     }
     if out.is_empty() {
         anyhow::bail!("{}: the recording has no port data", path.display());

@@ -307,6 +307,10 @@ impl Drop for Recorder {
         if let Some(t) = self.writer.take() {
             let _ = t.join();
         }
+        // The session's manifest lists the file just closed before the process may end.
+        if self.options.session {
+            crate::session::settle();
+        }
     }
 }
 
@@ -568,13 +572,19 @@ fn open_file(
     ports: &[RecPort],
     netlist: Option<&(u64, String, String)>,
 ) -> Result<OpenFile, String> {
+    // `.n` numbers a DNM's later files: a DNM's name has no dot, so `rec-cam.2.mcap` is never
+    // another DNM's first file. An existing file is never overwritten.
     let name = if index == 0 {
         format!("{}-{dnm}.mcap", options.stem)
     } else {
-        format!("{}-{dnm}-{index}.mcap", options.stem)
+        format!("{}-{dnm}.{index}.mcap", options.stem)
     };
     let path = options.dir.join(name);
-    let file = File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let file = File::options()
+        .write(true)
+        .create_new(true)
+        .open(&path)
+        .map_err(|e| format!("{}: {e}", path.display()))?;
     let written = Arc::new(AtomicU64::new(0));
     let mut writer = mcap::WriteOptions::new()
         .compression(Some(mcap::Compression::Zstd))
@@ -663,10 +673,8 @@ fn close(f: OpenFile, options: &RecordOptions) -> Result<(), String> {
         .into_inner()
         .flush()
         .map_err(|e| format!("{}: {e}", path.display()))?;
-    if options.session
-        && let Err(e) = crate::session::write_manifest(&options.dir)
-    {
-        tracing::warn!("the session's manifest: {e}");
+    if options.session {
+        crate::session::request_manifest(&options.dir);
     }
     Ok(())
 }
@@ -887,6 +895,7 @@ mod tests {
         drop(tx);
         let counters = Counters::default();
         write_loop("d", &options, &rx, &counters).unwrap();
+        crate::session::settle();
         assert_eq!(counters.messages.load(Ordering::Relaxed), n);
         let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
             .unwrap()

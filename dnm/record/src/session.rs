@@ -20,6 +20,14 @@ pub const MANIFEST: &str = "manifest.json";
 /// Largest summary record and netlist read from a file (a corrupt length must not allocate
 /// gigabytes).
 const MAX_RECORD: usize = 64 << 20;
+/// Most bytes read to find a file's summary: a damaged footer pointing into the data must not
+/// make indexing read (and decompress) the whole file.
+const MAX_SUMMARY_READ: usize = 64 << 20;
+/// Netlists read from one file at most, and their bytes in all.
+const MAX_NETLISTS: usize = 64;
+const MAX_NETLIST_BYTES: usize = 16 << 20;
+/// The MCAP opcode of an attachment record.
+const ATTACHMENT_OP: u8 = 0x09;
 
 /// One MCAP file of a session.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -98,9 +106,17 @@ fn read_summary(file: &mut File, size: u64) -> Result<Option<mcap::Summary>, Str
             .with_file_size(size)
             .with_record_length_limit(MAX_RECORD),
     );
+    let mut total = 0usize;
     while let Some(event) = reader.next_event() {
         match event.map_err(|e| e.to_string())? {
             SummaryReadEvent::ReadRequest(n) => {
+                total = total.saturating_add(n);
+                if total > MAX_SUMMARY_READ {
+                    return Err(format!(
+                        "its summary would take over {} MiB to read: damaged",
+                        MAX_SUMMARY_READ >> 20
+                    ));
+                }
                 let buf = reader.insert(n);
                 let read = file.read(buf).map_err(|e| e.to_string())?;
                 reader.notify_read(read);
@@ -114,8 +130,19 @@ fn read_summary(file: &mut File, size: u64) -> Result<Option<mcap::Summary>, Str
     Ok(reader.finish())
 }
 
-/// The data of the attachment record at `offset` (`length` bytes long), if it is one.
-fn read_attachment(file: &mut File, offset: u64, length: u64) -> Result<(String, Vec<u8>), String> {
+/// The data of the attachment record at `offset` (`length` bytes long in the index), checked to
+/// be an attachment named `name` that lies within the file.
+fn read_attachment(
+    file: &mut File,
+    size: u64,
+    offset: u64,
+    length: u64,
+    name: &str,
+) -> Result<Vec<u8>, String> {
+    offset
+        .checked_add(length)
+        .filter(|e| *e <= size)
+        .ok_or("the index points past the end of the file")?;
     let length = usize::try_from(length)
         .ok()
         .filter(|l| *l <= MAX_RECORD)
@@ -124,21 +151,37 @@ fn read_attachment(file: &mut File, offset: u64, length: u64) -> Result<(String,
     file.seek(SeekFrom::Start(offset))
         .and_then(|_| file.read_exact(&mut rec))
         .map_err(|e| e.to_string())?;
-    let mut at = 1 + 8 + 8 + 8; // opcode, record length, log time, create time
+    let mut at = 0usize;
     let mut take = |n: usize| -> Result<&[u8], String> {
-        let s = rec.get(at..at + n).ok_or("a truncated attachment record")?;
-        at += n;
-        Ok(s)
+        let stop = at
+            .checked_add(n)
+            .filter(|s| *s <= rec.len())
+            .ok_or("a truncated attachment record")?;
+        let slice = &rec[at..stop];
+        at = stop;
+        Ok(slice)
     };
-    let u32_at = |b: &[u8]| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize;
-    let name_len = u32_at(take(4)?);
-    let name = String::from_utf8_lossy(take(name_len)?).into_owned();
-    let media_len = u32_at(take(4)?);
+    let le = |b: &[u8]| -> u64 {
+        b.iter()
+            .rev()
+            .fold(0u64, |acc, x| (acc << 8) | u64::from(*x))
+    };
+    if take(1)? != [ATTACHMENT_OP] {
+        return Err("the index points at something other than an attachment".into());
+    }
+    let record_len = le(take(8)?);
+    if record_len != length as u64 - 9 {
+        return Err("the attachment's length disagrees with the index".into());
+    }
+    take(16)?; // log time, create time
+    let name_len = le(take(4)?) as usize;
+    if take(name_len)? != name.as_bytes() {
+        return Err("the attachment's name disagrees with the index".into());
+    }
+    let media_len = le(take(4)?) as usize;
     take(media_len)?;
-    let data_len = take(8)?;
-    let data_len = u64::from_le_bytes(data_len.try_into().map_err(|_| "bad length")?);
-    let data = take(usize::try_from(data_len).map_err(|e| e.to_string())?)?.to_vec();
-    Ok((name, data))
+    let data_len = usize::try_from(le(take(8)?)).map_err(|e| e.to_string())?;
+    Ok(take(data_len)?.to_vec())
 }
 
 /// One file of a session, from its summary.
@@ -170,11 +213,15 @@ fn file_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> Fil
     let summary = match read_summary(&mut file, entry.bytes) {
         Ok(Some(s)) => s,
         Ok(None) => {
-            entry.error = Some("not closed (no summary): the recorder stopped before it".into());
+            entry.error = Some(
+                "no summary: still being written, or its recorder stopped before closing it".into(),
+            );
             return entry;
         }
         Err(e) => {
-            entry.error = Some(format!("not closed, or damaged: {e}"));
+            entry.error = Some(format!(
+                "no readable summary (still being written, cut short, or damaged): {e}"
+            ));
             return entry;
         }
     };
@@ -203,6 +250,7 @@ fn file_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> Fil
                     .map(str::to_string)
             })
         });
+    let mut read = 0usize;
     for a in &summary.attachment_indexes {
         let Some(revision) = a
             .name
@@ -212,12 +260,26 @@ fn file_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> Fil
         else {
             continue;
         };
+        if entry.revisions.contains(&revision) {
+            continue;
+        }
+        if entry.revisions.len() >= MAX_NETLISTS {
+            entry.error = Some(format!(
+                "more than {MAX_NETLISTS} netlists: the rest not read"
+            ));
+            break;
+        }
         entry.revisions.push(revision);
         if netlists.contains_key(&revision) {
             continue;
         }
-        match read_attachment(&mut file, a.offset, a.length) {
-            Ok((_, data)) => {
+        if read.saturating_add(a.length as usize) > MAX_NETLIST_BYTES {
+            entry.error = Some("its netlists are larger than netlists can be: not read".into());
+            break;
+        }
+        read = read.saturating_add(a.length as usize);
+        match read_attachment(&mut file, entry.bytes, a.offset, a.length, &a.name) {
+            Ok(data) => {
                 netlists.insert(
                     revision,
                     RecordedNetlist {
@@ -235,27 +297,74 @@ fn file_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> Fil
     entry
 }
 
-/// The MCAP files of a folder, by name.
+/// A DNM's files are `<stem>-<dnm>.mcap`, then `<stem>-<dnm>.1.mcap`, `.2`, ... (names never
+/// contain a dot): the order they were written in.
+fn order_key(p: &Path) -> (String, u64) {
+    let stem = p
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    match stem.rsplit_once('.') {
+        Some((head, n)) => match n.parse::<u64>() {
+            Ok(n) => (head.to_string(), n),
+            Err(_) => (stem, 0),
+        },
+        None => (stem, 0),
+    }
+}
+
+/// The MCAP files of a folder (regular files only: a link to elsewhere is not the session's),
+/// each DNM's in the order written.
 pub fn files(dir: &Path) -> Result<Vec<PathBuf>, String> {
     let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| format!("{}: {e}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_file() && p.extension().is_some_and(|e| e == "mcap"))
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
         .collect();
-    // `rec-drive.mcap`, `rec-drive-1.mcap`, ..., `rec-drive-10.mcap`: a DNM's files in order.
-    out.sort_by_key(|p| {
-        let stem = p
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        match stem.rsplit_once('-') {
-            Some((head, n)) if n.parse::<u64>().is_ok() => {
-                (head.to_string(), n.parse::<u64>().unwrap_or(0))
-            }
-            _ => (stem, 0),
-        }
-    });
+    out.sort_by_key(|p| order_key(p));
     Ok(out)
+}
+
+/// Entries of closed files already read, by path, with the size and time they had then: a
+/// closed file does not change, so each is read once per process.
+type Cached = (
+    u64,
+    Option<std::time::SystemTime>,
+    FileEntry,
+    Vec<RecordedNetlist>,
+);
+static CACHE: Mutex<BTreeMap<PathBuf, Cached>> = Mutex::new(BTreeMap::new());
+
+fn cached_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> FileEntry {
+    let meta = std::fs::metadata(path).ok();
+    let size = meta.as_ref().map_or(0, |m| m.len());
+    let mtime = meta.and_then(|m| m.modified().ok());
+    if let Ok(cache) = CACHE.lock()
+        && let Some((s, t, entry, nets)) = cache.get(path)
+        && *s == size
+        && *t == mtime
+    {
+        for n in nets {
+            netlists.entry(n.revision).or_insert_with(|| n.clone());
+        }
+        return entry.clone();
+    }
+    let mut mine = BTreeMap::new();
+    let entry = file_entry(path, &mut mine);
+    if entry.complete
+        && let Ok(mut cache) = CACHE.lock()
+    {
+        cache.insert(
+            path.to_path_buf(),
+            (size, mtime, entry.clone(), mine.values().cloned().collect()),
+        );
+    }
+    for (r, n) in mine {
+        netlists.entry(r).or_insert(n);
+    }
+    entry
 }
 
 /// The manifest of a session folder, built from its files.
@@ -263,7 +372,7 @@ pub fn index(dir: &Path) -> Result<Manifest, String> {
     let mut netlists = BTreeMap::new();
     let files: Vec<FileEntry> = files(dir)?
         .iter()
-        .map(|p| file_entry(p, &mut netlists))
+        .map(|p| cached_entry(p, &mut netlists))
         .collect();
     let dnms: BTreeSet<String> = files.iter().filter_map(|f| f.dnm.clone()).collect();
     let revisions: BTreeSet<u64> = files.iter().flat_map(|f| f.revisions.clone()).collect();
@@ -284,8 +393,7 @@ pub fn index(dir: &Path) -> Result<Manifest, String> {
     })
 }
 
-/// Recorders of one process write the manifest one at a time, each after closing its file, so
-/// the last one written lists every file closed.
+/// Manifests are written one at a time in a process.
 static WRITING: Mutex<()> = Mutex::new(());
 
 /// Builds the manifest of `dir` and writes it there (atomically: a reader never sees half).
@@ -300,16 +408,89 @@ pub fn write_manifest(dir: &Path) -> Result<Manifest, String> {
     Ok(m)
 }
 
+/// Session folders whose manifest is to be written again, and whether a write is under way.
+struct Pending {
+    dirs: BTreeSet<PathBuf>,
+    busy: bool,
+    thread: bool,
+}
+
+static PENDING: Mutex<Pending> = Mutex::new(Pending {
+    dirs: BTreeSet::new(),
+    busy: false,
+    thread: false,
+});
+static PENDING_CHANGED: std::sync::Condvar = std::sync::Condvar::new();
+
+/// Asks for `dir`'s manifest to be written again, on a thread of its own (a recorder's writer
+/// never waits for it); requests for one folder made meanwhile are written once.
+pub fn request_manifest(dir: &Path) {
+    let Ok(mut p) = PENDING.lock() else { return };
+    p.dirs.insert(dir.to_path_buf());
+    if !p.thread {
+        let spawned = std::thread::Builder::new()
+            .name("record-manifest".into())
+            .spawn(manifest_loop);
+        match spawned {
+            Ok(_) => p.thread = true,
+            Err(e) => tracing::warn!("no thread for the sessions' manifests: {e}"),
+        }
+    }
+    PENDING_CHANGED.notify_all();
+}
+
+/// Waits until every manifest asked for is written (before a process ends).
+pub fn settle() {
+    let Ok(mut p) = PENDING.lock() else { return };
+    while p.thread && (p.busy || !p.dirs.is_empty()) {
+        p = match PENDING_CHANGED.wait(p) {
+            Ok(p) => p,
+            Err(_) => return,
+        };
+    }
+}
+
+fn manifest_loop() {
+    loop {
+        let dir = {
+            let Ok(mut p) = PENDING.lock() else { return };
+            loop {
+                if let Some(d) = p.dirs.pop_first() {
+                    p.busy = true;
+                    break d;
+                }
+                p.busy = false;
+                PENDING_CHANGED.notify_all();
+                p = match PENDING_CHANGED.wait(p) {
+                    Ok(p) => p,
+                    Err(_) => return,
+                };
+            }
+        };
+        if let Err(e) = write_manifest(&dir) {
+            tracing::warn!("the session's manifest: {e}");
+        }
+    }
+}
+
 /// The manifest of a session folder: the one written there if it is current (it lists exactly
 /// the folder's files), else built again.
 pub fn manifest(dir: &Path) -> Result<Manifest, String> {
-    let names: Vec<String> = files(dir)?
+    let on_disk: Vec<(String, u64)> = files(dir)?
         .iter()
-        .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
+        .filter_map(|p| {
+            Some((
+                p.file_name()?.to_string_lossy().into_owned(),
+                std::fs::metadata(p).ok()?.len(),
+            ))
+        })
         .collect();
     if let Ok(text) = std::fs::read(dir.join(MANIFEST))
         && let Ok(m) = serde_json::from_slice::<Manifest>(&text)
-        && m.files.iter().map(|f| &f.name).eq(names.iter())
+        && m.files
+            .iter()
+            .map(|f| (f.name.clone(), f.bytes))
+            .eq(on_disk.iter().cloned())
         && m.files.iter().all(|f| f.complete)
     {
         return Ok(m);
@@ -328,10 +509,20 @@ pub fn sessions(root: &Path) -> Result<Vec<Manifest>, String> {
     let mut out = Vec::new();
     for d in dirs {
         if files(&d).is_ok_and(|f| !f.is_empty()) {
-            out.push(manifest(&d)?);
+            match manifest(&d) {
+                Ok(m) => out.push(m),
+                Err(e) => tracing::warn!("{}: {e}", d.display()),
+            }
         }
     }
-    out.sort_by_key(|m| (m.start_unix_ns, m.session.clone()));
+    // Oldest first; sessions without a message last.
+    out.sort_by_key(|m| {
+        (
+            m.start_unix_ns.is_none(),
+            m.start_unix_ns,
+            m.session.clone(),
+        )
+    });
     Ok(out)
 }
 
@@ -339,6 +530,42 @@ pub fn sessions(root: &Path) -> Result<Vec<Manifest>, String> {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn a_dnms_files_are_listed_in_the_order_written_and_links_are_not_followed() {
+        let dir = std::env::temp_dir().join(format!("dnm-session-order-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        for n in [
+            "rec-a.10.mcap",
+            "rec-a.2.mcap",
+            "rec-a.mcap",
+            "rec-a.1.mcap",
+            "rec-cam-2.mcap",
+        ] {
+            std::fs::write(dir.join(n), b"").unwrap();
+        }
+        std::os::unix::fs::symlink("/etc/hostname", dir.join("rec-b.mcap")).unwrap();
+        let names: Vec<String> = files(&dir)
+            .unwrap()
+            .iter()
+            .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+            .collect();
+        assert_eq!(
+            names,
+            [
+                "rec-a.mcap",
+                "rec-a.1.mcap",
+                "rec-a.2.mcap",
+                "rec-a.10.mcap",
+                "rec-cam-2.mcap"
+            ]
+        );
+        // Empty files: listed, not closed, no panic.
+        let m = index(&dir).unwrap();
+        assert!(m.files.iter().all(|f| !f.complete && f.error.is_some()));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn session_names_carry_the_utc_time() {
