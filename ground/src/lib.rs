@@ -151,7 +151,8 @@ pub struct LinkStatus {
     pub rtt_ms: Option<f64>,
     /// Since the rover was last heard, ms.
     pub last_contact_ms: Option<u64>,
-    /// Share of the last uplinks that got no answer.
+    /// Share of the last uplinks that got no answer, counted from the rover's first answer (before
+    /// it, the rover was not up: that says nothing about the link).
     pub loss: f64,
     pub uplinks: u64,
     pub answered: u64,
@@ -624,12 +625,14 @@ fn uplink(s: &Shared) -> (bool, bool, bool) {
     }
     if let Ok(mut i) = s.inner.lock() {
         i.link.uplinks += 1;
-        i.history.push_back(answered);
-        if i.history.len() > LOSS_WINDOW {
-            i.history.pop_front();
+        if answered || i.contact.is_some() {
+            i.history.push_back(answered);
+            if i.history.len() > LOSS_WINDOW {
+                i.history.pop_front();
+            }
+            let lost = i.history.iter().filter(|a| !**a).count();
+            i.link.loss = lost as f64 / i.history.len() as f64;
         }
-        let lost = i.history.iter().filter(|a| !**a).count();
-        i.link.loss = lost as f64 / i.history.len() as f64;
     }
     (answered, unreachable, has_commands)
 }

@@ -760,7 +760,7 @@ function showDraftBase() {
   const active = w && w.active_task;
   if (active && S.draft && !tasks()[active]) notes.push(`the task in force (${active}) is not in the draft: applying it switches the rover to ${(S.draft.system && S.draft.system.default_task) || Object.keys(tasks())[0] || 'no task'}`);
   el.textContent = `draft of revision ${S.base.revision}${notes.length ? ' — ' + notes.join('; ') : ''}`;
-  el.className = notes.length ? 'warn' : '';
+  el.classList.toggle('warn', notes.length > 0);
 }
 
 async function loadKinds() {
