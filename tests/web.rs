@@ -28,6 +28,24 @@ fn shots() -> PathBuf {
     Path::new(env!("CARGO_TARGET_TMPDIR")).join("web")
 }
 
+/// A Zenoh router listening on `port` (loopback), once it listens.
+fn router(dir: &Path, port: u16) -> Proc {
+    let p = Proc::dnm(
+        dir,
+        "router",
+        &[
+            "--no-multicast".into(),
+            "--listen".into(),
+            support::endpoint(port),
+            "router".into(),
+        ],
+    );
+    eventually("the router listening", || {
+        std::net::TcpStream::connect(("127.0.0.1", port)).ok()
+    });
+    p
+}
+
 /// A router, the system's DNMs (one `dnm up`) and a ground station, on loopback.
 struct Rig {
     system: String,
@@ -47,19 +65,7 @@ impl Rig {
         std::fs::write(&file, netlist.replace("SYSTEM", &system)).unwrap();
         let port = support::free_port();
         let http = format!("127.0.0.1:{}", support::free_port());
-        let router = Proc::dnm(
-            &dir,
-            "router",
-            &[
-                "--no-multicast".into(),
-                "--listen".into(),
-                support::endpoint(port),
-                "router".into(),
-            ],
-        );
-        eventually("the router listening", || {
-            std::net::TcpStream::connect(("127.0.0.1", port)).ok()
-        });
+        let router = router(&dir, port);
         let mut up = zenoh_args("peer", port);
         up.extend([
             "up".into(),
@@ -491,16 +497,7 @@ fn the_station_answers_only_its_own_page_and_a_token_guards_it_on_the_network() 
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     let port = support::free_port();
-    let _router = Proc::dnm(
-        &dir,
-        "router",
-        &[
-            "--no-multicast".into(),
-            "--listen".into(),
-            support::endpoint(port),
-            "router".into(),
-        ],
-    );
+    let _router = router(&dir, port);
     let station = |name: &str, http: &str, token: Option<&str>| {
         let mut a = zenoh_args("client", port);
         a.extend([

@@ -20,7 +20,7 @@ const S = {
   outbox: [],
   seen: {},           // module -> {restarts, hangs} at the last poll
   sticky: {},         // module -> {state, until, note}: a failure stays visible a while
-  perf: { renders: [], lastRenderMs: 0, checks: [], firstDraftMs: 0, longTasks: [], events: [] },
+  perf: { renders: [], checks: [], firstDraftMs: 0, longTasks: [], events: [] },
 };
 window.__dnm = S;
 
@@ -556,7 +556,6 @@ function render() {
   const t0 = performance.now();
   if (S.view === 'tasks') renderTasks(); else { renderConnections(); renderHierarchy(); }
   const ms = performance.now() - t0;
-  S.perf.lastRenderMs = ms;
   S.perf.renders.push({ view: S.view, ms });
   if (S.perf.renders.length > 200) S.perf.renders.shift();
 }
