@@ -107,10 +107,12 @@ impl Rig {
     }
 }
 
-/// Waits until `js` (an expression) is truthy in the page and returns its value.
+/// Waits until `js` (an expression) is truthy in the page and returns its value. If it never
+/// is, the failure says what the page showed (and `target/tmp/web/failed.png` shows it).
 fn until(b: &Browser, what: &str, js: &str) -> Value {
     let script = format!("try {{ return ({js}); }} catch (e) {{ return null; }}");
-    eventually(what, || {
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    loop {
         let v = b.js(&script, json!([]));
         let truthy = match &v {
             Value::Null => false,
@@ -119,8 +121,24 @@ fn until(b: &Browser, what: &str, js: &str) -> Value {
             Value::Number(n) => n.as_f64() != Some(0.0),
             _ => true,
         };
-        truthy.then_some(v)
-    })
+        if truthy {
+            return v;
+        }
+        if std::time::Instant::now() > deadline {
+            b.screenshot(&shots().join("failed.png"));
+            let page = b.js(
+                "const t = (id) => (document.getElementById(id) || {}).textContent; \
+                 const S = window.__dnm || {}; \
+                 return { message: t('message'), link: t('link-status'), check: t('check-state'), \
+                 problems: t('problems'), draft_base: t('draft-base'), task: S.task, \
+                 modules: S.draft && S.draft.module && S.draft.module.length, \
+                 kinds: S.kinds && Object.keys(S.kinds).length };",
+                json!([]),
+            );
+            panic!("gave up waiting: {what}; the page showed {page}");
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
 }
 
 fn port(p: &str, dir: &str) -> String {

@@ -403,7 +403,17 @@ fn handle_web(
                     400,
                     format!("unreadable draft ({e}); send {{\"file\":\"x.toml\",\"doc\":{{…}}}}"),
                 ),
-                Ok(d) => json(200, &web::check(&d.doc, &d.file, &web.kinds())),
+                Ok(d) => {
+                    let kinds = web.kinds();
+                    if kinds.iter().next().is_none() {
+                        // Checked against no kinds, every module would read as unknown.
+                        return Some(error(
+                            503,
+                            "the rover has not told the station the kinds it can run yet; is the link up? the page checks again by itself",
+                        ));
+                    }
+                    json(200, &web::check(&d.doc, &d.file, &kinds))
+                }
             }
         }
         (Method::Get, "/api/watch") => {

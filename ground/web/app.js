@@ -112,9 +112,12 @@ async function runCheck() {
       `<li><span class="where">${e.line ? `line ${e.line}` : ''}${e.field ? ` ${esc(e.field)}` : ''}</span>: ${esc(e.message)}${e.help ? ` <i>(${esc(e.help)})</i>` : ''}</li>`).join('');
   } catch (e) {
     if (seq !== S.checkSeq) return;
+    S.check = null;
     $('check-state').className = 'bad';
     $('check-state').textContent = 'cannot check';
     $('problems').innerHTML = `<li>${esc(e.message)}</li>`;
+    // The station or the rover's kinds were not there yet: the same draft is checked again.
+    S.checkTimer = setTimeout(runCheck, 2000);
   }
 }
 
