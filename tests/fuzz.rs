@@ -431,6 +431,7 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         encoding: "json".into(),
         schema: "{".into(),
         payload: Payload::Bytes { max_bytes: 8 },
+        standard: None,
     });
     for n in 0..3000 * rounds() {
         let p = mutate(&mut rng, &payload, &[]);

@@ -227,7 +227,8 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
-    /// Replay a recording into the ports of a system running on this machine.
+    /// Replay a recording (a session folder, or one file) into the ports of a system running
+    /// on this machine: every DNM's channels in time order, camera frames included.
     Replay {
         file: PathBuf,
         /// System to replay into (default: the recorded one).
@@ -240,8 +241,11 @@ enum Cmd {
         #[arg(long, default_value_t = 1.0, conflicts_with = "fast")]
         rate: f64,
         /// As fast as consumers keep up, ignoring the recorded timing.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "step")]
         fast: bool,
+        /// One message per Enter on standard input.
+        #[arg(long)]
+        step: bool,
         #[arg(long)]
         json: bool,
     },
@@ -517,25 +521,18 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             only,
             rate,
             fast,
+            step,
             json,
         } => {
-            if file.is_dir() {
-                bail!(
-                    "{}: replay takes one file of a session for now (`dnm recordings {}` lists them); \
-                     a whole session is not replayed in time order yet",
-                    file.display(),
-                    file.display()
-                );
-            }
-            let bytes =
-                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
             let pace = if fast {
                 dnm::replay::Pace::Fast
+            } else if step {
+                dnm::replay::Pace::Step
             } else {
                 dnm::replay::Pace::Rate(rate)
             };
             let r = dnm::replay::replay(
-                &bytes,
+                &file,
                 system.as_deref(),
                 &only,
                 pace,
@@ -546,11 +543,18 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 println!("{}", serde_json::to_string_pretty(&r)?);
             } else {
                 println!(
-                    "replayed {} messages on {} in {:.1} s",
+                    "replayed {} messages from {} file(s) on {} in {:.1} s",
                     r.messages,
+                    r.files.len(),
                     r.channels.join(", "),
                     r.seconds
                 );
+                for s in &r.skipped {
+                    println!("not replayed: {s}");
+                }
+                if r.unreadable > 0 {
+                    println!("{} messages could not be read back and were left out", r.unreadable);
+                }
             }
             Ok(ExitCode::SUCCESS)
         }

@@ -45,6 +45,7 @@ fn writer_capacity() {
             encoding: "application/octet-stream".into(),
             schema: "uint8[] data\n".into(),
             payload: Payload::Bytes { max_bytes: size },
+            standard: None,
         };
         let file = std::fs::File::create(dir.join(format!("{size}.mcap"))).unwrap();
         let mut w = mcap::WriteOptions::new()

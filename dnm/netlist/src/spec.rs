@@ -43,6 +43,31 @@ pub struct MessageType {
     /// The schema text (field list) for decoders.
     pub schema: String,
     pub payload: Payload,
+    /// The standard (ROS 2) message recordings store this type as, so robotics tools draw it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub standard: Option<Standard>,
+}
+
+/// How a fixed-size message type is recorded as a standard ROS 2 message: which field of the
+/// standard message each of its fields becomes.
+///
+/// `fields` pairs a field path of the standard message (`pose.pose.position.x`,
+/// `angular_velocity.z`, `name[0]`) with where its value comes from:
+/// - a field of ours (`x`, `gyro[2]`);
+/// - a number (`-1`) or text in single quotes (`'odom'`); `$module` is the producing module's
+///   name;
+/// - for a quaternion path (`pose.pose.orientation`, `transform.rotation`): `yaw`, or
+///   `roll pitch yaw`, fields of ours in radians.
+///
+/// Fields of the standard message named nowhere are zero (or empty); the header's stamp is the
+/// sample's send time. Where the standard message cannot hold every field of ours exactly, the
+/// recorder keeps our bytes beside it (`<port>/raw`), so a replay stays exact.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Standard {
+    /// For example `nav_msgs/msg/Odometry`.
+    pub name: String,
+    /// `[standard field path, source]` pairs.
+    pub fields: Vec<[String; 2]>,
 }
 
 impl MessageType {

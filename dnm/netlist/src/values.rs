@@ -101,6 +101,7 @@ mod tests {
             encoding: crate::POD_ENCODING.into(),
             schema: "uint64 origin\nuint64 seq\n".into(),
             payload: Payload::Fixed { size_bytes: 16 },
+            standard: None,
         };
         let mut b = 3u64.to_le_bytes().to_vec();
         b.extend(9u64.to_le_bytes());

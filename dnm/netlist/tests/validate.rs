@@ -14,6 +14,7 @@ fn msg(name: &str, size: usize) -> MessageType {
         encoding: "dnm-pod".into(),
         schema: String::new(),
         payload: Payload::Fixed { size_bytes: size },
+        standard: None,
     }
 }
 

@@ -14,7 +14,17 @@
 pub mod record;
 pub mod replay;
 pub mod session;
+pub mod standard;
 pub mod stats;
+
+/// Suffix of the channel that keeps a port's own bytes beside its standard message
+/// (`/<dnm>/<module>/<port>/raw`).
+pub const RAW_SUFFIX: &str = "/raw";
+
+/// Whether `topic` is the companion of a standard channel, holding the port's own bytes.
+pub fn is_raw(topic: &str) -> bool {
+    topic.ends_with(RAW_SUFFIX) && topic.trim_start_matches('/').split('/').count() == 4
+}
 
 /// Parses and validates a netlist stored in a recording (`file` names it in errors).
 pub type ParseNetlist<'a> =

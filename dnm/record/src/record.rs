@@ -10,7 +10,10 @@
 //! Encodings the robotics tools read without our code: fixed-size messages are ROS 2 `.msg`
 //! schemas with CDR messages (their `repr(C)` layout of 8-byte fields is CDR's, after the
 //! 4-byte encapsulation header); images become `sensor_msgs/msg/Image`; JSON stays JSON with a
-//! JSON schema; other bytes are `uint8[] data` in CDR. Log and publish times are the producer's
+//! JSON schema; other bytes are `uint8[] data` in CDR. A fixed-size type that declares its
+//! standard ROS 2 equivalent (odometry, IMU, battery, range, twist, joints, transforms) is
+//! recorded as that message ([`crate::standard`]); when it cannot hold our fields exactly, our
+//! bytes are kept beside it on `<topic>/raw`. Log and publish times are the producer's
 //! send stamps, mapped from CLOCK_MONOTONIC to Unix time. The netlist of each revision is an
 //! attachment and a metadata record; task switches are a JSON channel `/<dnm>/_switches`.
 
@@ -32,6 +35,7 @@ use iceoryx2::prelude::*;
 
 use dnm_core::worker::{Control, Sets, Worker, dbg};
 use dnm_core::{Context, DnmReport, ModuleEvent, Plugin, SwitchRecord};
+use crate::standard::Plan;
 pub use dnm_proto::RecordReport;
 use iceoryx2::identifiers::UniquePublisherId;
 use std::collections::HashMap;
@@ -536,9 +540,17 @@ struct OpenFile {
     opened: Instant,
     /// Bytes written to the file so far.
     written: Arc<AtomicU64>,
-    channels: Vec<u16>,
+    channels: Vec<Channel>,
     switches: u16,
     events: u16,
+}
+
+/// A port's channel in a file: the standard message where its type declares one (and our
+/// bytes beside it when that is not exact), else our own message.
+struct Channel {
+    id: u16,
+    raw: Option<u16>,
+    plan: Option<Plan>,
 }
 
 /// Counts the bytes that reach the file (compressed chunks, indexes), for rotation by size.
@@ -598,22 +610,58 @@ fn open_file(
         .map_err(|e| e.to_string())?;
     let mut channels = Vec::new();
     for p in ports {
-        let (schema_name, schema_encoding, schema, message_encoding) = mcap_encoding(&p.message);
-        let schema_id = writer
-            .add_schema(&schema_name, schema_encoding, schema.as_bytes())
-            .map_err(|e| e.to_string())?;
+        let topic = format!("/{dnm}/{}/{}", p.module, p.port);
         let mut meta = BTreeMap::new();
         meta.insert("dnm".to_string(), dnm.to_string());
         meta.insert("dnm_encoding".to_string(), p.message.encoding.clone());
-        let id = writer
-            .add_channel(
-                schema_id,
-                &format!("/{dnm}/{}/{}", p.module, p.port),
-                message_encoding,
-                &meta,
-            )
+        meta.insert("dnm_schema".to_string(), p.message.schema_name.clone());
+        let plan = match Plan::of(&p.message) {
+            Ok(plan) => plan,
+            Err(e) => {
+                tracing::warn!(%topic, "recorded as it is, not as its standard message: {e}");
+                None
+            }
+        };
+        let (schema_name, schema_encoding, schema, message_encoding) = match &plan {
+            Some(plan) => (
+                plan.name().to_string(),
+                "ros2msg",
+                plan.schema().to_string(),
+                "cdr",
+            ),
+            None => mcap_encoding(&p.message),
+        };
+        let schema_id = writer
+            .add_schema(&schema_name, schema_encoding, schema.as_bytes())
             .map_err(|e| e.to_string())?;
-        channels.push(id);
+        let id = writer
+            .add_channel(schema_id, &topic, message_encoding, &meta)
+            .map_err(|e| e.to_string())?;
+        // Our own bytes beside a standard message that cannot hold them exactly: what a
+        // replay feeds modules.
+        let raw = match &plan {
+            Some(plan) if !plan.exact() => {
+                let (schema_name, schema_encoding, schema, message_encoding) =
+                    mcap_encoding(&p.message);
+                let schema_id = writer
+                    .add_schema(&schema_name, schema_encoding, schema.as_bytes())
+                    .map_err(|e| e.to_string())?;
+                let mut meta = meta.clone();
+                meta.insert("dnm_raw_of".to_string(), topic.clone());
+                Some(
+                    writer
+                        .add_channel(
+                            schema_id,
+                            &format!("{topic}{}", crate::RAW_SUFFIX),
+                            message_encoding,
+                            &meta,
+                        )
+                        .map_err(|e| e.to_string())?,
+                )
+            }
+            _ => None,
+        };
+        channels.push(Channel { id, raw, plan });
     }
     let schema_id = writer
         .add_schema(
@@ -779,23 +827,39 @@ fn write_loop(
                     continue;
                 };
                 let time = clock.unix(header.stamp_ns);
-                let data = encode(&p.message, &p.module, time, &bytes);
-                let channel = f.channels[port];
+                let channel = &f.channels[port];
+                let mut head = mcap::records::MessageHeader {
+                    channel_id: channel.id,
+                    sequence: header.seq as u32,
+                    log_time: time,
+                    publish_time: time,
+                };
+                let mut written = 0;
+                let native = || encode(&p.message, &p.module, time, &bytes);
+                let data = match &channel.plan {
+                    Some(plan) => plan.encode(&bytes, time, &p.module),
+                    None => native(),
+                };
+                if let Some(raw) = channel.raw {
+                    let data = native();
+                    let h = mcap::records::MessageHeader {
+                        channel_id: raw,
+                        ..head
+                    };
+                    f.writer
+                        .write_to_known_channel(&h, &data)
+                        .map_err(|e| e.to_string())?;
+                    written += data.len();
+                }
+                head.channel_id = channel.id;
                 f.writer
-                    .write_to_known_channel(
-                        &mcap::records::MessageHeader {
-                            channel_id: channel,
-                            sequence: header.seq as u32,
-                            log_time: time,
-                            publish_time: time,
-                        },
-                        &data,
-                    )
+                    .write_to_known_channel(&head, &data)
                     .map_err(|e| e.to_string())?;
+                written += data.len();
                 counters.messages.fetch_add(1, Ordering::Relaxed);
                 counters
                     .bytes
-                    .fetch_add(data.len() as u64, Ordering::Relaxed);
+                    .fetch_add(written as u64, Ordering::Relaxed);
             }
             None => {}
         }

@@ -100,7 +100,7 @@ pub fn session_name(system: &str, unix_s: u64) -> String {
 
 /// The MCAP summary of a file, read with seeks (`None`: the file has no summary, e.g. it was
 /// not closed).
-fn read_summary(file: &mut File, size: u64) -> Result<Option<mcap::Summary>, String> {
+pub(crate) fn read_summary(file: &mut File, size: u64) -> Result<Option<mcap::Summary>, String> {
     let mut reader = SummaryReader::new_with_options(
         SummaryReaderOptions::default()
             .with_file_size(size)
@@ -185,7 +185,7 @@ fn read_attachment(
 }
 
 /// One file of a session, from its summary.
-fn file_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> FileEntry {
+pub(crate) fn file_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> FileEntry {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())

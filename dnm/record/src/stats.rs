@@ -57,6 +57,10 @@ pub fn stats(bytes: &[u8], parse: &crate::ParseNetlist<'_>) -> Result<Stats, Str
     let mut switches = Vec::new();
     for m in crate::messages(bytes) {
         let Ok(m) = m else { break };
+        if crate::is_raw(&m.channel.topic) {
+            // The same samples as its standard channel.
+            continue;
+        }
         if m.channel.topic.ends_with("/_switches") {
             if let Ok(v) = serde_json::from_slice(&m.data) {
                 switches.push(v);

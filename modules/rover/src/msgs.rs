@@ -3,7 +3,7 @@
 //! byte messages.
 
 use bytemuck::{Pod, Zeroable};
-use dnm_module::msg::{BytesMessage, Message};
+use dnm_module::msg::{BytesMessage, Message, StandardMap};
 
 /// A velocity command: forward speed and turn rate.
 #[repr(C)]
@@ -18,6 +18,14 @@ pub struct Twist {
 impl Message for Twist {
     const SCHEMA_NAME: &'static str = "beetle_msgs/Twist";
     const SCHEMA: &'static str = "float64 linear\nfloat64 angular\n";
+    const STANDARD: StandardMap = Some((
+        "geometry_msgs/msg/TwistStamped",
+        &[
+            ("header.frame_id", "'base_link'"),
+            ("twist.linear.x", "linear"),
+            ("twist.angular.z", "angular"),
+        ],
+    ));
 }
 
 /// A wheel speed command.
@@ -51,6 +59,15 @@ impl Message for MotorState {
     const SCHEMA_NAME: &'static str = "beetle_msgs/MotorState";
     const SCHEMA: &'static str =
         "float64 omega\nfloat64 command\nfloat64 current\nfloat64 limited\n";
+    /// The wheel as a joint: its speed and current (the command and limit are kept beside it).
+    const STANDARD: StandardMap = Some((
+        "sensor_msgs/msg/JointState",
+        &[
+            ("name[0]", "$module"),
+            ("velocity[0]", "omega"),
+            ("effort[0]", "current"),
+        ],
+    ));
 }
 
 /// The simulator's ground truth: the rover's pose in the world and its wheels.
@@ -81,6 +98,18 @@ pub struct WorldState {
 impl Message for WorldState {
     const SCHEMA_NAME: &'static str = "beetle_msgs/WorldState";
     const SCHEMA: &'static str = "float64 x\nfloat64 y\nfloat64 z\nfloat64 yaw\nfloat64 pitch\nfloat64 roll\nfloat64 linear\nfloat64 angular\nfloat64 accel\nfloat64 wheel_left\nfloat64 wheel_right\nfloat64 distance\nuint64 blocked\n";
+    /// The rover's pose in the world, as a transform `world` -> `base_link`.
+    const STANDARD: StandardMap = Some((
+        "tf2_msgs/msg/TFMessage",
+        &[
+            ("header.frame_id", "'world'"),
+            ("child_frame_id", "'base_link'"),
+            ("transform.translation.x", "x"),
+            ("transform.translation.y", "y"),
+            ("transform.translation.z", "z"),
+            ("transform.rotation", "roll pitch yaw"),
+        ],
+    ));
 }
 
 /// Quadrature encoder counts of both wheels since start.
@@ -107,6 +136,20 @@ pub struct Imu {
 impl Message for Imu {
     const SCHEMA_NAME: &'static str = "beetle_msgs/Imu";
     const SCHEMA: &'static str = "float64[3] gyro\nfloat64[3] accel\n";
+    const STANDARD: StandardMap = Some((
+        "sensor_msgs/msg/Imu",
+        &[
+            ("header.frame_id", "'base_link'"),
+            // No orientation estimate (the ROS convention).
+            ("orientation_covariance[0]", "-1"),
+            ("angular_velocity.x", "gyro[0]"),
+            ("angular_velocity.y", "gyro[1]"),
+            ("angular_velocity.z", "gyro[2]"),
+            ("linear_acceleration.x", "accel[0]"),
+            ("linear_acceleration.y", "accel[1]"),
+            ("linear_acceleration.z", "accel[2]"),
+        ],
+    ));
 }
 
 /// The battery pack.
@@ -122,6 +165,20 @@ pub struct BatteryState {
 impl Message for BatteryState {
     const SCHEMA_NAME: &'static str = "beetle_msgs/BatteryState";
     const SCHEMA: &'static str = "float64 voltage\nfloat64 current\nfloat64 charge\n";
+    const STANDARD: StandardMap = Some((
+        "sensor_msgs/msg/BatteryState",
+        &[
+            ("header.frame_id", "$module"),
+            ("voltage", "voltage"),
+            ("current", "current"),
+            ("percentage", "charge"),
+            // Discharging, lithium-ion, present.
+            ("power_supply_status", "2"),
+            ("power_supply_technology", "2"),
+            ("present", "1"),
+            ("location", "$module"),
+        ],
+    ));
 }
 
 /// Distance to the nearest obstacle ahead.
@@ -136,6 +193,15 @@ pub struct Range {
 impl Message for Range {
     const SCHEMA_NAME: &'static str = "beetle_msgs/Range";
     const SCHEMA: &'static str = "float64 range\nfloat64 max\n";
+    const STANDARD: StandardMap = Some((
+        "sensor_msgs/msg/Range",
+        &[
+            ("header.frame_id", "$module"),
+            ("radiation_type", "1"),
+            ("max_range", "max"),
+            ("range", "range"),
+        ],
+    ));
 }
 
 /// Pose and velocity estimated from the wheels.
@@ -154,6 +220,19 @@ impl Message for Odometry {
     const SCHEMA_NAME: &'static str = "beetle_msgs/Odometry";
     const SCHEMA: &'static str =
         "float64 x\nfloat64 y\nfloat64 yaw\nfloat64 linear\nfloat64 angular\nfloat64 distance\n";
+    /// The pose and velocity estimate (the distance driven is kept beside it).
+    const STANDARD: StandardMap = Some((
+        "nav_msgs/msg/Odometry",
+        &[
+            ("header.frame_id", "'odom'"),
+            ("child_frame_id", "'base_link'"),
+            ("pose.pose.position.x", "x"),
+            ("pose.pose.position.y", "y"),
+            ("pose.pose.orientation", "yaw"),
+            ("twist.twist.linear.x", "linear"),
+            ("twist.twist.angular.z", "angular"),
+        ],
+    ));
 }
 
 /// The autopilot's progress through its waypoints.

@@ -10,12 +10,21 @@ use dnm_netlist::{MessageType, Payload};
 
 pub use dnm_netlist::POD_ENCODING;
 
+/// A message type's standard ROS 2 equivalent: its name and `(standard field, source)` pairs
+/// (see [`dnm_netlist::Standard`]).
+pub type StandardMap = Option<(&'static str, &'static [(&'static str, &'static str)])>;
+
 /// A fixed-size message type.
 pub trait Message: Pod {
     /// Schema name, e.g. `dnm_msgs/Tick`.
     const SCHEMA_NAME: &'static str;
     /// Field list in ROS 2 `.msg` syntax, in layout order.
     const SCHEMA: &'static str;
+    /// The standard ROS 2 message recordings store this type as, with where each of its fields
+    /// comes from (see [`dnm_netlist::Standard`]): `("nav_msgs/msg/Odometry",
+    /// &[("pose.pose.position.x", "x"), ("pose.pose.orientation", "yaw"), …])`. `None`: recorded
+    /// as it is, under `SCHEMA_NAME`.
+    const STANDARD: StandardMap = None;
 
     fn message_type() -> MessageType {
         MessageType {
@@ -25,6 +34,13 @@ pub trait Message: Pod {
             payload: Payload::Fixed {
                 size_bytes: size_of::<Self>(),
             },
+            standard: Self::STANDARD.map(|(name, fields)| dnm_netlist::Standard {
+                name: name.to_string(),
+                fields: fields
+                    .iter()
+                    .map(|(to, from)| [to.to_string(), from.to_string()])
+                    .collect(),
+            }),
         }
     }
 }
@@ -42,6 +58,7 @@ pub trait BytesMessage {
             encoding: Self::ENCODING.to_string(),
             schema: Self::SCHEMA.to_string(),
             payload: Payload::Bytes { max_bytes },
+            standard: None,
         }
     }
 }
