@@ -191,7 +191,466 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
     );
     let stats: Value = serde_json::from_slice(&stats.stdout).unwrap();
     assert_eq!(stats.as_array().unwrap().len(), on_disk.len());
+
+    standard_messages_read_with_a_cdr_reader(session);
+    replaying_the_session_reproduces_the_path(&system, session);
     let _ = std::fs::remove_dir_all(path.parent().unwrap());
+}
+
+/// ROS 2 messages as robotics tools declare them, read with Rerun's CDR reader (`re_cdr`).
+mod ros {
+    #![allow(dead_code)] // every field is read (the layout); not every one is checked
+    use serde::Deserialize;
+    #[derive(Debug, Deserialize)]
+    pub struct Time {
+        pub sec: i32,
+        pub nanosec: u32,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Header {
+        pub stamp: Time,
+        pub frame_id: String,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Vector3 {
+        pub x: f64,
+        pub y: f64,
+        pub z: f64,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Quaternion {
+        pub x: f64,
+        pub y: f64,
+        pub z: f64,
+        pub w: f64,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Pose {
+        pub position: Vector3,
+        pub orientation: Quaternion,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Twist {
+        pub linear: Vector3,
+        pub angular: Vector3,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct PoseWithCovariance {
+        pub pose: Pose,
+        pub covariance: [[f64; 6]; 6],
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct TwistWithCovariance {
+        pub twist: Twist,
+        pub covariance: [[f64; 6]; 6],
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Odometry {
+        pub header: Header,
+        pub child_frame_id: String,
+        pub pose: PoseWithCovariance,
+        pub twist: TwistWithCovariance,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Imu {
+        pub header: Header,
+        pub orientation: Quaternion,
+        pub orientation_covariance: [f64; 9],
+        pub angular_velocity: Vector3,
+        pub angular_velocity_covariance: [f64; 9],
+        pub linear_acceleration: Vector3,
+        pub linear_acceleration_covariance: [f64; 9],
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct BatteryState {
+        pub header: Header,
+        pub voltage: f32,
+        pub temperature: f32,
+        pub current: f32,
+        pub charge: f32,
+        pub capacity: f32,
+        pub design_capacity: f32,
+        pub percentage: f32,
+        pub power_supply_status: u8,
+        pub power_supply_health: u8,
+        pub power_supply_technology: u8,
+        pub present: bool,
+        pub cell_voltage: Vec<f32>,
+        pub cell_temperature: Vec<f32>,
+        pub location: String,
+        pub serial_number: String,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Range {
+        pub header: Header,
+        pub radiation_type: u8,
+        pub field_of_view: f32,
+        pub min_range: f32,
+        pub max_range: f32,
+        pub range: f32,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct JointState {
+        pub header: Header,
+        pub name: Vec<String>,
+        pub position: Vec<f64>,
+        pub velocity: Vec<f64>,
+        pub effort: Vec<f64>,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Transform {
+        pub translation: Vector3,
+        pub rotation: Quaternion,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct TransformStamped {
+        pub header: Header,
+        pub child_frame_id: String,
+        pub transform: Transform,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct TfMessage {
+        pub transforms: Vec<TransformStamped>,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct TwistStamped {
+        pub header: Header,
+        pub twist: Twist,
+    }
+    #[derive(Debug, Deserialize)]
+    pub struct Image {
+        pub header: Header,
+        pub height: u32,
+        pub width: u32,
+        pub encoding: String,
+        pub is_bigendian: u8,
+        pub step: u32,
+        pub data: Vec<u8>,
+    }
+
+    pub fn read<'a, T: Deserialize<'a>>(data: &'a [u8]) -> T {
+        assert_eq!(&data[..2], &[0, 1], "little-endian CDR");
+        let (v, used) = re_cdr::from_bytes::<T, re_cdr::LittleEndian>(&data[4..]).unwrap();
+        assert_eq!(used, data.len() - 4, "the whole message is read");
+        v
+    }
+}
+
+/// Every message of a session, by topic: (sequence, log time, data), and each channel's
+/// (schema name, schema encoding, message encoding).
+type Channels =
+    std::collections::BTreeMap<String, ((String, String, String), Vec<(u32, u64, Vec<u8>)>)>;
+
+fn read_session(session: &std::path::Path) -> Channels {
+    let mut out = Channels::new();
+    for f in support::mcap_files(session) {
+        let bytes = std::fs::read(&f).unwrap();
+        for m in mcap::MessageStream::new(&bytes).unwrap() {
+            let m = m.unwrap();
+            let schema = m.channel.schema.as_ref().unwrap();
+            let e = out.entry(m.channel.topic.clone()).or_insert_with(|| {
+                (
+                    (
+                        schema.name.clone(),
+                        schema.encoding.clone(),
+                        m.channel.message_encoding.clone(),
+                    ),
+                    Vec::new(),
+                )
+            });
+            e.1.push((m.sequence, m.log_time, m.data.into_owned()));
+        }
+    }
+    // A DNM's files in the order written: in time.
+    for (_, m) in out.values_mut() {
+        m.sort_by_key(|(_, t, _)| *t);
+    }
+    out
+}
+
+fn pod<T: bytemuck::Pod>(cdr: &[u8]) -> T {
+    bytemuck::pod_read_unaligned(&cdr[4..])
+}
+
+/// The session's ports in standard messages: schema names, fields read with a CDR reader, and
+/// values equal to the ports' own bytes kept beside them.
+fn standard_messages_read_with_a_cdr_reader(session: &std::path::Path) {
+    use dnm_rover::msgs as b;
+    let ch = read_session(session);
+    let expect = [
+        ("/drive/world/state", "tf2_msgs/msg/TFMessage", true),
+        ("/rover/odometry/odom", "nav_msgs/msg/Odometry", true),
+        ("/rover/imu/imu", "sensor_msgs/msg/Imu", false),
+        ("/rover/battery/state", "sensor_msgs/msg/BatteryState", true),
+        ("/rover/range/range", "sensor_msgs/msg/Range", true),
+        (
+            "/drive/watchdog/twist",
+            "geometry_msgs/msg/TwistStamped",
+            false,
+        ),
+        (
+            "/drive/motor_left/state",
+            "sensor_msgs/msg/JointState",
+            true,
+        ),
+        (
+            "/drive/motor_right/state",
+            "sensor_msgs/msg/JointState",
+            true,
+        ),
+        ("/vision/camera/image", "sensor_msgs/msg/Image", false),
+    ];
+    for (topic, name, raw) in expect {
+        let ((schema, enc, msg_enc), msgs) = ch.get(topic).unwrap_or_else(|| panic!("no {topic}"));
+        assert_eq!(
+            (schema.as_str(), enc.as_str(), msg_enc.as_str()),
+            (name, "ros2msg", "cdr"),
+            "{topic}"
+        );
+        assert!(msgs.len() > 10, "{topic}: {} messages", msgs.len());
+        assert_eq!(
+            ch.contains_key(&format!("{topic}/raw")),
+            raw,
+            "{topic}: own bytes kept beside it exactly when the standard message cannot hold them"
+        );
+    }
+    // The pairs of (standard, own) messages of a port, matched by sequence number.
+    let pairs = |topic: &str| -> Vec<(&[u8], &[u8])> {
+        let own: std::collections::HashMap<u32, &[u8]> = ch[&format!("{topic}/raw")]
+            .1
+            .iter()
+            .map(|(s, _, d)| (*s, d.as_slice()))
+            .collect();
+        let v: Vec<(&[u8], &[u8])> = ch[topic]
+            .1
+            .iter()
+            .filter_map(|(s, _, d)| Some((d.as_slice(), *own.get(s)?)))
+            .collect();
+        assert!(v.len() > 10, "{topic}");
+        v
+    };
+    let close = |a: f64, b: f64, tol: f64| (a - b).abs() <= tol;
+    for (std, own) in pairs("/drive/world/state") {
+        let tf: ros::TfMessage = ros::read(std);
+        let w: b::WorldState = pod(own);
+        assert_eq!(tf.transforms.len(), 1);
+        let t = &tf.transforms[0];
+        assert_eq!(
+            (t.header.frame_id.as_str(), t.child_frame_id.as_str()),
+            ("world", "base_link")
+        );
+        assert!(t.header.stamp.sec > 1_700_000_000);
+        let tr = &t.transform.translation;
+        assert_eq!((tr.x, tr.y, tr.z), (w.x, w.y, w.z));
+        let q = &t.transform.rotation;
+        let yaw = (2.0 * (q.w * q.z + q.x * q.y)).atan2(1.0 - 2.0 * (q.y * q.y + q.z * q.z));
+        let d = (yaw - w.yaw).rem_euclid(std::f64::consts::TAU);
+        assert!(
+            d < 1e-9 || d > std::f64::consts::TAU - 1e-9,
+            "{yaw} vs {}",
+            w.yaw
+        );
+        assert!(close(
+            q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w,
+            1.0,
+            1e-12
+        ));
+    }
+    for (std, own) in pairs("/rover/odometry/odom") {
+        let o: ros::Odometry = ros::read(std);
+        let n: b::Odometry = pod(own);
+        assert_eq!(
+            (o.header.frame_id.as_str(), o.child_frame_id.as_str()),
+            ("odom", "base_link")
+        );
+        assert_eq!((o.pose.pose.position.x, o.pose.pose.position.y), (n.x, n.y));
+        assert!(
+            close(
+                2.0 * o.pose.pose.orientation.z.atan2(o.pose.pose.orientation.w),
+                n.yaw,
+                1e-9
+            ) || close(
+                (2.0 * o.pose.pose.orientation.z.atan2(o.pose.pose.orientation.w) - n.yaw).abs(),
+                std::f64::consts::TAU,
+                1e-9
+            )
+        );
+        assert_eq!(
+            (o.twist.twist.linear.x, o.twist.twist.angular.z),
+            (n.linear, n.angular)
+        );
+        assert_eq!(o.pose.covariance, [[0.0; 6]; 6]);
+    }
+    for (std, own) in pairs("/rover/battery/state") {
+        let s: ros::BatteryState = ros::read(std);
+        let n: b::BatteryState = pod(own);
+        assert_eq!(
+            (s.voltage, s.current, s.percentage),
+            (n.voltage as f32, n.current as f32, n.charge as f32)
+        );
+        assert!(s.present && s.location == "battery" && s.power_supply_status == 2);
+        assert!(s.cell_voltage.is_empty() && s.serial_number.is_empty());
+    }
+    for (std, own) in pairs("/rover/range/range") {
+        let s: ros::Range = ros::read(std);
+        let n: b::Range = pod(own);
+        assert_eq!(
+            (s.range, s.max_range, s.radiation_type),
+            (n.range as f32, n.max as f32, 1)
+        );
+    }
+    for (std, own) in pairs("/drive/motor_left/state") {
+        let s: ros::JointState = ros::read(std);
+        let n: b::MotorState = pod(own);
+        assert_eq!(s.name, ["motor_left"]);
+        assert_eq!(
+            (s.velocity.as_slice(), s.effort.as_slice()),
+            (&[n.omega][..], &[n.current][..])
+        );
+        assert!(s.position.is_empty());
+    }
+    // Exact standard messages: no bytes beside them; every field there.
+    for (_, _, d) in &ch["/rover/imu/imu"].1 {
+        let s: ros::Imu = ros::read(d);
+        assert_eq!(s.orientation_covariance[0], -1.0, "no orientation estimate");
+        assert!(
+            s.linear_acceleration.z.abs() > 5.0,
+            "gravity: {:?}",
+            s.linear_acceleration
+        );
+        assert!(s.angular_velocity.x.is_finite() && s.angular_velocity.y.is_finite());
+    }
+    let mut turning = 0;
+    for (_, _, d) in &ch["/drive/watchdog/twist"].1 {
+        let s: ros::TwistStamped = ros::read(d);
+        assert_eq!(s.header.frame_id, "base_link");
+        assert_eq!((s.twist.linear.y, s.twist.linear.z), (0.0, 0.0));
+        turning += usize::from(s.twist.angular.z != 0.0);
+    }
+    assert!(turning > 0, "the rover turned at some point");
+    for (_, _, d) in &ch["/vision/camera/image"].1 {
+        let s: ros::Image = ros::read(d);
+        assert_eq!((s.width, s.height, s.encoding.as_str()), (320, 240, "rgb8"));
+        assert_eq!((s.step, s.data.len()), (960, 960 * 240));
+        assert_eq!(s.is_bigendian, 0);
+        assert!(!s.header.frame_id.is_empty());
+    }
+}
+
+const MIRROR: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "drive"
+
+[[dnm]]
+name = "drive"
+
+# Its world is not linked: the encoder counts come from the replay.
+[[module]]
+name = "encoders"
+kind = "wheel_encoders"
+
+[[module]]
+name = "odometry"
+kind = "odometry"
+
+[task.drive]
+links = ["encoders.ticks -> odometry.ticks"]
+"#;
+
+/// A whole session replayed into a running system whose odometry is fed by the replayed
+/// encoder counts: the path it computes is the recorded one.
+fn replaying_the_session_reproduces_the_path(system: &str, session: &std::path::Path) {
+    use dnm_rover::msgs as b;
+    let recorded: Vec<b::Odometry> = read_session(session)["/rover/odometry/odom/raw"]
+        .1
+        .iter()
+        .map(|(_, _, d)| pod(d))
+        .collect();
+    let mirror = format!("{system}m");
+    let dir = session.parent().unwrap().parent().unwrap().join("mirror");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("mirror.toml");
+    std::fs::write(&file, MIRROR.replace("SYSTEM", &mirror)).unwrap();
+    let up = Up(Command::new(DNM)
+        .args(["--no-multicast", "up"])
+        .arg(&file)
+        .arg("--record-dir")
+        .arg(dir.join("recordings"))
+        .env("DNM_RUN_DIR", &dir)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap());
+    eventually("the mirror's odometry running", || {
+        let out = Command::new(DNM)
+            .args(["status", "--json", "--system", &mirror])
+            .env("DNM_RUN_DIR", &dir)
+            .output()
+            .ok()?;
+        let v: Value = serde_json::from_slice(&out.stdout).ok()?;
+        let running = v.to_string().matches("\"running\"").count();
+        (running >= 2).then_some(())
+    });
+    let out = Command::new(DNM)
+        .args(["replay", "--json", "--fast", "--system", &mirror])
+        .arg(session)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(report["files"].as_array().unwrap().len() >= 4, "{report:#}");
+    assert_eq!(report["unreadable"], 0, "{report:#}");
+    let channels = report["channels"].to_string();
+    assert!(
+        channels.contains("/vision/camera/image") && channels.contains("/drive/world/state"),
+        "{report:#}"
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    drop(up);
+    let mirrored: Vec<b::Odometry> = read_session(&dir.join("recordings"))
+        .get("/drive/odometry/odom/raw")
+        .map(|(_, m)| m.iter().map(|(_, _, d)| pod(d)).collect())
+        .unwrap_or_default();
+    assert!(
+        mirrored.len() > 50,
+        "{} odometry samples from the replay",
+        mirrored.len()
+    );
+    // Stated tolerance: 5 cm, everywhere along the path and at its end.
+    const TOL: f64 = 0.05;
+    let (a, b) = (recorded.last().unwrap(), mirrored.last().unwrap());
+    let end = ((a.x - b.x).powi(2) + (a.y - b.y).powi(2)).sqrt();
+    assert!(
+        end < TOL,
+        "end of path: recorded ({}, {}), replayed ({}, {})",
+        a.x,
+        a.y,
+        b.x,
+        b.y
+    );
+    let worst = mirrored
+        .iter()
+        .map(|m| {
+            recorded
+                .iter()
+                .map(|r| ((r.x - m.x).powi(2) + (r.y - m.y).powi(2)).sqrt())
+                .fold(f64::INFINITY, f64::min)
+        })
+        .fold(0.0, f64::max);
+    assert!(
+        worst < TOL,
+        "a replayed pose {worst} m off the recorded path"
+    );
+    eprintln!(
+        "replayed path: {} poses, end {end:.4} m off, worst {worst:.4} m",
+        mirrored.len()
+    );
 }
 
 /// A module's entry in a DNM report.

@@ -553,7 +553,10 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                     println!("not replayed: {s}");
                 }
                 if r.unreadable > 0 {
-                    println!("{} messages could not be read back and were left out", r.unreadable);
+                    println!(
+                        "{} messages could not be read back and were left out",
+                        r.unreadable
+                    );
                 }
             }
             Ok(ExitCode::SUCCESS)

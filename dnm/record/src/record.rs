@@ -33,9 +33,9 @@ use dnm_netlist::{MessageType, Netlist};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
+use crate::standard::Plan;
 use dnm_core::worker::{Control, Sets, Worker, dbg};
 use dnm_core::{Context, DnmReport, ModuleEvent, Plugin, SwitchRecord};
-use crate::standard::Plan;
 pub use dnm_proto::RecordReport;
 use iceoryx2::identifiers::UniquePublisherId;
 use std::collections::HashMap;
@@ -857,9 +857,7 @@ fn write_loop(
                     .map_err(|e| e.to_string())?;
                 written += data.len();
                 counters.messages.fetch_add(1, Ordering::Relaxed);
-                counters
-                    .bytes
-                    .fetch_add(written as u64, Ordering::Relaxed);
+                counters.bytes.fetch_add(written as u64, Ordering::Relaxed);
             }
             None => {}
         }

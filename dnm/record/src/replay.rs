@@ -311,7 +311,10 @@ impl Plans<'_> {
 
     fn decide(&mut self, topic: &str, schema: &str) -> Result<(String, Reading), String> {
         let raw = crate::is_raw(topic);
-        let port_topic = topic.strip_suffix(crate::RAW_SUFFIX).filter(|_| raw).unwrap_or(topic);
+        let port_topic = topic
+            .strip_suffix(crate::RAW_SUFFIX)
+            .filter(|_| raw)
+            .unwrap_or(topic);
         let mut parts = port_topic.trim_start_matches('/').splitn(3, '/');
         let (Some(dnm), Some(module), Some(port)) = (parts.next(), parts.next(), parts.next())
         else {

@@ -10,7 +10,8 @@
 
 use dnm_netlist::MessageType;
 
-const SEP: &str = "================================================================================\n";
+const SEP: &str =
+    "================================================================================\n";
 
 /// Leaf types of a standard message, in CDR order.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -69,7 +70,10 @@ fn twist() -> String {
     )
 }
 
-fn concat<const A: usize, const B: usize>(a: [(&'static str, Ty); A], b: [(&'static str, Ty); B]) -> Vec<(&'static str, Ty)> {
+fn concat<const A: usize, const B: usize>(
+    a: [(&'static str, Ty); A],
+    b: [(&'static str, Ty); B],
+) -> Vec<(&'static str, Ty)> {
     a.into_iter().chain(b).collect()
 }
 
@@ -161,7 +165,11 @@ fn defs() -> [(Def, &'static std::sync::LazyLock<Vec<(&'static str, Ty)>>); 7] {
     [
         (
             d("geometry_msgs/msg/TwistStamped", || {
-                format!("std_msgs/Header header\ngeometry_msgs/Twist twist\n{}{}", header_deps(), twist())
+                format!(
+                    "std_msgs/Header header\ngeometry_msgs/Twist twist\n{}{}",
+                    header_deps(),
+                    twist()
+                )
             }),
             &TWIST_STAMPED,
         ),
@@ -275,7 +283,11 @@ fn fields(schema: &str) -> Result<Vec<Field>, String> {
             "float64" => NTy::F64,
             "int64" => NTy::I64,
             "uint64" => NTy::U64,
-            other => return Err(format!("field `{name}` is {other}: only 8-byte fields map to a standard message")),
+            other => {
+                return Err(format!(
+                    "field `{name}` is {other}: only 8-byte fields map to a standard message"
+                ));
+            }
         };
         match n {
             None => {
@@ -358,7 +370,8 @@ impl Plan {
                 supported().join(", ")
             ));
         };
-        let fields = fields(&message.schema).map_err(|e| format!("{}: {e}", message.schema_name))?;
+        let fields =
+            fields(&message.schema).map_err(|e| format!("{}: {e}", message.schema_name))?;
         let size = fields.len() * 8;
         if let dnm_netlist::Payload::Fixed { size_bytes } = message.payload
             && size_bytes != size
@@ -384,7 +397,12 @@ impl Plan {
         let mut exact = true;
         let leaf_of = |path: &str| leaves.iter().position(|(p, _)| *p == path);
         for [to, from] in &std.fields {
-            let bad = |why: &str| format!("{}: standard field `{to}` from `{from}`: {why}", message.schema_name);
+            let bad = |why: &str| {
+                format!(
+                    "{}: standard field `{to}` from `{from}`: {why}",
+                    message.schema_name
+                )
+            };
             // A quaternion from yaw, or roll pitch yaw.
             if let Some(x) = leaf_of(&format!("{to}.x"))
                 && leaf_of(&format!("{to}.w")).is_some()
@@ -392,9 +410,15 @@ impl Plan {
                 let names: Vec<&str> = from.split_whitespace().collect();
                 let idx: Vec<Option<usize>> = names.iter().map(|n| field(n)).collect();
                 if idx.iter().any(Option::is_none) || !(names.len() == 1 || names.len() == 3) {
-                    return Err(bad("a quaternion comes from `yaw` or `roll pitch yaw`, fields of the message"));
+                    return Err(bad(
+                        "a quaternion comes from `yaw` or `roll pitch yaw`, fields of the message",
+                    ));
                 }
-                let rpy = if idx.len() == 1 { [None, None, idx[0]] } else { [idx[0], idx[1], idx[2]] };
+                let rpy = if idx.len() == 1 {
+                    [None, None, idx[0]]
+                } else {
+                    [idx[0], idx[1], idx[2]]
+                };
                 for c in 0..4 {
                     srcs[x + c].1 = vec![Src::Quat(rpy, c)];
                 }
@@ -410,11 +434,16 @@ impl Plan {
             let (path, elem) = match to.split_once('[') {
                 Some((p, rest)) => (
                     p,
-                    Some(rest.trim_end_matches(']').parse::<usize>().map_err(|_| bad("bad index"))?),
+                    Some(
+                        rest.trim_end_matches(']')
+                            .parse::<usize>()
+                            .map_err(|_| bad("bad index"))?,
+                    ),
                 ),
                 None => (to.as_str(), None),
             };
-            let leaf = leaf_of(path).ok_or_else(|| bad(&format!("{} has no such field", std.name)))?;
+            let leaf =
+                leaf_of(path).ok_or_else(|| bad(&format!("{} has no such field", std.name)))?;
             let ty = srcs[leaf].0;
             let slot = match (ty, elem) {
                 (Ty::F64Arr(n), Some(i)) if i < n => i,
@@ -442,26 +471,35 @@ impl Plan {
                     return Err(bad("that field is mapped twice"));
                 }
                 back[f] = Back::Leaf(leaf, slot);
-                let lossless = matches!(ty, Ty::F64 | Ty::F64Arr(_) | Ty::F64Seq)
-                    && fields[f].ty == NTy::F64;
+                let lossless =
+                    matches!(ty, Ty::F64 | Ty::F64Arr(_) | Ty::F64Seq) && fields[f].ty == NTy::F64;
                 exact &= lossless;
                 if matches!(ty, Ty::Str | Ty::StrSeq) {
                     return Err(bad("a number cannot be a text field"));
                 }
                 Src::Field(f)
             } else {
-                return Err(bad("neither a field of the message, a number, 'text' nor $module"));
+                return Err(bad(
+                    "neither a field of the message, a number, 'text' nor $module",
+                ));
             };
             let is_text = matches!(ty, Ty::Str | Ty::StrSeq);
             if is_text != matches!(src, Src::Text(_) | Src::Module) {
-                return Err(bad("text fields take 'text' or $module, number fields numbers or fields"));
+                return Err(bad(
+                    "text fields take 'text' or $module, number fields numbers or fields",
+                ));
             }
             srcs[leaf].1[slot] = src;
         }
         for (ty, s) in &srcs {
-            if matches!(ty, Ty::F32Seq | Ty::F64Seq | Ty::StrSeq) && s.iter().any(|s| matches!(s, Src::Zero)) {
+            if matches!(ty, Ty::F32Seq | Ty::F64Seq | Ty::StrSeq)
+                && s.iter().any(|s| matches!(s, Src::Zero))
+            {
                 // Gaps in a list would write zeros the declaration did not ask for.
-                return Err(format!("{}: list elements must be declared from [0] on, without gaps", message.schema_name));
+                return Err(format!(
+                    "{}: list elements must be declared from [0] on, without gaps",
+                    message.schema_name
+                ));
             }
         }
         exact &= back.iter().all(|b| !matches!(b, Back::Lost));
@@ -638,7 +676,13 @@ impl Plan {
                 Back::Lost => 0.0,
                 Back::Leaf(leaf, elem) => values[*leaf].get(*elem).copied().unwrap_or(0.0),
                 Back::Angle(x, angle) => {
-                    let q = |c: usize| values.get(x + c).and_then(|v| v.first()).copied().unwrap_or(0.0);
+                    let q = |c: usize| {
+                        values
+                            .get(x + c)
+                            .and_then(|v| v.first())
+                            .copied()
+                            .unwrap_or(0.0)
+                    };
                     let (qx, qy, qz, qw) = (q(0), q(1), q(2), q(3));
                     match angle {
                         0 => (2.0 * (qw * qx + qy * qz)).atan2(1.0 - 2.0 * (qx * qx + qy * qy)),
@@ -757,7 +801,11 @@ mod tests {
         let m = message(
             "float64 linear\nfloat64 angular\n",
             "geometry_msgs/msg/TwistStamped",
-            &[("twist.linear.x", "linear"), ("twist.angular.z", "angular"), ("header.frame_id", "'base_link'")],
+            &[
+                ("twist.linear.x", "linear"),
+                ("twist.angular.z", "angular"),
+                ("header.frame_id", "'base_link'"),
+            ],
         );
         let p = Plan::of(&m).unwrap().unwrap();
         assert!(p.exact());
@@ -777,13 +825,22 @@ mod tests {
         let m = message(
             "float64 x\nfloat64 y\nfloat64 yaw\nfloat64 distance\n",
             "nav_msgs/msg/Odometry",
-            &[("pose.pose.position.x", "x"), ("pose.pose.position.y", "y"), ("pose.pose.orientation", "yaw")],
+            &[
+                ("pose.pose.position.x", "x"),
+                ("pose.pose.position.y", "y"),
+                ("pose.pose.orientation", "yaw"),
+            ],
         );
         let p = Plan::of(&m).unwrap().unwrap();
         assert!(!p.exact());
         assert_eq!(p.lost(), vec!["distance"]);
-        let back = p.decode(&p.encode(&f64s(&[1.0, 2.0, 2.5, 7.0]), 0, "m")).unwrap();
-        let v: Vec<f64> = back.chunks(8).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect();
+        let back = p
+            .decode(&p.encode(&f64s(&[1.0, 2.0, 2.5, 7.0]), 0, "m"))
+            .unwrap();
+        let v: Vec<f64> = back
+            .chunks(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+            .collect();
         assert_eq!((v[0], v[1], v[3]), (1.0, 2.0, 0.0));
         assert!((v[2] - 2.5).abs() < 1e-12);
     }
@@ -796,8 +853,13 @@ mod tests {
             &[("transform.rotation", "roll pitch yaw")],
         );
         let p = Plan::of(&m).unwrap().unwrap();
-        let back = p.decode(&p.encode(&f64s(&[0.1, -0.2, 3.0]), 0, "m")).unwrap();
-        let v: Vec<f64> = back.chunks(8).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect();
+        let back = p
+            .decode(&p.encode(&f64s(&[0.1, -0.2, 3.0]), 0, "m"))
+            .unwrap();
+        let v: Vec<f64> = back
+            .chunks(8)
+            .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+            .collect();
         for (a, b) in v.iter().zip([0.1, -0.2, 3.0]) {
             assert!((a - b).abs() < 1e-12, "{v:?}");
         }
@@ -806,13 +868,41 @@ mod tests {
     #[test]
     fn declarations_that_cannot_be_followed_say_why() {
         let bad = [
-            ("nav_msgs/msg/Nope", vec![("a", "x")], "not a standard message"),
-            ("sensor_msgs/msg/Range", vec![("rang", "x")], "has no such field"),
-            ("sensor_msgs/msg/Range", vec![("range", "nope")], "neither a field"),
-            ("sensor_msgs/msg/JointState", vec![("velocity", "x")], "name an element"),
-            ("sensor_msgs/msg/JointState", vec![("velocity[1]", "x")], "without gaps"),
-            ("sensor_msgs/msg/Range", vec![("range", "x"), ("max_range", "x")], "mapped twice"),
-            ("sensor_msgs/msg/Range", vec![("header.frame_id", "x")], "text field"),
+            (
+                "nav_msgs/msg/Nope",
+                vec![("a", "x")],
+                "not a standard message",
+            ),
+            (
+                "sensor_msgs/msg/Range",
+                vec![("rang", "x")],
+                "has no such field",
+            ),
+            (
+                "sensor_msgs/msg/Range",
+                vec![("range", "nope")],
+                "neither a field",
+            ),
+            (
+                "sensor_msgs/msg/JointState",
+                vec![("velocity", "x")],
+                "name an element",
+            ),
+            (
+                "sensor_msgs/msg/JointState",
+                vec![("velocity[1]", "x")],
+                "without gaps",
+            ),
+            (
+                "sensor_msgs/msg/Range",
+                vec![("range", "x"), ("max_range", "x")],
+                "mapped twice",
+            ),
+            (
+                "sensor_msgs/msg/Range",
+                vec![("header.frame_id", "x")],
+                "text field",
+            ),
         ];
         for (name, fields, why) in bad {
             let e = Plan::of(&message("float64 x\n", name, &fields)).unwrap_err();
@@ -822,7 +912,11 @@ mod tests {
 
     #[test]
     fn damaged_messages_are_errors_not_panics() {
-        let m = message("float64 x\n", "sensor_msgs/msg/JointState", &[("name[0]", "$module"), ("position[0]", "x")]);
+        let m = message(
+            "float64 x\n",
+            "sensor_msgs/msg/JointState",
+            &[("name[0]", "$module"), ("position[0]", "x")],
+        );
         let p = Plan::of(&m).unwrap().unwrap();
         let good = p.encode(&f64s(&[4.0]), 5, "wheel");
         for n in 0..good.len() {
