@@ -446,7 +446,7 @@ fn standard_messages_read_with_a_cdr_reader(session: &std::path::Path) {
         let yaw = (2.0 * (q.w * q.z + q.x * q.y)).atan2(1.0 - 2.0 * (q.y * q.y + q.z * q.z));
         let d = (yaw - w.yaw).rem_euclid(std::f64::consts::TAU);
         assert!(
-            d < 1e-9 || d > std::f64::consts::TAU - 1e-9,
+            !(1e-9..=std::f64::consts::TAU - 1e-9).contains(&d),
             "{yaw} vs {}",
             w.yaw
         );

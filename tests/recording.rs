@@ -54,6 +54,8 @@ fn start(tag: &str, netlist: &str) -> (Child, PathBuf, String) {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("netlist.toml");
     std::fs::write(&path, netlist.replace("SYSTEM", &system)).unwrap();
+    // Waited for below with wait4(2), which also gives its peak memory.
+    #[allow(clippy::zombie_processes)]
     let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
         .args(["--no-multicast", "up"])
         .arg(&path)
@@ -279,4 +281,140 @@ fn replaying_a_recording_reproduces_downstream_outputs() {
     assert_eq!(&again[start..start + relayed.len()], &relayed[..]);
     let _ = std::fs::remove_dir_all(&live_dir);
     let _ = std::fs::remove_dir_all(&fresh_dir);
+}
+
+const CAMERA_ONLY: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "look"
+
+[[dnm]]
+name = "vision"
+
+[[module]]
+name = "camera"
+kind = "camera"
+
+[task.look]
+links = []
+"#;
+
+/// A session of `bytes` of camera frames (320x240 RGB, uncompressed) in two files whose frames
+/// alternate in time, as the recorder writes them.
+fn camera_session(tag: &str, bytes: u64, system: &str) -> PathBuf {
+    use dnm_module::msg::BytesMessage;
+    let dir = std::env::temp_dir()
+        .join(format!("dnm-test-recmem{}{tag}", std::process::id()))
+        .join(format!("{system}-20261122T000000Z"));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let message = dnm_rover::msgs::Image::message_type(320 * 240 * 3 + 12);
+    let mut native = Vec::with_capacity(320 * 240 * 3 + 12);
+    for v in [320u32, 240, 960] {
+        native.extend_from_slice(&v.to_le_bytes());
+    }
+    native.extend((0..320 * 240 * 3).map(|i| (i % 251) as u8));
+    let frame = dnm::record::encode(&message, "camera", 0, &native);
+    let frames = bytes / frame.len() as u64;
+    let text = CAMERA_ONLY.replace("SYSTEM", system);
+    let t0 = 1_800_000_000_000_000_000u64;
+    for (i, name) in ["rec-vision.mcap", "rec-vision.1.mcap"].iter().enumerate() {
+        let file = std::fs::File::create(dir.join(name)).unwrap();
+        let mut w = mcap::WriteOptions::new()
+            .compression(None)
+            .profile("ros2")
+            .chunk_size(Some(1 << 20))
+            .create(std::io::BufWriter::new(file))
+            .unwrap();
+        w.attach(&mcap::Attachment {
+            log_time: t0,
+            create_time: t0,
+            name: "netlist-r1.toml".into(),
+            media_type: "application/toml".into(),
+            data: std::borrow::Cow::Borrowed(text.as_bytes()),
+        })
+        .unwrap();
+        let (name, enc, schema, menc) = dnm::record::mcap_encoding(&message);
+        let schema = w.add_schema(&name, enc, schema.as_bytes()).unwrap();
+        let channel = w
+            .add_channel(schema, "/vision/camera/image", menc, &BTreeMap::new())
+            .unwrap();
+        for n in (i as u64..frames).step_by(2) {
+            let t = t0 + n * 10_000_000;
+            w.write_to_known_channel(
+                &mcap::records::MessageHeader {
+                    channel_id: channel,
+                    sequence: n as u32,
+                    log_time: t,
+                    publish_time: t,
+                },
+                &frame,
+            )
+            .unwrap();
+        }
+        w.finish().unwrap();
+    }
+    dir
+}
+
+/// Replays `session` as fast as it goes; returns the replay's report and its peak resident
+/// memory (bytes).
+fn replay_peak_rss(session: &Path, system: &str) -> (serde_json::Value, u64) {
+    // Waited for below with wait4(2), which also gives its peak memory.
+    #[allow(clippy::zombie_processes)]
+    let child = Command::new(env!("CARGO_BIN_EXE_dnm"))
+        .args(["replay", "--json", "--fast", "--system", system])
+        .arg(session)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let pid = child.id() as i32;
+    let mut stdout = child.stdout.unwrap();
+    let mut out = String::new();
+    std::io::Read::read_to_string(&mut stdout, &mut out).unwrap();
+    let mut status = 0;
+    // SAFETY: rusage is plain data; all zeroes is a valid value.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: wait4(2) on our own child, with valid pointers.
+    let r = unsafe { libc::wait4(pid, &mut status, 0, &mut usage) };
+    assert_eq!(r, pid);
+    assert!(
+        libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0,
+        "{out}"
+    );
+    (
+        serde_json::from_str(&out).unwrap(),
+        usage.ru_maxrss as u64 * 1024,
+    )
+}
+
+#[test]
+fn replaying_a_2_gib_session_streams_it_with_memory_flat() {
+    let system = format!("recmem{}", std::process::id());
+    let small = camera_session("small", 64 << 20, &system);
+    let (report, small_rss) = replay_peak_rss(&small, &system);
+    let small_frames = report["messages"].as_u64().unwrap();
+    assert!(small_frames > 200, "{report}");
+    let _ = std::fs::remove_dir_all(small.parent().unwrap());
+    let big = camera_session("big", 2 << 30, &system);
+    let (report, big_rss) = replay_peak_rss(&big, &system);
+    let big_frames = report["messages"].as_u64().unwrap();
+    let _ = std::fs::remove_dir_all(big.parent().unwrap());
+    // Every frame of both files, none unreadable.
+    assert!(big_frames > 9000, "{report}");
+    assert_eq!(report["unreadable"], 0, "{report}");
+    assert_eq!(report["files"].as_array().unwrap().len(), 2, "{report}");
+    eprintln!(
+        "peak memory replaying {small_frames} frames (64 MiB): {} MiB; {big_frames} frames (2 GiB): {} MiB",
+        small_rss >> 20,
+        big_rss >> 20
+    );
+    // 32 times the data, the same memory: what it holds does not grow with the session.
+    assert!(
+        big_rss < small_rss + (32 << 20),
+        "peak memory {} MiB for 2 GiB against {} MiB for 64 MiB",
+        big_rss >> 20,
+        small_rss >> 20
+    );
 }

@@ -278,6 +278,9 @@ struct Target {
     message: MessageType,
 }
 
+/// A channel's port topic and how to read it, or why it is not replayed (empty: silently).
+type Decided = Result<(String, Reading), String>;
+
 /// What a replay reads and where it publishes.
 struct Plans<'a> {
     netlist: &'a Netlist,
@@ -286,7 +289,7 @@ struct Plans<'a> {
     nodes: BTreeMap<String, Node<Svc>>,
     targets: BTreeMap<String, Target>,
     /// Per (topic, schema): how to read it and into which port, or why not.
-    readings: HashMap<(Arc<str>, Arc<str>), Result<(String, Reading), String>>,
+    readings: HashMap<(Arc<str>, Arc<str>), Decided>,
     /// Ports whose own bytes are recorded beside their standard message.
     raw_ports: BTreeSet<String>,
     skipped: BTreeMap<String, String>,
@@ -335,9 +338,10 @@ impl Plans<'_> {
             .and_then(|k| k.outputs.iter().find(|p| p.name == port))
             .map(|p| p.message.clone())
             .ok_or_else(|| format!("the recorded netlist has no output {module}.{port}"))?;
-        let reading = if raw || schema == message.schema_name {
-            Reading::Own
-        } else if message.encoding == "dnm-image-rgb8" && schema == "sensor_msgs/msg/Image" {
+        let own = raw
+            || schema == message.schema_name
+            || (message.encoding == "dnm-image-rgb8" && schema == "sensor_msgs/msg/Image");
+        let reading = if own {
             Reading::Own
         } else {
             match Plan::of(&message) {

@@ -160,7 +160,10 @@ static TF_MESSAGE: std::sync::LazyLock<Vec<(&str, Ty)>> = std::sync::LazyLock::n
     v
 });
 
-fn defs() -> [(Def, &'static std::sync::LazyLock<Vec<(&'static str, Ty)>>); 7] {
+/// A standard message's leaves, in CDR order.
+type Leaves = std::sync::LazyLock<Vec<(&'static str, Ty)>>;
+
+fn defs() -> [(Def, &'static Leaves); 7] {
     let d = |name, schema: fn() -> String| Def { name, schema };
     [
         (
