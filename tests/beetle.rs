@@ -194,6 +194,7 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
 
     standard_messages_read_with_a_cdr_reader(session);
     replaying_the_session_reproduces_the_path(&system, session);
+    odometry_is_deterministic_on_its_recorded_inputs(session);
     let _ = std::fs::remove_dir_all(path.parent().unwrap());
 }
 
@@ -535,6 +536,54 @@ fn standard_messages_read_with_a_cdr_reader(session: &std::path::Path) {
         assert_eq!(s.is_bigendian, 0);
         assert!(!s.header.frame_id.is_empty());
     }
+}
+
+/// `dnm replay --check odometry`: its code, on its recorded inputs, writes what it wrote on the
+/// rover; with a parameter changed, the check reports where it first diverges.
+fn odometry_is_deterministic_on_its_recorded_inputs(session: &std::path::Path) {
+    let check = |extra: &[&str]| {
+        let out = Command::new(DNM)
+            .args(["replay", "--json", "--check", "odometry"])
+            .args(extra)
+            .arg(session)
+            .output()
+            .unwrap();
+        let report: Value = serde_json::from_slice(&out.stdout)
+            .unwrap_or_else(|_| panic!("{}", String::from_utf8_lossy(&out.stderr)));
+        (out.status.code(), report)
+    };
+    let (code, r) = check(&[]);
+    assert_eq!(code, Some(0), "{r:#}");
+    assert_eq!(r["ok"], true, "{r:#}");
+    let odom = &r["outputs"]["odom"];
+    let recorded = odom["recorded"].as_u64().unwrap();
+    assert!(recorded > 500, "{r:#}");
+    assert_eq!(
+        odom["identical"].as_u64().unwrap() + odom["within_tolerance"].as_u64().unwrap(),
+        recorded,
+        "{r:#}"
+    );
+    // Positions come from encoder counts alone: bit for bit, not just within tolerance.
+    assert!(odom["identical"].as_u64().unwrap() > 0, "{r:#}");
+    eprintln!("determinism check: {odom}");
+
+    let (code, r) = check(&["--set", "wheel_radius=0.16"]);
+    assert_eq!(code, Some(1), "{r:#}");
+    assert_eq!(r["ok"], false);
+    assert_eq!(r["params"]["wheel_radius"], 0.16);
+    let d = &r["divergence"];
+    assert_eq!(d["output"], "odometry.odom", "{r:#}");
+    let fields: Vec<&str> = d["fields"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
+    assert!(
+        fields.contains(&"distance") && fields.contains(&"x"),
+        "{r:#}"
+    );
+    assert!(d["recorded"]["x"] != d["replayed"]["x"], "{r:#}");
 }
 
 const MIRROR: &str = r#"

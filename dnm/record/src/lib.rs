@@ -11,6 +11,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod check;
 pub mod record;
 pub mod replay;
 pub mod session;

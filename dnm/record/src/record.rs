@@ -130,7 +130,7 @@ struct Counters {
     error: std::sync::Mutex<Option<String>>,
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 struct RecPort {
     module: String,
     port: String,
@@ -160,6 +160,10 @@ pub struct Recorder {
     options: RecordOptions,
     reader: Option<Worker<RecPort>>,
     writer: Option<JoinHandle<()>>,
+    /// The revision in force (netlist, revision) and the one prepared, if any: ports are
+    /// recorded from the prepare on, so a module's first samples are in the recording.
+    in_force: Option<(Arc<Netlist>, u64)>,
+    prepared: Option<u64>,
 }
 
 impl std::fmt::Debug for Recorder {
@@ -210,6 +214,8 @@ impl Recorder {
             options,
             reader: Some(reader),
             writer: Some(writer),
+            in_force: None,
+            prepared: None,
         })
     }
 
@@ -284,8 +290,31 @@ impl Plugin for Recorder {
         "recorder"
     }
 
-    fn commit(&mut self, ctx: &Context<'_>, netlist: &Netlist, revision: u64) {
+    fn prepare(
+        &mut self,
+        ctx: &Context<'_>,
+        netlist: &Netlist,
+        revision: u64,
+    ) -> Result<(), String> {
+        // Subscribed before the modules of the revision run: their first samples are recorded.
         Recorder::commit(self, netlist, ctx.dnm, revision);
+        self.prepared = Some(revision);
+        Ok(())
+    }
+
+    fn abort(&mut self, ctx: &Context<'_>, revision: u64) {
+        if self.prepared.take() == Some(revision)
+            && let Some((netlist, in_force)) = self.in_force.clone()
+        {
+            Recorder::commit(self, &netlist, ctx.dnm, in_force);
+        }
+    }
+
+    fn commit(&mut self, ctx: &Context<'_>, netlist: &Netlist, revision: u64) {
+        if self.prepared.take() != Some(revision) {
+            Recorder::commit(self, netlist, ctx.dnm, revision);
+        }
+        self.in_force = Some((Arc::new(netlist.clone()), revision));
     }
 
     fn switch(&mut self, record: &SwitchRecord) {
@@ -331,6 +360,9 @@ fn read_loop(
 ) -> Result<(), String> {
     let node = &control.node;
     let mut wanted: Vec<RecPort> = Vec::new();
+    // The previous set's subscribers, with their sequence numbers: a port in both sets keeps
+    // its subscriber, so nothing it sends while the set changes (an apply) is missed.
+    let mut previous: Vec<(RecPort, Option<PortSubscriber>, SeqByPublisher)> = Vec::new();
     loop {
         // If the writer is gone (disk full, folder removed), the ports are still drained and
         // every sample counted as dropped.
@@ -338,7 +370,17 @@ fn read_loop(
         // One slot per port, aligned with the writer's channels; a port that cannot be
         // subscribed to (all its subscriber slots taken) is reported and left out.
         let mut open: Vec<Option<Subscriber<Svc, [u8], PortHeader>>> = Vec::new();
+        // Next expected sequence number, per port and publisher (a replay or a replacement
+        // publishes beside the module).
+        let mut next_seq: Vec<SeqByPublisher> = Vec::new();
         for p in &wanted {
+            if let Some(i) = previous.iter().position(|(q, s, _)| q == p && s.is_some()) {
+                let (_, subscriber, seqs) = previous.swap_remove(i);
+                open.push(subscriber);
+                next_seq.push(seqs);
+                continue;
+            }
+            next_seq.push(HashMap::new());
             let service = output_service(&p.module, &p.port);
             let subscriber = port_service(node, &service, &p.message.payload)
                 .map_err(|e| e.to_string())
@@ -366,14 +408,18 @@ fn read_loop(
         let _tick_guard = waitset
             .attach_interval(DRAIN_PERIOD)
             .map_err(dbg("attach"))?;
-        // Next expected sequence number, per port and publisher (a replay or a replacement
-        // publishes beside the module).
-        let mut next_seq: Vec<HashMap<UniquePublisherId, u64>> = vec![HashMap::new(); open.len()];
+        previous.clear();
         loop {
             // Sets sent before the waitset was attached count too.
             match control.newest() {
                 Sets::Closed => return Ok(()),
                 Sets::New(set) => {
+                    previous = std::mem::take(&mut wanted)
+                        .into_iter()
+                        .zip(std::mem::take(&mut open))
+                        .zip(std::mem::take(&mut next_seq))
+                        .map(|((p, s), n)| (p, s, n))
+                        .collect();
                     wanted = set;
                     break;
                 }
@@ -414,6 +460,12 @@ fn read_loop(
         }
     }
 }
+
+/// A recorder's subscriber on a port.
+type PortSubscriber = Subscriber<Svc, [u8], PortHeader>;
+
+/// Next expected sequence number of a port's samples, per publisher.
+type SeqByPublisher = HashMap<UniquePublisherId, u64>;
 
 /// CLOCK_MONOTONIC → Unix time, fixed when the recorder starts.
 struct Clock {

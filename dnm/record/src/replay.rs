@@ -120,19 +120,19 @@ fn image(data: &[u8]) -> Result<Vec<u8>, String> {
 
 /// How a channel's messages become its port's bytes.
 #[derive(Clone)]
-enum Reading {
+pub(crate) enum Reading {
     Own,
     Standard(Arc<Plan>),
 }
 
 /// One recorded message, on its way to a port.
-struct Msg {
-    time: u64,
-    seq: u32,
+pub(crate) struct Msg {
+    pub(crate) time: u64,
+    pub(crate) seq: u32,
     /// The channel's topic and schema name.
-    topic: Arc<str>,
-    schema: Arc<str>,
-    data: Vec<u8>,
+    pub(crate) topic: Arc<str>,
+    pub(crate) schema: Arc<str>,
+    pub(crate) data: Vec<u8>,
 }
 
 /// One file's messages in log-time order (closed files) or file order (a file cut short).
@@ -272,6 +272,106 @@ impl Source {
     }
 }
 
+/// Files merged in log-time order.
+pub(crate) struct Merge {
+    sources: Vec<Source>,
+    heads: Vec<Option<Msg>>,
+    heap: BinaryHeap<Reverse<(u64, usize)>>,
+    pub(crate) names: Vec<String>,
+}
+
+impl Merge {
+    /// Opens `files`; returns each one's summary too (`None`: not closed).
+    pub(crate) fn open(files: &[PathBuf]) -> Result<(Self, Vec<Option<mcap::Summary>>), String> {
+        let mut sources = Vec::new();
+        let mut summaries = Vec::new();
+        let mut names = Vec::new();
+        for f in files {
+            let (source, summary) = Source::open(f).map_err(|e| format!("{}: {e}", f.display()))?;
+            sources.push(source);
+            summaries.push(summary);
+            names.push(
+                f.file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default(),
+            );
+        }
+        let mut heads = Vec::with_capacity(sources.len());
+        let mut heap = BinaryHeap::new();
+        for (i, s) in sources.iter_mut().enumerate() {
+            let head = next_ok(s, &names[i]);
+            if let Some(m) = &head {
+                heap.push(Reverse((m.time, i)));
+            }
+            heads.push(head);
+        }
+        Ok((
+            Self {
+                sources,
+                heads,
+                heap,
+                names,
+            },
+            summaries,
+        ))
+    }
+
+    pub(crate) fn next(&mut self) -> Option<Msg> {
+        loop {
+            let Reverse((_, i)) = self.heap.pop()?;
+            let Some(m) = self.heads[i].take() else {
+                continue;
+            };
+            self.heads[i] = next_ok(&mut self.sources[i], &self.names[i]);
+            if let Some(n) = &self.heads[i] {
+                self.heap.push(Reverse((n.time, i)));
+            }
+            return Some(m);
+        }
+    }
+}
+
+/// How a message recorded as `schema` on a channel of `message`'s port becomes the port's
+/// bytes (`raw`: the channel of its own bytes kept beside a standard message).
+pub(crate) fn reading_of(
+    message: &MessageType,
+    schema: &str,
+    raw: bool,
+) -> Result<Reading, String> {
+    let own = raw
+        || schema == message.schema_name
+        || (message.encoding == "dnm-image-rgb8" && schema == "sensor_msgs/msg/Image");
+    if own {
+        return Ok(Reading::Own);
+    }
+    match Plan::of(message) {
+        Ok(Some(plan)) if plan.name() == schema => Ok(Reading::Standard(Arc::new(plan))),
+        _ => Err(format!(
+            "recorded as {schema}, which {} cannot be read back from",
+            message.schema_name
+        )),
+    }
+}
+
+impl Reading {
+    /// The port's bytes from a recorded message.
+    pub(crate) fn read(&self, message: &MessageType, data: &[u8]) -> Result<Vec<u8>, String> {
+        let p = match self {
+            Reading::Own => decode(message, data)?,
+            Reading::Standard(plan) => plan.decode(data)?,
+        };
+        let fits = match message.payload {
+            Payload::Fixed { size_bytes } => p.len() == size_bytes,
+            Payload::Bytes { max_bytes } => p.len() <= max_bytes,
+        };
+        if fits {
+            Ok(p)
+        } else {
+            Err(format!("{} bytes do not fit {message}", p.len()))
+        }
+    }
+}
+
 struct Target {
     publisher: iceoryx2::port::publisher::Publisher<Svc, [u8], PortHeader>,
     notifier: iceoryx2::port::notifier::Notifier<Svc>,
@@ -338,22 +438,7 @@ impl Plans<'_> {
             .and_then(|k| k.outputs.iter().find(|p| p.name == port))
             .map(|p| p.message.clone())
             .ok_or_else(|| format!("the recorded netlist has no output {module}.{port}"))?;
-        let own = raw
-            || schema == message.schema_name
-            || (message.encoding == "dnm-image-rgb8" && schema == "sensor_msgs/msg/Image");
-        let reading = if own {
-            Reading::Own
-        } else {
-            match Plan::of(&message) {
-                Ok(Some(plan)) if plan.name() == schema => Reading::Standard(Arc::new(plan)),
-                _ => {
-                    return Err(format!(
-                        "recorded as {schema}, which {} cannot be read back from",
-                        message.schema_name
-                    ));
-                }
-            }
-        };
+        let reading = reading_of(&message, schema, raw)?;
         if !self.targets.contains_key(port_topic) {
             self.target(dnm, module, port, port_topic, message)?;
         }
@@ -446,34 +531,22 @@ pub fn replay(
         raw_ports: BTreeSet::new(),
         skipped: BTreeMap::new(),
     };
-    let mut sources = Vec::new();
-    let mut names = Vec::new();
-    for f in &files {
-        let (source, summary) = Source::open(f).map_err(|e| format!("{}: {e}", f.display()))?;
-        if let Some(summary) = &summary {
-            for c in summary.channels.values() {
-                if crate::is_raw(&c.topic) {
-                    plans
-                        .raw_ports
-                        .insert(c.topic.trim_end_matches(crate::RAW_SUFFIX).to_string());
-                }
+    let (mut merge, summaries) = Merge::open(&files)?;
+    for summary in summaries.iter().flatten() {
+        for c in summary.channels.values() {
+            if crate::is_raw(&c.topic) {
+                plans
+                    .raw_ports
+                    .insert(c.topic.trim_end_matches(crate::RAW_SUFFIX).to_string());
             }
         }
-        sources.push((source, summary));
-        names.push(
-            f.file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default(),
-        );
     }
     // Every port is opened before the first sample, so subscribers connect in time.
-    for (_, summary) in &sources {
-        if let Some(summary) = summary {
-            for c in summary.channels.values() {
-                let schema: Arc<str> = Arc::from(c.schema.as_ref().map_or("", |s| s.name.as_str()));
-                let topic: Arc<str> = Arc::from(c.topic.as_str());
-                plans.reading(&topic, &schema);
-            }
+    for summary in summaries.iter().flatten() {
+        for c in summary.channels.values() {
+            let schema: Arc<str> = Arc::from(c.schema.as_ref().map_or("", |s| s.name.as_str()));
+            let topic: Arc<str> = Arc::from(c.topic.as_str());
+            plans.reading(&topic, &schema);
         }
     }
     if let Some(e) = plans
@@ -485,29 +558,14 @@ pub fn replay(
     }
     std::thread::sleep(Duration::from_millis(200));
 
-    let mut sources: Vec<Source> = sources.into_iter().map(|(s, _)| s).collect();
-    let mut heads: Vec<Option<Msg>> = Vec::with_capacity(sources.len());
-    let mut heap = BinaryHeap::new();
-    for (i, s) in sources.iter_mut().enumerate() {
-        let head = next_ok(s, &names[i]);
-        if let Some(m) = &head {
-            heap.push(Reverse((m.time, i)));
-        }
-        heads.push(head);
-    }
     let mut report = ReplayReport {
-        files: names.clone(),
+        files: merge.names.clone(),
         ..Default::default()
     };
     let start = Instant::now();
     let mut t0 = None;
     let stdin = std::io::stdin();
-    while let Some(Reverse((_, i))) = heap.pop() {
-        let Some(m) = heads[i].take() else { continue };
-        heads[i] = next_ok(&mut sources[i], &names[i]);
-        if let Some(n) = &heads[i] {
-            heap.push(Reverse((n.time, i)));
-        }
+    while let Some(m) = merge.next() {
         if crate::is_raw(&m.topic) {
             plans
                 .raw_ports
@@ -519,23 +577,9 @@ pub fn replay(
         let Some(target) = plans.targets.get(&port_topic) else {
             continue;
         };
-        let payload = match &reading {
-            Reading::Own => decode(&target.message, &m.data),
-            Reading::Standard(plan) => plan.decode(&m.data),
-        };
-        let payload = match payload {
-            Ok(p)
-                if match target.message.payload {
-                    Payload::Fixed { size_bytes } => p.len() == size_bytes,
-                    Payload::Bytes { max_bytes } => p.len() <= max_bytes,
-                } =>
-            {
-                p
-            }
-            Ok(_) | Err(_) => {
-                report.unreadable += 1;
-                continue;
-            }
+        let Ok(payload) = reading.read(&target.message, &m.data) else {
+            report.unreadable += 1;
+            continue;
         };
         let t0 = *t0.get_or_insert(m.time);
         match pace {

@@ -18,14 +18,46 @@ fn unix_now_ns() -> u64 {
         .map_or(0, |d| d.as_nanos() as u64)
 }
 
+/// Unix time minus CLOCK_MONOTONIC, ns, as last measured, and when (monotonic ns).
+static OFFSET: std::sync::atomic::AtomicI64 = std::sync::atomic::AtomicI64::new(0);
+static MEASURED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Unix time minus CLOCK_MONOTONIC, measured at most once a second from the tightest of a few
+/// readings of both clocks: every sample converted within that second shifts by the same
+/// amount, so the time between two samples crosses machines unchanged (a conversion per sample
+/// would add the scheduling delay between two clock reads, tens of microseconds on a busy
+/// computer).
+fn unix_minus_mono(mono_now: u64) -> i64 {
+    use std::sync::atomic::Ordering::Relaxed;
+    let at = MEASURED.load(Relaxed);
+    if at != 0 && mono_now.saturating_sub(at) < 1_000_000_000 {
+        return OFFSET.load(Relaxed);
+    }
+    let mut best: Option<(u64, i64)> = None;
+    for _ in 0..4 {
+        let a = dnm_module::protocol::monotonic_ns();
+        let unix = unix_now_ns();
+        let b = dnm_module::protocol::monotonic_ns();
+        let gap = b.saturating_sub(a);
+        let offset = unix as i64 - (a / 2 + b / 2) as i64;
+        if best.is_none_or(|(g, _)| gap < g) {
+            best = Some((gap, offset));
+        }
+    }
+    let offset = best.map_or(0, |(_, o)| o);
+    OFFSET.store(offset, Relaxed);
+    MEASURED.store(mono_now.max(1), Relaxed);
+    offset
+}
+
 /// The header as it leaves this machine: its send time also in wall-clock time.
 pub fn to_wire(h: &PortHeader) -> SampleHeader {
-    let age = dnm_module::protocol::monotonic_ns().saturating_sub(h.stamp_ns);
+    let offset = unix_minus_mono(dnm_module::protocol::monotonic_ns());
     SampleHeader {
         stamp_ns: h.stamp_ns,
         seq: h.seq,
         task_word: h.task_word,
-        unix_ns: unix_now_ns().saturating_sub(age),
+        unix_ns: (h.stamp_ns as i64).saturating_add(offset).max(0) as u64,
     }
 }
 
@@ -38,7 +70,8 @@ pub fn from_wire(h: SampleHeader) -> PortHeader {
     let stamp_ns = if h.unix_ns == 0 {
         now
     } else {
-        now.saturating_sub(unix_now_ns().saturating_sub(h.unix_ns))
+        let offset = unix_minus_mono(now);
+        ((h.unix_ns as i64).saturating_sub(offset).max(0) as u64).min(now)
     };
     PortHeader {
         stamp_ns,

@@ -15,6 +15,8 @@ use crate::runtime::{Module, ModuleError, run};
 pub struct Registration {
     pub spec: fn() -> KindSpec,
     pub run: fn(&Launch) -> Result<(), ModuleError>,
+    /// Builds the module in this process, to step it with [`crate::Offline`].
+    pub make: fn(&mut crate::Setup<'_>) -> Result<Box<dyn crate::Stepper>, ModuleError>,
 }
 
 /// The kinds one executable can run.
@@ -32,6 +34,7 @@ impl Registry {
         self.kinds.push(Registration {
             spec: M::kind,
             run: run::<M>,
+            make: crate::runtime::make::<M>,
         });
         self
     }

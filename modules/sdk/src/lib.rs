@@ -38,8 +38,8 @@ mod runtime;
 pub use host::{Registration, Registry, host_main};
 pub use kind::Kind;
 pub use runtime::{
-    BytesInput, BytesOutput, Input, Io, Module, ModuleError, Output, Setup, TaskWatch,
-    event_service, plan_service_factory, port_service, status_service_factory,
+    BytesInput, BytesOutput, Input, Io, Module, ModuleError, Offline, Output, Setup, Stepper,
+    TaskWatch, event_service, plan_service_factory, port_service, status_service_factory,
 };
 
 /// Logs to stderr through `tracing`, filtered by `RUST_LOG` (default `info`); iceoryx2's own

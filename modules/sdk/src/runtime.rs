@@ -275,6 +275,20 @@ impl Routes {
 
 /// Given to [`Module::step`]: reads inputs under the task active for this step, writes outputs.
 pub struct Io<'a> {
+    word: u64,
+    now_ns: u64,
+    ports: Ports<'a>,
+}
+
+/// Where a step's inputs come from and its outputs go.
+enum Ports<'a> {
+    /// A module process: shared memory, under its DNM.
+    Shm(Shm<'a>),
+    /// A module run without a DNM ([`Offline`]).
+    Offline(&'a mut Offline),
+}
+
+struct Shm<'a> {
     outputs: &'a mut [OutPort],
     conns: &'a [SourceConn],
     /// Per input: the connection feeding it in this step.
@@ -285,8 +299,6 @@ pub struct Io<'a> {
     /// source then).
     fresh_after: &'a [u64],
     routes: Option<&'a Routes>,
-    word: u64,
-    now_ns: u64,
     sent: &'a mut u64,
 }
 
@@ -298,26 +310,7 @@ impl std::fmt::Debug for Io<'_> {
     }
 }
 
-impl Io<'_> {
-    /// CLOCK_MONOTONIC time at the start of this step, ns.
-    pub fn now_ns(&self) -> u64 {
-        self.now_ns
-    }
-
-    /// The task this step runs under.
-    pub fn task(&self) -> Option<&str> {
-        let (_, slot) = split_task_word(self.word);
-        self.routes?
-            .tasks
-            .get(usize::from(slot))
-            .map(String::as_str)
-    }
-
-    /// (netlist revision, task slot) of this step.
-    pub fn task_word(&self) -> (u64, u16) {
-        split_task_word(self.word)
-    }
-
+impl Shm<'_> {
     fn sample(&self, input: usize) -> Option<&PortSample> {
         let conn = (*self.active.get(input)?)?;
         let after = self.fresh_after.get(input).copied().unwrap_or(0);
@@ -340,65 +333,145 @@ impl Io<'_> {
         Some(sample)
     }
 
+    fn send(
+        &mut self,
+        index: usize,
+        word: u64,
+        len: usize,
+        fill: impl FnOnce(&mut [u8]),
+    ) -> Result<(), ModuleError> {
+        let out = &mut self.outputs[index];
+        let sample = out.publisher.loan_slice_uninit(len).map_err(ipc("loan"))?;
+        // Zero the uninitialised bytes only through the safe API: `write_from_fn` initialises
+        // each byte once, then `fill` overwrites what it needs.
+        let mut sample = sample.write_from_fn(|_| 0u8);
+        fill(sample.payload_mut());
+        // Stamped last, so latency measures delivery, not how long the producer took to fill.
+        *sample.user_header_mut() = PortHeader {
+            stamp_ns: monotonic_ns(),
+            seq: out.seq,
+            task_word: word,
+        };
+        out.seq += 1;
+        sample.send().map_err(ipc("send"))?;
+        *self.sent += 1;
+        out.notifier.notify().map_err(ipc("notify"))?;
+        Ok(())
+    }
+}
+
+impl Io<'_> {
+    /// CLOCK_MONOTONIC time at the start of this step, ns.
+    pub fn now_ns(&self) -> u64 {
+        self.now_ns
+    }
+
+    /// The task this step runs under.
+    pub fn task(&self) -> Option<&str> {
+        match &self.ports {
+            Ports::Shm(shm) => {
+                let (_, slot) = split_task_word(self.word);
+                shm.routes?.tasks.get(usize::from(slot)).map(String::as_str)
+            }
+            Ports::Offline(o) => o.task.as_deref(),
+        }
+    }
+
+    /// (netlist revision, task slot) of this step.
+    pub fn task_word(&self) -> (u64, u16) {
+        split_task_word(self.word)
+    }
+
+    /// The newest sample on `input` (header and bytes), new or not.
+    fn sample(&self, input: usize) -> Option<(PortHeader, &[u8])> {
+        match &self.ports {
+            Ports::Shm(shm) => shm.sample(input).map(|s| (*s.user_header(), s.payload())),
+            Ports::Offline(o) => o
+                .inputs
+                .get(input)?
+                .as_ref()
+                .map(|(h, b, _)| (*h, b.as_slice())),
+        }
+    }
+
+    /// The newest sample on `input` if this input has not read it yet.
+    fn take_new(&mut self, input: usize) -> Option<(PortHeader, &[u8])> {
+        match &mut self.ports {
+            Ports::Shm(shm) => shm.take_new(input).map(|s| (*s.user_header(), s.payload())),
+            Ports::Offline(o) => {
+                let (h, b, generation) = o.inputs.get(input)?.as_ref()?;
+                if o.seen.get(input).copied().flatten() == Some(*generation) {
+                    return None;
+                }
+                o.seen[input] = Some(*generation);
+                Some((*h, b.as_slice()))
+            }
+        }
+    }
+
     /// The newest value on `input` if it arrived since this input last read it, from the source
     /// connected in the active task.
     pub fn read<M: Message>(&mut self, input: &Input<M>) -> Option<M> {
-        let s = self.take_new(input.index)?;
-        bytemuck::try_pod_read_unaligned(s.payload()).ok()
+        let (_, b) = self.take_new(input.index)?;
+        bytemuck::try_pod_read_unaligned(b).ok()
     }
 
     /// The newest value on `input`, new or not.
     pub fn latest<M: Message>(&self, input: &Input<M>) -> Option<M> {
-        bytemuck::try_pod_read_unaligned(self.sample(input.index)?.payload()).ok()
+        bytemuck::try_pod_read_unaligned(self.sample(input.index)?.1).ok()
     }
 
     /// Header (send time, sequence) of the newest sample on an input.
     pub fn header<M>(&self, input: &Input<M>) -> Option<PortHeader> {
-        self.sample(input.index).map(|s| *s.user_header())
+        self.sample(input.index).map(|(h, _)| h)
     }
 
     /// The newest bytes on `input` if they arrived since it last read them. Zero-copy: the slice
     /// is the producer's shared memory.
     pub fn read_bytes(&mut self, input: &BytesInput) -> Option<&[u8]> {
-        self.take_new(input.index).map(|s| s.payload())
+        self.take_new(input.index).map(|(_, b)| b)
     }
 
     /// Header of the newest bytes sample on an input.
     pub fn bytes_header(&self, input: &BytesInput) -> Option<PortHeader> {
-        self.sample(input.index).map(|s| *s.user_header())
+        self.sample(input.index).map(|(h, _)| h)
     }
 
-    fn header_for(&mut self, index: usize) -> PortHeader {
-        let out = &mut self.outputs[index];
-        let h = PortHeader {
-            stamp_ns: monotonic_ns(),
-            seq: out.seq,
-            task_word: self.word,
-        };
-        out.seq += 1;
-        h
-    }
-
-    fn finish(&mut self, index: usize) -> Result<(), ModuleError> {
-        *self.sent += 1;
-        self.outputs[index]
-            .notifier
-            .notify()
-            .map_err(ipc("notify"))?;
-        Ok(())
+    fn send(
+        &mut self,
+        index: usize,
+        len: usize,
+        fill: impl FnOnce(&mut [u8]),
+    ) -> Result<(), ModuleError> {
+        let word = self.word;
+        match &mut self.ports {
+            Ports::Shm(shm) => shm.send(index, word, len, fill),
+            Ports::Offline(o) => {
+                let mut bytes = vec![0u8; len];
+                fill(&mut bytes);
+                let seq = o.seq.get(index).copied().unwrap_or(0);
+                if let Some(s) = o.seq.get_mut(index) {
+                    *s += 1;
+                }
+                o.written.push((
+                    index,
+                    PortHeader {
+                        stamp_ns: self.now_ns,
+                        seq,
+                        task_word: word,
+                    },
+                    bytes,
+                ));
+                Ok(())
+            }
+        }
     }
 
     /// Sends `value` on `output`.
     pub fn write<M: Message>(&mut self, output: &Output<M>, value: &M) -> Result<(), ModuleError> {
-        let sample = self.outputs[output.index]
-            .publisher
-            .loan_slice_uninit(size_of::<M>())
-            .map_err(ipc("loan"))?;
-        let mut sample = sample.write_from_slice(bytemuck::bytes_of(value));
-        // Stamped last, so latency measures delivery, not how long the producer took to fill.
-        *sample.user_header_mut() = self.header_for(output.index);
-        sample.send().map_err(ipc("send"))?;
-        self.finish(output.index)
+        self.send(output.index, size_of::<M>(), |b| {
+            b.copy_from_slice(bytemuck::bytes_of(value));
+        })
     }
 
     /// Writes `len` bytes straight into shared memory with `fill`, then sends them.
@@ -408,18 +481,99 @@ impl Io<'_> {
         len: usize,
         fill: impl FnOnce(&mut [u8]),
     ) -> Result<(), ModuleError> {
-        let sample = self.outputs[output.index]
-            .publisher
-            .loan_slice_uninit(len)
-            .map_err(ipc("loan"))?;
-        // Zero the uninitialised bytes only through the safe API: `write_from_fn` initialises
-        // each byte once, then `fill` overwrites what it needs.
-        let mut sample = sample.write_from_fn(|_| 0u8);
-        fill(sample.payload_mut());
-        *sample.user_header_mut() = self.header_for(output.index);
-        sample.send().map_err(ipc("send"))?;
-        self.finish(output.index)
+        self.send(output.index, len, fill)
     }
+}
+
+/// A module stepped without a DNM or shared memory: its inputs handed in, what it writes
+/// collected. `dnm replay --check` runs a module this way on recorded inputs; module authors
+/// can test their kinds with it.
+///
+/// ```
+/// # use dnm_module::{Offline, Stepper};
+/// # fn check(module: &mut dyn Stepper, spec: &dnm_netlist::KindSpec, ticks: &[u8]) {
+/// let mut io = Offline::new(spec, Some("drive"));
+/// io.set_input(0, 1_000, 0, ticks.to_vec());
+/// let written = io.step(module, 1_000).unwrap();
+/// # }
+/// ```
+#[derive(Debug, Default)]
+pub struct Offline {
+    /// Per input: the newest sample (header, bytes, generation).
+    inputs: Vec<Option<(PortHeader, Vec<u8>, u64)>>,
+    seen: Vec<Option<u64>>,
+    seq: Vec<u64>,
+    written: Vec<(usize, PortHeader, Vec<u8>)>,
+    next: u64,
+    task: Option<String>,
+}
+
+impl Offline {
+    /// For a module of kind `spec`, running under `task`.
+    pub fn new(spec: &KindSpec, task: Option<&str>) -> Self {
+        Self {
+            inputs: vec![None; spec.inputs.len()],
+            seen: vec![None; spec.inputs.len()],
+            seq: vec![0; spec.outputs.len()],
+            written: Vec::new(),
+            next: 0,
+            task: task.map(str::to_string),
+        }
+    }
+
+    /// The task the next steps run under.
+    pub fn set_task(&mut self, task: Option<&str>) {
+        self.task = task.map(str::to_string);
+    }
+
+    /// A new sample on input `index` (the kind's input order), sent at `stamp_ns` with `seq`.
+    pub fn set_input(&mut self, index: usize, stamp_ns: u64, seq: u64, bytes: Vec<u8>) {
+        self.next += 1;
+        if let Some(slot) = self.inputs.get_mut(index) {
+            *slot = Some((
+                PortHeader {
+                    stamp_ns,
+                    seq,
+                    task_word: 0,
+                },
+                bytes,
+                self.next,
+            ));
+        }
+    }
+
+    /// Steps `module` once at `now_ns`; returns what it wrote: (output index, header, bytes).
+    pub fn step(
+        &mut self,
+        module: &mut dyn Stepper,
+        now_ns: u64,
+    ) -> Result<Vec<(usize, PortHeader, Vec<u8>)>, ModuleError> {
+        self.written.clear();
+        let mut io = Io {
+            word: 0,
+            now_ns,
+            ports: Ports::Offline(self),
+        };
+        module.step_io(&mut io)?;
+        Ok(std::mem::take(&mut self.written))
+    }
+}
+
+/// A module of any kind, to be stepped: what [`Registration::make`](crate::Registration)
+/// builds.
+pub trait Stepper {
+    fn step_io(&mut self, io: &mut Io<'_>) -> Result<(), ModuleError>;
+}
+
+impl<M: Module> Stepper for M {
+    fn step_io(&mut self, io: &mut Io<'_>) -> Result<(), ModuleError> {
+        self.step(io)
+    }
+}
+
+/// Builds a module of kind `M` for [`Offline`] stepping.
+pub fn make<M: Module + 'static>(setup: &mut Setup<'_>) -> Result<Box<dyn Stepper>, ModuleError> {
+    Ok(Box::new(M::new(setup)?))
 }
 
 /// Opens (or creates, with the DNM's exact settings) an output port's pub/sub service.
@@ -728,15 +882,17 @@ pub fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
                 }
                 let now_ns = monotonic_ns();
                 let mut io = Io {
-                    outputs: &mut outputs,
-                    conns: &conns,
-                    active: &active,
-                    seen: &mut seen,
-                    fresh_after: &fresh_after,
-                    routes,
                     word,
                     now_ns,
-                    sent: &mut status.sent,
+                    ports: Ports::Shm(Shm {
+                        outputs: &mut outputs,
+                        conns: &conns,
+                        active: &active,
+                        seen: &mut seen,
+                        fresh_after: &fresh_after,
+                        routes,
+                        sent: &mut status.sent,
+                    }),
                 };
                 status.steps += 1;
                 status.last_step_ns = now_ns;
