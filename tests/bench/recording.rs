@@ -4,7 +4,8 @@
 //!    small messages and camera frames, fed directly;
 //! 2. a live system recording at a sustained load (small messages and camera frames): what was
 //!    recorded, what was dropped, and the DNM's CPU;
-//! 3. one-hop latency between two modules with recording off and on, same payloads.
+//! 3. one-hop latency between two modules with recording off and on, same payloads, the two
+//!    alternating; what the recorder recorded and dropped meanwhile.
 //!
 //! Run: `cargo bench -p dnm --bench recording`.
 
@@ -20,7 +21,9 @@ use dnm::admin::{Request, request};
 use dnm_netlist::{MessageType, Payload};
 use iceoryx2::prelude::{LogLevel, set_log_level};
 
-const SAMPLES: usize = 2000;
+const SAMPLES: usize = 1500;
+/// Latency runs per payload and mode (off, on, off, on, ...).
+const ROUNDS: usize = 5;
 const RATE_HZ: f64 = 500.0;
 
 fn main() {
@@ -148,9 +151,9 @@ links = ["t1.out -> r1.in"]
 
 fn latency() {
     println!(
-        "| payload | recording off p50 / p99 (µs) | recording on p50 / p99 (µs) | added p50 | added p99 |"
+        "| payload | recording off p50 / p99 (µs), median of runs | recording on p50 / p99 (µs), median of runs | added p50 | added p99 | recorded / dropped while measuring |"
     );
-    println!("|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|");
     for size in [64usize, 4096, 320 * 240 * 3] {
         let run = |record: bool| {
             let system = unique(&format!("l{size}{}", u8::from(record)));
@@ -175,14 +178,45 @@ links = ["src.out -> lat.in"]
             } else {
                 up(&system, &netlist, &[], None, 1)
             };
-            let lat = percentiles(latencies(&system, "local", "lat", SAMPLES, 100));
+            let recording = || {
+                request(&system, &Request::Status)
+                    .ok()
+                    .and_then(|mut r| r.dnms.remove(0).recording)
+            };
+            let before = recording();
+            let lat = latencies(&system, "local", "lat", SAMPLES, 100);
+            let after = recording();
             let _ = std::fs::remove_dir_all(&dir);
-            lat
+            // Of the source's samples while measuring: recorded, and dropped by the recorder.
+            let counts = match (before, after) {
+                (Some(a), Some(b)) => (b.messages - a.messages, b.dropped - a.dropped),
+                _ => (0, 0),
+            };
+            (lat, counts)
         };
-        let off = run(false);
-        let on = run(true);
+        // Off and on alternate, each run a system of its own; the medians of the runs' p50 and
+        // p99 are compared (one run's start can land this VM's cores in a better or a worse
+        // state than the next).
+        let (mut off, mut on) = (Vec::new(), Vec::new());
+        let (mut recorded, mut dropped) = (0, 0);
+        for _ in 0..ROUNDS {
+            off.push(percentiles(run(false).0));
+            let (lat, (r, d)) = run(true);
+            on.push(percentiles(lat));
+            recorded += r;
+            dropped += d;
+        }
+        let median = |v: &[(f64, f64)], p99: bool| {
+            let mut x: Vec<f64> = v.iter().map(|(a, b)| if p99 { *b } else { *a }).collect();
+            x.sort_by(f64::total_cmp);
+            x[x.len() / 2]
+        };
+        let (off, on) = (
+            (median(&off, false), median(&off, true)),
+            (median(&on, false), median(&on, true)),
+        );
         println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.0} % | {:+.0} % |",
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.0} % | {:+.0} % | {recorded} / {dropped} |",
             human(size),
             off.0,
             off.1,

@@ -28,6 +28,7 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use dnm_module::port_service;
+use dnm_module::protocol::LARGE_PAYLOAD_BYTES;
 use dnm_module::protocol::{PortHeader, monotonic_ns, output_service};
 use dnm_netlist::{MessageType, Netlist};
 use iceoryx2::port::subscriber::Subscriber;
@@ -142,6 +143,8 @@ enum Item {
         port: usize,
         header: PortHeader,
         bytes: Vec<u8>,
+        /// Already the message as written (large samples, encoded by the reader).
+        encoded: bool,
     },
     Ports(Vec<RecPort>),
     Netlist {
@@ -181,6 +184,7 @@ impl Recorder {
         std::fs::create_dir_all(&options.dir)
             .map_err(|e| format!("recordings folder {}: {e}", options.dir.display()))?;
         let counters = Arc::new(Counters::default());
+        let clock = Clock::new();
         let (queue, items) = mpsc::sync_channel::<Item>(QUEUE);
         let writer = {
             let counters = counters.clone();
@@ -189,7 +193,7 @@ impl Recorder {
             std::thread::Builder::new()
                 .name(format!("record-{dnm}"))
                 .spawn(move || {
-                    if let Err(e) = write_loop(&dnm, &options, &items, &counters) {
+                    if let Err(e) = write_loop(&dnm, &options, &items, &counters, clock) {
                         tracing::error!(dnm, "recording stopped: {e}");
                         if let Ok(mut err) = counters.error.lock() {
                             *err = Some(e);
@@ -205,7 +209,7 @@ impl Recorder {
                 format!("record-in-{dnm}"),
                 prefix,
                 RECORDER_EVENT,
-                move |control| read_loop(&control, &queue, &counters),
+                move |control| read_loop(&control, &queue, &counters, clock),
             )?
         };
         Ok(Self {
@@ -357,7 +361,9 @@ fn read_loop(
     control: &Control<RecPort>,
     queue: &SyncSender<Item>,
     counters: &Counters,
+    clock: Clock,
 ) -> Result<(), String> {
+    // Normal priority: its drains are short, and a starved reader would lose samples.
     let node = &control.node;
     let mut wanted: Vec<RecPort> = Vec::new();
     // The previous set's subscribers, with their sequence numbers: a port in both sets keeps
@@ -443,10 +449,28 @@ fn read_loop(
                         counters.dropped.fetch_add(1, Ordering::Relaxed);
                         continue;
                     }
+                    // Large samples (camera frames) are encoded here, straight from shared
+                    // memory: one copy of the frame less.
+                    let frame = wanted.get(i).filter(|p| {
+                        p.message.payload.max_bytes() > LARGE_PAYLOAD_BYTES
+                            && p.message.standard.is_none()
+                    });
+                    let bytes = match frame {
+                        Some(p) => encode(
+                            &p.message,
+                            &p.module,
+                            clock.unix(header.stamp_ns),
+                            s.payload(),
+                        ),
+                        None => s.payload().to_vec(),
+                    };
+                    // What the writer subtracts when it takes the item.
+                    let len = bytes.len() as u64;
                     let item = Item::Sample {
                         port: i,
                         header,
-                        bytes: s.payload().to_vec(),
+                        bytes,
+                        encoded: frame.is_some(),
                     };
                     counters.queued.fetch_add(len, Ordering::Relaxed);
                     if let Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) =
@@ -461,6 +485,21 @@ fn read_loop(
     }
 }
 
+/// Runs the calling thread only on time no module wants (Linux `SCHED_IDLE`): the recorder's
+/// writer encodes and compresses on the computer's spare time and never delays a module's step
+/// (when there is none, its queue fills and what does not fit is counted as dropped).
+fn idle_priority() {
+    let param = libc::sched_param { sched_priority: 0 };
+    // SAFETY: sched_setscheduler(2) on the calling thread (pid 0) with a valid parameter.
+    let r = unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) };
+    if r != 0 {
+        tracing::debug!(
+            "recorder thread keeps its priority: {}",
+            std::io::Error::last_os_error()
+        );
+    }
+}
+
 /// A recorder's subscriber on a port.
 type PortSubscriber = Subscriber<Svc, [u8], PortHeader>;
 
@@ -468,6 +507,7 @@ type PortSubscriber = Subscriber<Svc, [u8], PortHeader>;
 type SeqByPublisher = HashMap<UniquePublisherId, u64>;
 
 /// CLOCK_MONOTONIC → Unix time, fixed when the recorder starts.
+#[derive(Debug, Clone, Copy)]
 struct Clock {
     unix_minus_mono: i128,
 }
@@ -652,6 +692,8 @@ fn open_file(
     let written = Arc::new(AtomicU64::new(0));
     let mut writer = mcap::WriteOptions::new()
         .compression(Some(mcap::Compression::Zstd))
+        // The fastest zstd: a recorder shares the computer with the modules.
+        .compression_level(1)
         .profile("ros2")
         .library("dnm")
         .chunk_size(Some(1 << 20))
@@ -807,8 +849,9 @@ fn write_loop(
     options: &RecordOptions,
     items: &Receiver<Item>,
     counters: &Counters,
+    clock: Clock,
 ) -> Result<(), String> {
-    let clock = Clock::new();
+    idle_priority();
     let mut ports: Vec<RecPort> = Vec::new();
     let mut netlist: Option<(u64, String, String)> = None;
     let mut index = 0u64;
@@ -871,6 +914,7 @@ fn write_loop(
                 port,
                 header,
                 bytes,
+                encoded,
             }) => {
                 counters
                     .queued
@@ -888,9 +932,17 @@ fn write_loop(
                 };
                 let mut written = 0;
                 let native = || encode(&p.message, &p.module, time, &bytes);
-                let data = match &channel.plan {
-                    Some(plan) => plan.encode(&bytes, time, &p.module),
-                    None => native(),
+                let encoded_here;
+                let data: &[u8] = match &channel.plan {
+                    _ if encoded => &bytes,
+                    Some(plan) => {
+                        encoded_here = plan.encode(&bytes, time, &p.module);
+                        &encoded_here
+                    }
+                    None => {
+                        encoded_here = native();
+                        &encoded_here
+                    }
                 };
                 if let Some(raw) = channel.raw {
                     let data = native();
@@ -905,7 +957,7 @@ fn write_loop(
                 }
                 head.channel_id = channel.id;
                 f.writer
-                    .write_to_known_channel(&head, &data)
+                    .write_to_known_channel(&head, data)
                     .map_err(|e| e.to_string())?;
                 written += data.len();
                 counters.messages.fetch_add(1, Ordering::Relaxed);
@@ -1003,12 +1055,13 @@ mod tests {
                     task_word: 0,
                 },
                 bytes: payload(seq),
+                encoded: false,
             })
             .unwrap();
         }
         drop(tx);
         let counters = Counters::default();
-        write_loop("d", &options, &rx, &counters).unwrap();
+        write_loop("d", &options, &rx, &counters, Clock::new()).unwrap();
         crate::session::settle();
         assert_eq!(counters.messages.load(Ordering::Relaxed), n);
         let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)

@@ -59,7 +59,8 @@ pub fn recorder_buffer(payload: &dnm_netlist::Payload) -> usize {
     match payload.max_bytes() {
         b if b <= 1024 => 32,
         b if b <= LARGE_PAYLOAD_BYTES => 8,
-        _ => LARGE_PORT_BUFFER,
+        // A 500 Hz camera sends 5 frames per 10 ms drain.
+        _ => 8,
     }
 }
 
