@@ -198,6 +198,7 @@ pub fn check(
         let mut history: Vec<Act> = vec![Act::Task(task.clone())];
         let mut history_bytes = 0usize;
         let mut last_step: Option<LastStep> = None;
+        let mut keeping = true;
         while let Some(m) = merge.next() {
             let topic = &*m.topic;
             if topic.ends_with("/_switches") {
@@ -207,9 +208,29 @@ pub fn check(
                     && let Ok(v) = serde_json::from_slice::<serde_json::Value>(&m.data)
                     && let Some(to) = v["to"].as_str()
                 {
-                    task = Some(to.to_string());
+                    let old = task.replace(to.to_string());
                     offline.set_task(task.as_deref());
-                    history.push(Act::Task(task.clone()));
+                    if keeping {
+                        history.push(Act::Task(task.clone()));
+                    }
+                    // An input whose source the switch changed shows nothing from before it.
+                    for i in 0..spec.inputs.len() {
+                        let source = |t: &Option<String>| {
+                            feeds
+                                .iter()
+                                .find(|(_, v)| {
+                                    v.iter().any(|(vt, vi)| Some(vt) == t.as_ref() && *vi == i)
+                                })
+                                .map(|(k, _)| k.clone())
+                        };
+                        if source(&old) != source(&task) {
+                            offline.clear_input(i);
+                            if keeping {
+                                history.push(Act::Clear(i));
+                            }
+                        }
+                    }
+                    last_step = None;
                 }
                 continue;
             }
@@ -245,6 +266,11 @@ pub fn check(
                                 format!("{topic}: the message sent at {} ns: {e}", m.time)
                             })?;
                             pending.push_back((m.time, *i, u64::from(m.seq), bytes));
+                            // A module that stopped stepping (not linked, idle) reads only the
+                            // newest: older inputs need not wait.
+                            if pending.len() > MAX_PENDING {
+                                pending.pop_front();
+                            }
                         }
                     }
                 }
@@ -278,13 +304,17 @@ pub fn check(
                             && let Some((t, input, seq, b)) = pending.pop_front()
                         {
                             ready -= 1;
-                            history_bytes += b.len();
-                            history.push(Act::Input(input, t, seq, b.clone()));
+                            if keeping {
+                                history_bytes += b.len();
+                                history.push(Act::Input(input, t, seq, b.clone()));
+                            }
                             offline.set_input(input, t, seq, b);
                             fed += 1;
                         }
                         steps += 1;
-                        history.push(Act::Step(m.time));
+                        if keeping {
+                            history.push(Act::Step(m.time));
+                        }
                         let written = offline.step(stepper.as_mut(), m.time).map_err(|e| {
                             format!("`{module}` failed to step at {} ns: {e}", m.time)
                         })?;
@@ -295,6 +325,8 @@ pub fn check(
                             .entry(*i)
                             .or_default()
                             .push((m.time, u64::from(m.seq), None));
+                        // Its outputs are not the recorded step's: nothing to redo across.
+                        last_step = None;
                         unrecorded += 1;
                     }
                     let done = recorded.get(i).map_or(0, Vec::len);
@@ -309,7 +341,7 @@ pub fn check(
                         // one that reproduces the recorded output is the one it read; the
                         // module is rebuilt from the steps so far to try each.
                         let mut take = eligible;
-                        if eligible > 1 && history_bytes <= MAX_HISTORY {
+                        if eligible > 1 && keeping {
                             // The newest first: what a module that wakes on input reads.
                             for c in (1..=eligible).rev() {
                                 let tried = attempt(
@@ -348,15 +380,19 @@ pub fn check(
                         let mut given = Vec::new();
                         for _ in 0..take {
                             if let Some((t, input, seq, b)) = pending.pop_front() {
-                                history_bytes += b.len();
-                                history.push(Act::Input(input, t, seq, b.clone()));
+                                if keeping {
+                                    history_bytes += b.len();
+                                    history.push(Act::Input(input, t, seq, b.clone()));
+                                }
                                 offline.set_input(input, t, seq, b.clone());
                                 given.push((t, input, seq, b));
                                 fed += 1;
                             }
                         }
                         steps += 1;
-                        history.push(Act::Step(m.time));
+                        if keeping {
+                            history.push(Act::Step(m.time));
+                        }
                         let written = offline.step(stepper.as_mut(), m.time).map_err(|e| {
                             format!("`{module}` failed to step at {} ns: {e}", m.time)
                         })?;
@@ -380,7 +416,7 @@ pub fn check(
                         // the newest (all of them gave the same output then). Redo both steps,
                         // that one reading fewer, when that reproduces both outputs.
                         if !matches(&written, *i, &bytes)
-                            && history_bytes <= MAX_HISTORY
+                            && keeping
                             && let Some(last) = &last_step
                             && last.inputs.len() > 1
                         {
@@ -429,19 +465,26 @@ pub fn check(
                                     }
                                 }
                             }
+                            // The redone step must have written the same outputs, so that the
+                            // entries it replaces are its own.
+                            let found = found.filter(|(_, _, _, _, w1, _)| {
+                                let mut ports: Vec<usize> = w1.iter().map(|(o, _, _)| *o).collect();
+                                ports.sort_unstable();
+                                ports == last.wrote
+                            });
                             if let Some((_, d, mut redone, rest, w1, w2)) = found {
                                 let redone_before = redone.len();
                                 for (t, input, seq, b) in &rest[..d] {
                                     redone.push(Act::Input(*input, *t, *seq, b.clone()));
                                 }
                                 redone.push(Act::Step(m.time));
-                                // What it had not read yet waits for its next steps.
-                                for r in rest[d..].iter().rev() {
-                                    pending.push_front(r.clone());
-                                }
                                 if let Ok((s2, o2)) =
                                     rebuild(&redone, &decl.kind, &spec, &params, module, make)
                                 {
+                                    // What it had not read yet waits for its next steps.
+                                    for r in rest[d..].iter().rev() {
+                                        pending.push_front(r.clone());
+                                    }
                                     history = redone;
                                     stepper = s2;
                                     offline = o2;
@@ -460,13 +503,22 @@ pub fn check(
                                 }
                             }
                         }
-                        last_step = Some(LastStep {
+                        let mut wrote: Vec<usize> = written.iter().map(|(o, _, _)| *o).collect();
+                        wrote.sort_unstable();
+                        last_step = keeping.then(|| LastStep {
                             history_len: before,
                             inputs: given,
                             at: m.time,
                             port: *i,
                             recorded: bytes.clone(),
+                            wrote,
                         });
+                        if history_bytes > MAX_HISTORY && keeping {
+                            // Too much to keep: from here on the newest input is taken as read.
+                            keeping = false;
+                            history.clear();
+                            history.shrink_to_fit();
+                        }
                         for (o, _, b) in written {
                             replayed.entry(o).or_default().push(b);
                         }
@@ -564,12 +616,15 @@ pub fn check(
 
 /// Inputs kept for rebuilding the module: beyond this, the newest input is taken as read.
 const MAX_HISTORY: usize = 64 << 20;
+/// Inputs waiting for the module's next recorded step, at most.
+const MAX_PENDING: usize = 4096;
 
 /// A step of the module's past, to rebuild it.
 #[derive(Clone)]
 enum Act {
     Task(Option<String>),
     Input(usize, u64, u64, Vec<u8>),
+    Clear(usize),
     Step(u64),
 }
 
@@ -581,6 +636,8 @@ struct LastStep {
     at: u64,
     port: usize,
     recorded: Vec<u8>,
+    /// The outputs it wrote (sorted).
+    wrote: Vec<usize>,
 }
 
 /// The module built afresh and taken through `history`.
@@ -597,6 +654,7 @@ fn rebuild(
     for act in history {
         match act {
             Act::Task(t) => offline.set_task(t.as_deref()),
+            Act::Clear(i) => offline.clear_input(*i),
             Act::Input(i, t, seq, b) => offline.set_input(*i, *t, *seq, b.clone()),
             Act::Step(at) => {
                 offline

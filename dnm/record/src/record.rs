@@ -307,10 +307,17 @@ impl Plugin for Recorder {
     }
 
     fn abort(&mut self, ctx: &Context<'_>, revision: u64) {
-        if self.prepared.take() == Some(revision)
-            && let Some((netlist, in_force)) = self.in_force.clone()
-        {
-            Recorder::commit(self, &netlist, ctx.dnm, in_force);
+        if self.prepared.take() != Some(revision) {
+            return;
+        }
+        match self.in_force.clone() {
+            Some((netlist, in_force)) => Recorder::commit(self, &netlist, ctx.dnm, in_force),
+            // Nothing in force: nothing to record.
+            None => {
+                if let Some(reader) = &self.reader {
+                    reader.send(Vec::new());
+                }
+            }
         }
     }
 

@@ -182,6 +182,49 @@ impl Source {
                 ));
             }
         }
+        // In log-time order the reader holds every chunk whose time range overlaps the next
+        // message's: a file whose chunks overlap too much (or a damaged index) is read in file
+        // order instead, so memory stays bounded.
+        let overlap = {
+            // Sweep over the chunks' time ranges: the most decompressed bytes held at once.
+            let mut events: Vec<(u64, bool, u64)> = Vec::new();
+            for c in &summary.chunk_indexes {
+                events.push((c.message_start_time, false, c.uncompressed_size));
+                events.push((c.message_end_time, true, c.uncompressed_size));
+            }
+            // Starts before ends at one instant: ranges that touch overlap.
+            events.sort_unstable();
+            let (mut held, mut worst) = (0u64, 0u64);
+            for (_, end, size) in events {
+                if end {
+                    held = held.saturating_sub(size);
+                } else {
+                    held = held.saturating_add(size);
+                    worst = worst.max(held);
+                }
+            }
+            worst
+        };
+        let disordered = summary
+            .chunk_indexes
+            .iter()
+            .any(|c| c.message_start_time > c.message_end_time);
+        if overlap > MAX_CHUNK || disordered {
+            tracing::warn!(file = %path.display(), "chunks overlap in time: replayed in file order");
+            file.seek(SeekFrom::Start(0)).map_err(|e| e.to_string())?;
+            let reader = mcap::sans_io::MessageReader::new_with_options(
+                mcap::sans_io::LinearReaderOptions::default()
+                    .with_record_length_limit(MAX_CHUNK as usize)
+                    .with_skip_end_magic(true),
+            );
+            return Ok((
+                Source::Linear {
+                    file,
+                    reader: Box::new(reader),
+                },
+                Some(summary),
+            ));
+        }
         let reader = mcap::sans_io::IndexedReader::new_with_options(
             &summary,
             mcap::sans_io::indexed_reader::IndexedReaderOptions::new()

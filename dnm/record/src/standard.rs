@@ -422,11 +422,17 @@ impl Plan {
                 } else {
                     [idx[0], idx[1], idx[2]]
                 };
+                if (0..4).any(|c| !matches!(srcs[x + c].1.first(), Some(Src::Zero))) {
+                    return Err(bad("that quaternion is given twice"));
+                }
                 for c in 0..4 {
                     srcs[x + c].1 = vec![Src::Quat(rpy, c)];
                 }
                 for (angle, f) in rpy.iter().enumerate() {
                     if let Some(f) = f {
+                        if !matches!(back[*f], Back::Lost) {
+                            return Err(bad("that field is mapped twice"));
+                        }
                         back[*f] = Back::Angle(x, angle);
                     }
                 }
@@ -491,6 +497,9 @@ impl Plan {
                 return Err(bad(
                     "text fields take 'text' or $module, number fields numbers or fields",
                 ));
+            }
+            if !matches!(srcs[leaf].1[slot], Src::Zero) {
+                return Err(bad("that standard field is given twice"));
             }
             srcs[leaf].1[slot] = src;
         }
@@ -591,7 +600,8 @@ impl Plan {
         for (ty, srcs) in &self.leaves {
             match ty {
                 Ty::Stamp => {
-                    w.u32((stamp_unix_ns / 1_000_000_000) as u32);
+                    // `int32 sec`, as ROS 2 has it.
+                    w.u32((stamp_unix_ns / 1_000_000_000) as i32 as u32);
                     w.u32((stamp_unix_ns % 1_000_000_000) as u32);
                 }
                 Ty::Str => w.string(text(&srcs[0], module)),
@@ -601,7 +611,8 @@ impl Plan {
                     }
                 }
                 Ty::F32 => w.f32(self.value(&srcs[0], bytes) as f32),
-                Ty::U8 | Ty::Bool => w.0.push(self.value(&srcs[0], bytes) as u8),
+                Ty::U8 => w.0.push(self.value(&srcs[0], bytes) as u8),
+                Ty::Bool => w.0.push(u8::from(self.value(&srcs[0], bytes) != 0.0)),
                 Ty::F32Seq => {
                     w.u32(srcs.len() as u32);
                     for s in srcs {

@@ -28,8 +28,9 @@ static MEASURED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::ne
 /// would add the scheduling delay between two clock reads, tens of microseconds on a busy
 /// computer).
 fn unix_minus_mono(mono_now: u64) -> i64 {
-    use std::sync::atomic::Ordering::Relaxed;
-    let at = MEASURED.load(Relaxed);
+    use std::sync::atomic::Ordering::{Acquire, Relaxed, Release};
+    // Acquire/Release: whoever sees the time of a measurement sees its offset.
+    let at = MEASURED.load(Acquire);
     if at != 0 && mono_now.saturating_sub(at) < 1_000_000_000 {
         return OFFSET.load(Relaxed);
     }
@@ -46,7 +47,7 @@ fn unix_minus_mono(mono_now: u64) -> i64 {
     }
     let offset = best.map_or(0, |(_, o)| o);
     OFFSET.store(offset, Relaxed);
-    MEASURED.store(mono_now.max(1), Relaxed);
+    MEASURED.store(mono_now.max(1), Release);
     offset
 }
 

@@ -521,6 +521,13 @@ impl Offline {
         }
     }
 
+    /// Forgets input `index`'s sample, as a task switch that changes its source does.
+    pub fn clear_input(&mut self, index: usize) {
+        if let Some(slot) = self.inputs.get_mut(index) {
+            *slot = None;
+        }
+    }
+
     /// The task the next steps run under.
     pub fn set_task(&mut self, task: Option<&str>) {
         self.task = task.map(str::to_string);
