@@ -130,11 +130,8 @@ pub fn check(
     for (name, value) in set {
         params.insert(name.clone(), param(&spec, name, value)?);
     }
-    let build = || {
-        let mut setup = Setup::new(module, &spec, &params);
-        make(&decl.kind, &mut setup).map_err(|e| format!("building `{module}`: {e}"))
-    };
-    let mut stepper = build()?;
+    let mut stepper = make(&decl.kind, &mut Setup::new(module, &spec, &params))
+        .map_err(|e| format!("building `{module}`: {e}"))?;
     // Which recorded outputs feed which input, per task.
     let mut feeds: HashMap<String, Vec<(String, usize)>> = HashMap::new();
     for (task, t) in &netlist.tasks {

@@ -571,10 +571,11 @@ pub fn mcap_encoding(message: &MessageType) -> (String, &'static str, String, &'
 const IMAGE_SCHEMA: &str = "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n================================================================================\nMSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n================================================================================\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n";
 
 /// Little-endian CDR writer (after the encapsulation header, alignment is relative to it).
-struct Cdr(Vec<u8>);
+pub(crate) struct Cdr(pub(crate) Vec<u8>);
 
 impl Cdr {
-    fn new(capacity: usize) -> Self {
+    /// A message of about `capacity` bytes, its encapsulation header written.
+    pub(crate) fn new(capacity: usize) -> Self {
         let mut v = Vec::with_capacity(capacity + 64);
         v.extend_from_slice(&[0, 1, 0, 0]);
         Cdr(v)
@@ -584,15 +585,23 @@ impl Cdr {
             self.0.push(0);
         }
     }
-    fn u32(&mut self, v: u32) {
+    pub(crate) fn u32(&mut self, v: u32) {
         self.align(4);
         self.0.extend_from_slice(&v.to_le_bytes());
     }
-    fn i32(&mut self, v: i32) {
+    pub(crate) fn i32(&mut self, v: i32) {
         self.align(4);
         self.0.extend_from_slice(&v.to_le_bytes());
     }
-    fn string(&mut self, s: &str) {
+    pub(crate) fn f32(&mut self, v: f32) {
+        self.align(4);
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub(crate) fn f64(&mut self, v: f64) {
+        self.align(8);
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub(crate) fn string(&mut self, s: &str) {
         self.u32(s.len() as u32 + 1);
         self.0.extend_from_slice(s.as_bytes());
         self.0.push(0);

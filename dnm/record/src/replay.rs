@@ -150,25 +150,27 @@ enum Source {
 }
 
 impl Source {
+    /// `file` read from its start in file order.
+    fn linear(mut file: File) -> Result<Self, String> {
+        file.seek(SeekFrom::Start(0)).map_err(|e| e.to_string())?;
+        let reader = mcap::sans_io::MessageReader::new_with_options(
+            mcap::sans_io::LinearReaderOptions::default()
+                .with_record_length_limit(MAX_CHUNK as usize)
+                .with_skip_end_magic(true),
+        );
+        Ok(Source::Linear {
+            file,
+            reader: Box::new(reader),
+        })
+    }
+
     fn open(path: &Path) -> Result<(Self, Option<mcap::Summary>), String> {
         let mut file = File::open(path).map_err(|e| e.to_string())?;
         let size = file.metadata().map_err(|e| e.to_string())?.len();
         let summary = crate::session::read_summary(&mut file, size).unwrap_or(None);
         let Some(summary) = summary else {
-            file.seek(SeekFrom::Start(0)).map_err(|e| e.to_string())?;
             tracing::warn!(file = %path.display(), "no summary (not closed): replayed in file order");
-            let reader = mcap::sans_io::MessageReader::new_with_options(
-                mcap::sans_io::LinearReaderOptions::default()
-                    .with_record_length_limit(MAX_CHUNK as usize)
-                    .with_skip_end_magic(true),
-            );
-            return Ok((
-                Source::Linear {
-                    file,
-                    reader: Box::new(reader),
-                },
-                None,
-            ));
+            return Ok((Source::linear(file)?, None));
         };
         for c in &summary.chunk_indexes {
             let end = c.chunk_start_offset.checked_add(c.chunk_length);
@@ -211,19 +213,7 @@ impl Source {
             .any(|c| c.message_start_time > c.message_end_time);
         if overlap > MAX_CHUNK || disordered {
             tracing::warn!(file = %path.display(), "chunks overlap in time: replayed in file order");
-            file.seek(SeekFrom::Start(0)).map_err(|e| e.to_string())?;
-            let reader = mcap::sans_io::MessageReader::new_with_options(
-                mcap::sans_io::LinearReaderOptions::default()
-                    .with_record_length_limit(MAX_CHUNK as usize)
-                    .with_skip_end_magic(true),
-            );
-            return Ok((
-                Source::Linear {
-                    file,
-                    reader: Box::new(reader),
-                },
-                Some(summary),
-            ));
+            return Ok((Source::linear(file)?, Some(summary)));
         }
         let reader = mcap::sans_io::IndexedReader::new_with_options(
             &summary,

@@ -588,8 +588,7 @@ impl Plan {
     /// Our message `bytes`, sent at `stamp_unix_ns` by `module`, as the standard message (CDR,
     /// little-endian, with its encapsulation header).
     pub fn encode(&self, bytes: &[u8], stamp_unix_ns: u64, module: &str) -> Vec<u8> {
-        let mut w = Writer(Vec::with_capacity(64 + self.leaves.len() * 8));
-        w.0.extend_from_slice(&[0, 1, 0, 0]);
+        let mut w = crate::record::Cdr::new(self.leaves.len() * 8);
         fn text<'a>(s: &'a Src, module: &'a str) -> &'a str {
             match s {
                 Src::Text(t) => t.as_str(),
@@ -601,7 +600,7 @@ impl Plan {
             match ty {
                 Ty::Stamp => {
                     // `int32 sec`, as ROS 2 has it.
-                    w.u32((stamp_unix_ns / 1_000_000_000) as i32 as u32);
+                    w.i32((stamp_unix_ns / 1_000_000_000) as i32);
                     w.u32((stamp_unix_ns % 1_000_000_000) as u32);
                 }
                 Ty::Str => w.string(text(&srcs[0], module)),
@@ -713,34 +712,6 @@ impl Plan {
             out[f.offset..f.offset + 8].copy_from_slice(&b);
         }
         Ok(out)
-    }
-}
-
-/// Little-endian CDR (alignment counted after the 4-byte encapsulation header).
-struct Writer(Vec<u8>);
-
-impl Writer {
-    fn align(&mut self, n: usize) {
-        while !(self.0.len() - 4).is_multiple_of(n) {
-            self.0.push(0);
-        }
-    }
-    fn u32(&mut self, v: u32) {
-        self.align(4);
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn f32(&mut self, v: f32) {
-        self.align(4);
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn f64(&mut self, v: f64) {
-        self.align(8);
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    fn string(&mut self, s: &str) {
-        self.u32(s.len() as u32 + 1);
-        self.0.extend_from_slice(s.as_bytes());
-        self.0.push(0);
     }
 }
 

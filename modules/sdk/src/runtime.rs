@@ -346,6 +346,26 @@ impl Shm<'_> {
         // each byte once, then `fill` overwrites what it needs.
         let mut sample = sample.write_from_fn(|_| 0u8);
         fill(sample.payload_mut());
+        self.stamp_and_send(index, word, sample)
+    }
+
+    /// A fixed-size value, copied once into shared memory (no zeroing first).
+    fn send_slice(&mut self, index: usize, word: u64, data: &[u8]) -> Result<(), ModuleError> {
+        let sample = self.outputs[index]
+            .publisher
+            .loan_slice_uninit(data.len())
+            .map_err(ipc("loan"))?;
+        let sample = sample.write_from_slice(data);
+        self.stamp_and_send(index, word, sample)
+    }
+
+    fn stamp_and_send(
+        &mut self,
+        index: usize,
+        word: u64,
+        mut sample: iceoryx2::sample_mut::SampleMut<Svc, [u8], PortHeader>,
+    ) -> Result<(), ModuleError> {
+        let out = &mut self.outputs[index];
         // Stamped last, so latency measures delivery, not how long the producer took to fill.
         *sample.user_header_mut() = PortHeader {
             stamp_ns: monotonic_ns(),
@@ -469,9 +489,13 @@ impl Io<'_> {
 
     /// Sends `value` on `output`.
     pub fn write<M: Message>(&mut self, output: &Output<M>, value: &M) -> Result<(), ModuleError> {
-        self.send(output.index, size_of::<M>(), |b| {
-            b.copy_from_slice(bytemuck::bytes_of(value));
-        })
+        let word = self.word;
+        match &mut self.ports {
+            Ports::Shm(shm) => shm.send_slice(output.index, word, bytemuck::bytes_of(value)),
+            Ports::Offline(_) => self.send(output.index, size_of::<M>(), |b| {
+                b.copy_from_slice(bytemuck::bytes_of(value));
+            }),
+        }
     }
 
     /// Writes `len` bytes straight into shared memory with `fill`, then sends them.
