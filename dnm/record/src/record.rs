@@ -34,7 +34,7 @@ use dnm_netlist::{MessageType, Netlist};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
-use crate::standard::Plan;
+use crate::standard::{Cdr, Plan};
 use dnm_core::worker::{Control, Sets, Worker, dbg};
 use dnm_core::{Context, DnmReport, ModuleEvent, Plugin, SwitchRecord};
 pub use dnm_proto::RecordReport;
@@ -569,48 +569,6 @@ pub fn mcap_encoding(message: &MessageType) -> (String, &'static str, String, &'
 
 /// `sensor_msgs/msg/Image` with its dependencies, as ROS 2 tools expect a schema.
 const IMAGE_SCHEMA: &str = "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n================================================================================\nMSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n================================================================================\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n";
-
-/// Little-endian CDR writer (after the encapsulation header, alignment is relative to it).
-pub(crate) struct Cdr(pub(crate) Vec<u8>);
-
-impl Cdr {
-    /// A message of about `capacity` bytes, its encapsulation header written.
-    pub(crate) fn new(capacity: usize) -> Self {
-        let mut v = Vec::with_capacity(capacity + 64);
-        v.extend_from_slice(&[0, 1, 0, 0]);
-        Cdr(v)
-    }
-    fn align(&mut self, n: usize) {
-        while !(self.0.len() - 4).is_multiple_of(n) {
-            self.0.push(0);
-        }
-    }
-    pub(crate) fn u32(&mut self, v: u32) {
-        self.align(4);
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    pub(crate) fn i32(&mut self, v: i32) {
-        self.align(4);
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    pub(crate) fn f32(&mut self, v: f32) {
-        self.align(4);
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    pub(crate) fn f64(&mut self, v: f64) {
-        self.align(8);
-        self.0.extend_from_slice(&v.to_le_bytes());
-    }
-    pub(crate) fn string(&mut self, s: &str) {
-        self.u32(s.len() as u32 + 1);
-        self.0.extend_from_slice(s.as_bytes());
-        self.0.push(0);
-    }
-    fn bytes(&mut self, b: &[u8]) {
-        self.u32(b.len() as u32);
-        self.0.extend_from_slice(b);
-    }
-}
 
 /// The bytes a port sample is stored as.
 pub fn encode(message: &MessageType, frame: &str, stamp_unix_ns: u64, bytes: &[u8]) -> Vec<u8> {

@@ -588,7 +588,7 @@ impl Plan {
     /// Our message `bytes`, sent at `stamp_unix_ns` by `module`, as the standard message (CDR,
     /// little-endian, with its encapsulation header).
     pub fn encode(&self, bytes: &[u8], stamp_unix_ns: u64, module: &str) -> Vec<u8> {
-        let mut w = crate::record::Cdr::new(self.leaves.len() * 8);
+        let mut w = Cdr::new(self.leaves.len() * 8);
         fn text<'a>(s: &'a Src, module: &'a str) -> &'a str {
             match s {
                 Src::Text(t) => t.as_str(),
@@ -712,6 +712,48 @@ impl Plan {
             out[f.offset..f.offset + 8].copy_from_slice(&b);
         }
         Ok(out)
+    }
+}
+
+/// Little-endian CDR writer (after the encapsulation header, alignment is relative to it).
+pub(crate) struct Cdr(pub(crate) Vec<u8>);
+
+impl Cdr {
+    /// A message of about `capacity` bytes, its encapsulation header written.
+    pub(crate) fn new(capacity: usize) -> Self {
+        let mut v = Vec::with_capacity(capacity + 64);
+        v.extend_from_slice(&[0, 1, 0, 0]);
+        Cdr(v)
+    }
+    fn align(&mut self, n: usize) {
+        while !(self.0.len() - 4).is_multiple_of(n) {
+            self.0.push(0);
+        }
+    }
+    pub(crate) fn u32(&mut self, v: u32) {
+        self.align(4);
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub(crate) fn i32(&mut self, v: i32) {
+        self.align(4);
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub(crate) fn f32(&mut self, v: f32) {
+        self.align(4);
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub(crate) fn f64(&mut self, v: f64) {
+        self.align(8);
+        self.0.extend_from_slice(&v.to_le_bytes());
+    }
+    pub(crate) fn string(&mut self, s: &str) {
+        self.u32(s.len() as u32 + 1);
+        self.0.extend_from_slice(s.as_bytes());
+        self.0.push(0);
+    }
+    pub(crate) fn bytes(&mut self, b: &[u8]) {
+        self.u32(b.len() as u32);
+        self.0.extend_from_slice(b);
     }
 }
 
