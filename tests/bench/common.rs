@@ -175,6 +175,41 @@ pub fn latencies(system: &str, dnm: &str, module: &str, samples: usize, skip: us
     lat
 }
 
+/// Latencies (ns) measured by the `latency` module `module` on DNM `dnm`, each with the time
+/// this process received it, until `stop` is set.
+pub fn timed_latencies(
+    system: &str,
+    dnm: &str,
+    module: &str,
+    stop: &std::sync::atomic::AtomicBool,
+) -> Vec<(Instant, u64)> {
+    let node = raw_node(&dnm_prefix(system, dnm));
+    let payload = Payload::Fixed {
+        size_bytes: size_of::<Tick>(),
+    };
+    let sub = port_service(&node, &output_service(module, "latency_ns"), &payload)
+        .unwrap()
+        .subscriber_builder()
+        .create()
+        .unwrap();
+    let listener = event_service(&node, &output_event(module, "latency_ns"))
+        .unwrap()
+        .listener_builder()
+        .create()
+        .unwrap();
+    let mut lat = Vec::new();
+    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+        listener
+            .timed_wait(|_| (), Duration::from_millis(100))
+            .unwrap();
+        while let Some(s) = sub.receive().unwrap() {
+            let t: Tick = bytemuck::pod_read_unaligned(s.payload());
+            lat.push((Instant::now(), t.seq));
+        }
+    }
+    lat
+}
+
 /// A TCP port free on loopback right now.
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")

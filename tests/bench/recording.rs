@@ -4,10 +4,11 @@
 //!    small messages and camera frames, fed directly;
 //! 2. a live system recording at a sustained load (small messages and camera frames): what was
 //!    recorded, what was dropped, and the DNM's CPU;
-//! 3. one-hop latency between two modules with recording off and on, same payloads, the two
-//!    alternating; what the recorder recorded and dropped meanwhile.
+//! 3. one-hop latency between two modules in one system, the DNM's recorder started and stopped
+//!    every half second, same payloads; what the recorder recorded and dropped meanwhile.
 //!
-//! Run: `cargo bench -p dnm --bench recording`.
+//! Run: `cargo bench -p dnm --bench recording` (or `-- writer`, `-- live`, `-- latency` for
+//! one part).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
 
@@ -16,22 +17,41 @@ mod common;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use common::{cpu_seconds, human, latencies, percentiles, unique, up, up_recording};
+use common::{cpu_seconds, human, percentiles, timed_latencies, unique, up, up_recording};
 use dnm::admin::{Request, request};
+use dnm::record::{RecordOptions, Recorder};
+use dnm_module::protocol::dnm_prefix;
 use dnm_netlist::{MessageType, Payload};
 use iceoryx2::prelude::{LogLevel, set_log_level};
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 
-const SAMPLES: usize = 1500;
-/// Latency runs per payload and mode (off, on, off, on, ...).
-const ROUNDS: usize = 5;
+/// Latency windows per payload, recording off and on alternating...
+const WINDOWS: usize = 120;
+/// ...each this long...
+const WINDOW: Duration = Duration::from_millis(500);
+/// ...of which the start is left out.
+const SETTLE: Duration = Duration::from_millis(100);
 const RATE_HZ: f64 = 500.0;
 
 fn main() {
     set_log_level(LogLevel::Error);
     println!("# recording benchmark\n");
-    writer_capacity();
-    live_load();
-    latency();
+    // `cargo bench --bench recording -- latency` runs one part; no name runs them all.
+    let only: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
+    let wanted = |part: &str| only.is_empty() || only.iter().any(|o| o == part);
+    if wanted("writer") {
+        writer_capacity();
+    }
+    if wanted("live") {
+        live_load();
+    }
+    if wanted("latency") {
+        latency();
+    }
 }
 
 fn writer_capacity() {
@@ -151,14 +171,13 @@ links = ["t1.out -> r1.in"]
 
 fn latency() {
     println!(
-        "| payload | recording off p50 / p99 (µs), median of runs | recording on p50 / p99 (µs), median of runs | added p50 | added p99 | recorded / dropped while measuring |"
+        "| payload | recording off p50 / p99 (µs) | recording on p50 / p99 (µs) | added p50 | added p99 | noise floor p50 / p99 (off against off) | recorded / dropped while on |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|");
     for size in [64usize, 4096, 320 * 240 * 3] {
-        let run = |record: bool| {
-            let system = unique(&format!("l{size}{}", u8::from(record)));
-            let netlist = format!(
-                r#"[system]
+        let system = unique(&format!("l{size}"));
+        let netlist = format!(
+            r#"[system]
 name = "{system}"
 [[module]]
 name = "src"
@@ -171,59 +190,92 @@ kind = "latency"
 [task.run]
 links = ["src.out -> lat.in"]
 "#
-            );
-            let dir = std::env::temp_dir().join(unique(&format!("lr{size}")));
-            let _up = if record {
-                up_recording(&system, &netlist, &[], None, 1, Some(&dir))
-            } else {
-                up(&system, &netlist, &[], None, 1)
-            };
-            let recording = || {
-                request(&system, &Request::Status)
-                    .ok()
-                    .and_then(|mut r| r.dnms.remove(0).recording)
-            };
-            let before = recording();
-            let lat = latencies(&system, "local", "lat", SAMPLES, 100);
-            let after = recording();
-            let _ = std::fs::remove_dir_all(&dir);
-            // Of the source's samples while measuring: recorded, and dropped by the recorder.
-            let counts = match (before, after) {
-                (Some(a), Some(b)) => (b.messages - a.messages, b.dropped - a.dropped),
-                _ => (0, 0),
-            };
-            (lat, counts)
-        };
-        // Off and on alternate, each run a system of its own; the medians of the runs' p50 and
-        // p99 are compared (one run's start can land this VM's cores in a better or a worse
-        // state than the next).
-        let (mut off, mut on) = (Vec::new(), Vec::new());
-        let (mut recorded, mut dropped) = (0, 0);
-        for _ in 0..ROUNDS {
-            off.push(percentiles(run(false).0));
-            let (lat, (r, d)) = run(true);
-            on.push(percentiles(lat));
-            recorded += r;
-            dropped += d;
-        }
-        let median = |v: &[(f64, f64)], p99: bool| {
-            let mut x: Vec<f64> = v.iter().map(|(a, b)| if p99 { *b } else { *a }).collect();
-            x.sort_by(f64::total_cmp);
-            x[x.len() / 2]
-        };
-        let (off, on) = (
-            (median(&off, false), median(&off, true)),
-            (median(&on, false), median(&on, true)),
         );
+        let _up = up(&system, &netlist, &[], None, 1);
+        let parsed = dnm::parse_netlist(Path::new("latency.toml"), &netlist).unwrap();
+        let prefix = dnm_prefix(&system, "local");
+        let dir = std::env::temp_dir().join(unique(&format!("lr{size}")));
+        let stop = AtomicBool::new(false);
+        // One system throughout; the DNM's own recorder (the same code) is started and stopped
+        // in windows, so off and on share the system's start and alternate every window.
+        let (samples, windows, recorded, dropped) = std::thread::scope(|s| {
+            let reader = s.spawn(|| timed_latencies(&system, "local", "lat", &stop));
+            std::thread::sleep(SETTLE);
+            // (from, to, recording): a recorder's start and stop fall between windows.
+            let mut windows: Vec<(Instant, Instant, bool)> = Vec::new();
+            let (mut recorded, mut dropped) = (0, 0);
+            let mut toggling = Duration::ZERO;
+            for w in 0..WINDOWS {
+                if w % 2 == 1 {
+                    let t = Instant::now();
+                    let mut options = RecordOptions::timestamped(&dir);
+                    options.stem = format!("w{w}");
+                    let mut recorder = Recorder::start("local", &prefix, options).unwrap();
+                    recorder.commit(&parsed, "local", 1);
+                    let from = Instant::now();
+                    toggling += from - t;
+                    std::thread::sleep(WINDOW);
+                    let to = Instant::now();
+                    let report = recorder.report();
+                    drop(recorder);
+                    toggling += to.elapsed();
+                    recorded += report.messages;
+                    dropped += report.dropped;
+                    windows.push((from, to, true));
+                } else {
+                    let from = Instant::now();
+                    std::thread::sleep(WINDOW);
+                    windows.push((from, Instant::now(), false));
+                }
+            }
+            stop.store(true, Ordering::Relaxed);
+            eprintln!(
+                "{}: starting and stopping the recorder took {:?} on average",
+                human(size),
+                toggling / (WINDOWS as u32 / 2)
+            );
+            (reader.join().unwrap(), windows, recorded, dropped)
+        });
+        let _ = std::fs::remove_dir_all(&dir);
+        // Each sample goes to the window it arrived in, unless it came in that window's first
+        // SETTLE or between windows (a recorder starting, or finishing its file).
+        let (mut off, mut on, mut off_a, mut off_b) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for (at, ns) in samples {
+            let Some(i) = windows
+                .iter()
+                .position(|(from, to, _)| *from + SETTLE <= at && at < *to)
+            else {
+                continue;
+            };
+            if windows[i].2 {
+                on.push(ns);
+            } else {
+                off.push(ns);
+                // Off windows alternate between two halves: their difference is what the
+                // measurement itself moves by.
+                if (i / 2) % 2 == 0 {
+                    off_a.push(ns);
+                } else {
+                    off_b.push(ns);
+                }
+            }
+        }
+        let n = (off.len(), on.len());
+        let (off, on) = (percentiles(off), percentiles(on));
+        let (a, b) = (percentiles(off_a), percentiles(off_b));
         println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.0} % | {:+.0} % | {recorded} / {dropped} |",
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.1} % | {:+.1} % | {:+.1} % / {:+.1} % | {recorded} / {dropped} |",
             human(size),
             off.0,
             off.1,
             on.0,
             on.1,
             (on.0 / off.0 - 1.0) * 100.0,
-            (on.1 / off.1 - 1.0) * 100.0
+            (on.1 / off.1 - 1.0) * 100.0,
+            (b.0 / a.0 - 1.0) * 100.0,
+            (b.1 / a.1 - 1.0) * 100.0,
         );
+        eprintln!("{}: {} samples off, {} on", human(size), n.0, n.1);
     }
 }
