@@ -358,8 +358,33 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         let a = mutate(&mut rng, &attachment, &[]);
         session.put(&sample_key, p).attachment(a).wait().unwrap();
     }
-    // Still up and commanded: back to the task that feeds relay, answered by both DNMs...
+    // Still up and commanded. The mutated commands may have applied a valid netlist of their
+    // own (another rate, another link): the original goes back in force first...
     assert!(up.alive(), "the DNMs' process died");
+    if let Ok(r) = dnm::remote::request(
+        &session,
+        &system,
+        &dnm::proto::Request::Netlist,
+        Duration::from_secs(10),
+    ) && r.netlist.as_deref() != Some(text.as_str())
+    {
+        println!(
+            "the fuzzed commands left another netlist in force:\n{}",
+            r.netlist.unwrap_or_default()
+        );
+    }
+    let restored = dnm::remote::request(
+        &session,
+        &system,
+        &dnm::proto::Request::Apply {
+            file: "netlist.toml".into(),
+            text: text.clone(),
+        },
+        Duration::from_secs(10),
+    )
+    .unwrap();
+    assert!(restored.ok, "{:?}", restored.error);
+    // ...then back to the task that feeds relay, answered by both DNMs...
     let switch = serde_json::json!({"client": "t", "id": "after", "cmd": "switch", "task": "feed"});
     let answers: Vec<bool> = session
         .get(format!("{system}/dnm/*/cmd"))
