@@ -137,9 +137,19 @@ pub fn up_recording(
     Up { child, dir }
 }
 
-/// `samples` latencies (ns) measured by the `latency` module `module` on DNM `dnm`, read from
-/// that DNM's shared memory; the first `skip` are dropped (start-up).
-pub fn latencies(system: &str, dnm: &str, module: &str, samples: usize, skip: usize) -> Vec<u64> {
+/// A subscriber and a listener on a `latency` module's output (and the node they live on).
+struct LatencyPort {
+    _node: Node<ipc::Service>,
+    sub: iceoryx2::port::subscriber::Subscriber<
+        ipc::Service,
+        [u8],
+        dnm_module::protocol::PortHeader,
+    >,
+    listener: iceoryx2::port::listener::Listener<ipc::Service>,
+}
+
+/// Opens the output of the `latency` module `module` on DNM `dnm`.
+fn latency_port(system: &str, dnm: &str, module: &str) -> LatencyPort {
     let node = raw_node(&dnm_prefix(system, dnm));
     let payload = Payload::Fixed {
         size_bytes: size_of::<Tick>(),
@@ -154,6 +164,21 @@ pub fn latencies(system: &str, dnm: &str, module: &str, samples: usize, skip: us
         .listener_builder()
         .create()
         .unwrap();
+    LatencyPort {
+        _node: node,
+        sub,
+        listener,
+    }
+}
+
+/// `samples` latencies (ns) measured by the `latency` module `module` on DNM `dnm`, read from
+/// that DNM's shared memory; the first `skip` are dropped (start-up).
+pub fn latencies(system: &str, dnm: &str, module: &str, samples: usize, skip: usize) -> Vec<u64> {
+    let LatencyPort {
+        _node,
+        sub,
+        listener,
+    } = latency_port(system, dnm, module);
     let waitset = WaitSetBuilder::new().create::<ipc::Service>().unwrap();
     let _g = waitset.attach_notification(&listener).unwrap();
     let mut lat = Vec::with_capacity(samples);
@@ -183,20 +208,11 @@ pub fn timed_latencies(
     module: &str,
     stop: &std::sync::atomic::AtomicBool,
 ) -> Vec<(Instant, u64)> {
-    let node = raw_node(&dnm_prefix(system, dnm));
-    let payload = Payload::Fixed {
-        size_bytes: size_of::<Tick>(),
-    };
-    let sub = port_service(&node, &output_service(module, "latency_ns"), &payload)
-        .unwrap()
-        .subscriber_builder()
-        .create()
-        .unwrap();
-    let listener = event_service(&node, &output_event(module, "latency_ns"))
-        .unwrap()
-        .listener_builder()
-        .create()
-        .unwrap();
+    let LatencyPort {
+        _node,
+        sub,
+        listener,
+    } = latency_port(system, dnm, module);
     let mut lat = Vec::new();
     while !stop.load(std::sync::atomic::Ordering::Relaxed) {
         listener
