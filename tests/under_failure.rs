@@ -706,8 +706,8 @@ fn command_ids_belong_to_their_client() {
 
 #[test]
 fn a_plan_a_module_cannot_prepare_is_refused_and_the_module_keeps_running() {
-    // One output read by more inputs than its port admits subscribers: the modules that come
-    // last cannot open their subscription.
+    // One output read by more inputs than its port was made for (its subscriber slots are
+    // fixed when it is made): the revision cannot be prepared.
     let sys = System::start(CHAIN);
     let relay = sys.subscribe::<Tick>("relay", "out");
     collect::<Tick>(&relay, |t| t.len() >= 5);
@@ -725,7 +725,7 @@ fn a_plan_a_module_cannot_prepare_is_refused_and_the_module_keeps_running() {
     let out = apply(&sys, &crowded, "crowded.toml");
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("could not prepare revision"), "{err}");
+    assert!(err.contains("was made for 16 subscribers"), "{err}");
     let after = sys.status();
     assert_eq!(after.revision, before.revision);
     assert_eq!(after.modules.len(), before.modules.len());

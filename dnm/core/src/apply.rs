@@ -11,10 +11,11 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Instant;
 
-use dnm_module::port_service;
+use dnm_module::port_service_for;
 use dnm_module::protocol::*;
 use dnm_netlist::Netlist;
 use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::service::port_factory::PortFactory as _;
 
 use dnm_proto::ModuleRunState;
 
@@ -171,7 +172,38 @@ impl Dnm {
 
     fn stage(&mut self, p: &mut PendingApply, added: &[String]) -> Result<(), DnmError> {
         let netlist = &p.netlist;
-        // 1. Output services of new and replaced modules exist before anyone subscribes.
+        // 0. Every port kept has room for its readers in this netlist: a port's subscriber
+        //    slots are fixed when it is made.
+        for m in netlist.modules_on(&self.name) {
+            let Some(spec) = netlist.kind_of(&m.name) else {
+                continue;
+            };
+            for port in &spec.outputs {
+                let Some(services) = self.ports.get(&output_service(&m.name, &port.name)) else {
+                    continue;
+                };
+                let needed = netlist.port_subscribers(&m.name, &port.name, &self.name);
+                let has = services
+                    .data
+                    .static_config()
+                    .max_subscribers()
+                    .min(services.event.static_config().max_listeners());
+                if needed > has {
+                    return Err(DnmError::Ipc(format!(
+                        "output `{}.{}` was made for {has} subscribers and this netlist needs \
+                         {needed} ({} readers on DNM `{}` and spares): remove `{}` in one apply \
+                         and add it back in the next, so that its port is made anew",
+                        m.name,
+                        port.name,
+                        netlist.readers(&m.name, &port.name, &self.name),
+                        self.name,
+                        m.name
+                    )));
+                }
+            }
+        }
+        // 1. Output services of new and replaced modules exist before anyone subscribes, with
+        //    a subscriber slot for each of their readers.
         for name in added.iter().chain(&p.replaced) {
             let spec = netlist
                 .kind_of(name)
@@ -181,10 +213,17 @@ impl Dnm {
                 if self.ports.contains_key(&service) {
                     continue;
                 }
-                let data = port_service(&self.node, &service, &port.message.payload)
-                    .map_err(|e| DnmError::Ipc(e.to_string()))?;
-                let event = dnm_module::event_service(&self.node, &output_event(name, &port.name))
-                    .map_err(|e| DnmError::Ipc(e.to_string()))?;
+                let subscribers = netlist.port_subscribers(name, &port.name, &self.name);
+                let data =
+                    port_service_for(&self.node, &service, &port.message.payload, subscribers)
+                        .map_err(|e| DnmError::Ipc(e.to_string()))?;
+                // Listeners cost no samples: never fewer than every opener asks for.
+                let event = dnm_module::event_service_for(
+                    &self.node,
+                    &output_event(name, &port.name),
+                    subscribers.max(MAX_PORT_SUBSCRIBERS),
+                )
+                .map_err(|e| DnmError::Ipc(e.to_string()))?;
                 self.ports
                     .insert(service.clone(), PortServices { data, event });
                 p.new_ports.push(service);

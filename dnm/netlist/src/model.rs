@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use toml::Spanned;
 
 use crate::error::{NetlistError, Reporter, suggest};
-use crate::spec::{Catalog, KindSource, KindSpec, ParamValue};
+use crate::spec::{Catalog, KindSource, KindSpec, ParamValue, Payload};
 
 /// The DNM that hosts modules which name none, when the netlist declares no DNM at all.
 pub const DEFAULT_DNM: &str = "local";
@@ -340,6 +340,29 @@ impl Netlist {
         self.default_task
             .as_deref()
             .or_else(|| self.tasks.keys().next().map(String::as_str))
+    }
+
+    /// Modules on `dnm` that read output `module.port` in any task.
+    pub fn readers(&self, module: &str, port: &str, dnm: &str) -> usize {
+        self.tasks
+            .values()
+            .flat_map(|t| t.links.iter())
+            .filter(|l| l.from.module == module && l.from.port == port)
+            .filter(|l| self.module(&l.to.module).is_some_and(|m| m.dnm == dnm))
+            .map(|l| l.to.module.as_str())
+            .collect::<BTreeSet<_>>()
+            .len()
+    }
+
+    /// Subscribers the shared-memory service of output `module.port` admits on `dnm` (where
+    /// the module runs, or where its samples are mirrored for readers across DNMs): its readers
+    /// there plus spares, at least 16 (6 for a large payload).
+    pub fn port_subscribers(&self, module: &str, port: &str, dnm: &str) -> usize {
+        let payload = self
+            .kind_of(module)
+            .and_then(|k| k.output(port))
+            .map_or(Payload::Fixed { size_bytes: 0 }, |p| p.message.payload);
+        payload.subscribers_for(self.readers(module, port, dnm))
     }
 
     /// Every distinct link of any task.
@@ -726,6 +749,9 @@ fn validate(
 
     // Tasks.
     let mut tasks = BTreeMap::new();
+    // Readers of each output on each DNM, across tasks: a port's shared memory holds a slot for
+    // each of them.
+    let mut readers: BTreeMap<(PortRef, String), BTreeSet<String>> = BTreeMap::new();
     for (tname, t) in &raw.task {
         let tfield = format!("task.{}", tname.get_ref());
         check_name(r, tname, &tfield);
@@ -765,6 +791,7 @@ fn validate(
                     );
                     continue;
                 }
+                check_readers(r, &link, l, &field, &modules, &kinds, &mut readers);
                 links.push(link);
             }
         }
@@ -885,6 +912,65 @@ fn validate(
         catalog: kinds,
         graph,
         nodes,
+    }
+}
+
+/// Counts `link`'s reader against its output's limit on the reader's DNM; refuses the link
+/// that first goes over it.
+fn check_readers(
+    r: &mut Reporter<'_>,
+    link: &Link,
+    at: &Spanned<String>,
+    field: &str,
+    modules: &[Module],
+    kinds: &Catalog,
+    readers: &mut BTreeMap<(PortRef, String), BTreeSet<String>>,
+) {
+    let (Some(to), Some(from)) = (
+        modules.iter().find(|m| m.name == link.to.module),
+        modules.iter().find(|m| m.name == link.from.module),
+    ) else {
+        return;
+    };
+    let Some(payload) = kinds
+        .get(&from.kind)
+        .and_then(|k| k.spec.output(&link.from.port))
+        .map(|p| p.message.payload)
+    else {
+        return;
+    };
+    let set = readers
+        .entry((link.from.clone(), to.dnm.clone()))
+        .or_default();
+    if !set.insert(to.name.clone()) {
+        return;
+    }
+    let max = payload.max_readers();
+    if set.len() == max + 1 {
+        let size = if payload.is_large() {
+            format!(
+                " (samples of up to {} bytes: each reader reserves {} of them in shared memory)",
+                payload.max_bytes(),
+                crate::spec::SAMPLES_PER_SUBSCRIBER
+            )
+        } else {
+            String::new()
+        };
+        r.error(
+            span_of(at),
+            field.to_string(),
+            format!(
+                "output `{}` would feed {} modules on DNM `{}`; it can feed at most {max}{size}",
+                link.from,
+                set.len(),
+                to.dnm
+            ),
+            Some(
+                "feed the others through a relay module (one reader that republishes), or \
+                 place some readers on another DNM"
+                    .into(),
+            ),
+        );
     }
 }
 

@@ -18,12 +18,58 @@ pub enum Payload {
     Bytes { max_bytes: usize },
 }
 
+/// Payloads above this many bytes are large: their ports reserve fewer, deeper-costing
+/// subscriber slots.
+pub const LARGE_PAYLOAD_BYTES: usize = 64 * 1024;
+/// Subscriber slots a port keeps beyond its readers in the netlist, for the DNM's own (recorder,
+/// Zenoh bridge, port watch), a replacement overlapping the module it replaces, and tools.
+pub const SPARE_SUBSCRIBERS: usize = 8;
+/// The same for a large port, whose every slot reserves samples of shared memory.
+pub const SPARE_LARGE_SUBSCRIBERS: usize = 4;
+/// Shared memory a large port may reserve for its subscribers' samples.
+pub const LARGE_PORT_MEMORY: usize = 64 << 20;
+/// Samples one subscriber slot of a port reserves (a recorder's buffer and two borrowed).
+pub(crate) const SAMPLES_PER_SUBSCRIBER: usize = 10;
+/// Readers one port feeds on one DNM at most, whatever its size (a DNM hosts 256 modules).
+pub const MAX_READERS: usize = 256;
+
 impl Payload {
     /// The largest number of payload bytes a sample of this port can hold.
     pub fn max_bytes(&self) -> usize {
         match *self {
             Payload::Fixed { size_bytes } => size_bytes,
             Payload::Bytes { max_bytes } => max_bytes,
+        }
+    }
+
+    /// Whether ports of this payload use the large-port limits.
+    pub fn is_large(&self) -> bool {
+        self.max_bytes() > LARGE_PAYLOAD_BYTES
+    }
+
+    fn spare(&self) -> usize {
+        if self.is_large() {
+            SPARE_LARGE_SUBSCRIBERS
+        } else {
+            SPARE_SUBSCRIBERS
+        }
+    }
+
+    /// Subscribers a port of this payload admits with `readers` modules reading it on its DNM:
+    /// at least 16 (6 for a large port), and the readers plus the spares.
+    pub fn subscribers_for(&self, readers: usize) -> usize {
+        let floor = if self.is_large() { 6 } else { 16 };
+        (readers + self.spare()).max(floor)
+    }
+
+    /// Readers one port of this payload can feed on one DNM: 256, or for a large port as many
+    /// as [`LARGE_PORT_MEMORY`] holds samples for (at least 4).
+    pub fn max_readers(&self) -> usize {
+        if self.is_large() {
+            let slots = LARGE_PORT_MEMORY / (SAMPLES_PER_SUBSCRIBER * self.max_bytes().max(1));
+            (slots.max(8) - self.spare()).min(MAX_READERS)
+        } else {
+            MAX_READERS
         }
     }
 }

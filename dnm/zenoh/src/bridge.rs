@@ -32,7 +32,7 @@ use dnm_core::{
     Command, CommandKey, Commander, Context, Decision, DnmReport, Plugin, Reply, Snapshot, Txn,
 };
 use dnm_module::protocol::{PortHeader, dnm_config, output_event, output_service};
-use dnm_module::{event_service, port_service};
+use dnm_module::{event_service, event_service_for, port_service, port_service_for};
 use dnm_netlist::{MessageType, Netlist, Wiring};
 
 use crate::watch::{WATCH_EVENT, WatchPort, watch_loop};
@@ -344,20 +344,32 @@ impl Bridge {
             .collect()
     }
 
-    fn mirror(&self, service: &str, key: &str, message: &MessageType) -> Result<Ingress, String> {
-        let port = port_service(&self.ts_node, service, &message.payload)
+    fn mirror(
+        &self,
+        netlist: &Netlist,
+        service: &str,
+        key: &str,
+        message: &MessageType,
+    ) -> Result<Ingress, String> {
+        let (module, p) = service.split_once('/').unwrap_or((service, ""));
+        // As many subscribers as the port has readers here, like a local port.
+        let subscribers = netlist.port_subscribers(module, p, &self.dnm);
+        let port = port_service_for(&self.ts_node, service, &message.payload, subscribers)
             .map_err(err("mirror port service"))?;
         let publisher = port
             .publisher_builder()
             .initial_max_slice_len(message.payload.max_bytes())
             .create()
             .map_err(dbg("mirror publisher"))?;
-        let (module, p) = service.split_once('/').unwrap_or((service, ""));
-        let notifier = event_service(&self.ts_node, &output_event(module, p))
-            .map_err(err("mirror event"))?
-            .notifier_builder()
-            .create()
-            .map_err(dbg("mirror notifier"))?;
+        let notifier = event_service_for(
+            &self.ts_node,
+            &output_event(module, p),
+            subscribers.max(dnm_module::protocol::MAX_PORT_SUBSCRIBERS),
+        )
+        .map_err(err("mirror event"))?
+        .notifier_builder()
+        .create()
+        .map_err(dbg("mirror notifier"))?;
         let counters = Arc::new(Counters::default());
         let mirror = Mutex::new(Mirror {
             publisher,
@@ -463,7 +475,7 @@ impl Plugin for Bridge {
             if self.ingress.contains_key(&service) || ctx.local_outputs.contains(&service) {
                 continue;
             }
-            match self.mirror(&service, &key, &message) {
+            match self.mirror(netlist, &service, &key, &message) {
                 Ok(ingress) => {
                     self.ingress.insert(service.clone(), ingress);
                     self.prepared.push(service);
@@ -503,7 +515,7 @@ impl Plugin for Bridge {
             }
             // Drop the old mirror first: one publisher per mirror port at a time.
             self.ingress.remove(service);
-            match self.mirror(service, key, message) {
+            match self.mirror(netlist, service, key, message) {
                 Ok(i) => {
                     self.ingress.insert(service.clone(), i);
                 }

@@ -39,7 +39,8 @@ pub use host::{Registration, Registry, host_main};
 pub use kind::Kind;
 pub use runtime::{
     BytesInput, BytesOutput, Input, Io, Module, ModuleError, Offline, Output, Setup, Stepper,
-    TaskWatch, event_service, plan_service_factory, port_service, status_service_factory,
+    TaskWatch, event_service, event_service_for, plan_service_factory, port_service,
+    port_service_for, status_service_factory,
 };
 
 /// Logs to stderr through `tracing`, filtered by `RUST_LOG` (default `info`); iceoryx2's own

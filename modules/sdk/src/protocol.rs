@@ -37,13 +37,13 @@ pub struct PortHeader {
 
 /// Largest plan message, in bytes.
 pub const MAX_PLAN_BYTES: usize = 64 * 1024;
-/// Subscribers one output port admits: consumers across all tasks, the DNM, and spares for
-/// recorders and bridges.
+/// Subscribers an output port admits at least. The DNM creates each port's service for its
+/// readers in the netlist plus spares ([`dnm_netlist::Netlist::port_subscribers`]).
 pub const MAX_PORT_SUBSCRIBERS: usize = 16;
-/// Subscribers a large (over 64 KiB) byte port admits: each one reserves whole samples.
+/// The same for a large (over 64 KiB) byte port: each subscriber reserves whole samples.
 pub const MAX_LARGE_PORT_SUBSCRIBERS: usize = 6;
 /// Payloads above this many bytes use the large-port limits.
-pub const LARGE_PAYLOAD_BYTES: usize = 64 * 1024;
+pub use dnm_netlist::LARGE_PAYLOAD_BYTES;
 /// Publishers one output port admits: the module, a replacement starting while the old one is
 /// cleaned up, and a replay.
 pub const MAX_PORT_PUBLISHERS: usize = 3;

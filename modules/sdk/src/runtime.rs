@@ -607,7 +607,8 @@ pub fn make<M: Module + 'static>(setup: &mut Setup<'_>) -> Result<Box<dyn Steppe
     Ok(Box::new(M::new(setup)?))
 }
 
-/// Opens (or creates, with the DNM's exact settings) an output port's pub/sub service.
+/// Opens (or creates, with the DNM's exact settings) an output port's pub/sub service,
+/// admitting at least the default number of subscribers.
 pub fn port_service<S: iceoryx2::service::Service>(
     node: &Node<S>,
     name: &str,
@@ -616,8 +617,22 @@ pub fn port_service<S: iceoryx2::service::Service>(
     iceoryx2::service::port_factory::publish_subscribe::PortFactory<S, [u8], PortHeader>,
     ModuleError,
 > {
-    let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
     let (max_subscribers, _) = port_limits(payload);
+    port_service_for(node, name, payload, max_subscribers)
+}
+
+/// [`port_service`] admitting `subscribers` (the DNM creates a port for its readers in the
+/// netlist: [`dnm_netlist::Netlist::port_subscribers`]).
+pub fn port_service_for<S: iceoryx2::service::Service>(
+    node: &Node<S>,
+    name: &str,
+    payload: &Payload,
+    max_subscribers: usize,
+) -> Result<
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<S, [u8], PortHeader>,
+    ModuleError,
+> {
+    let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
     node.service_builder(&service_name)
         .publish_subscribe::<[u8]>()
         .user_header::<PortHeader>()
@@ -638,10 +653,19 @@ pub fn event_service<S: iceoryx2::service::Service>(
     node: &Node<S>,
     name: &str,
 ) -> Result<iceoryx2::service::port_factory::event::PortFactory<S>, ModuleError> {
+    event_service_for(node, name, MAX_PORT_SUBSCRIBERS)
+}
+
+/// [`event_service`] admitting `listeners` (an output's event, one listener per reader).
+pub fn event_service_for<S: iceoryx2::service::Service>(
+    node: &Node<S>,
+    name: &str,
+    listeners: usize,
+) -> Result<iceoryx2::service::port_factory::event::PortFactory<S>, ModuleError> {
     let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
     node.service_builder(&service_name)
         .event()
-        .max_listeners(MAX_PORT_SUBSCRIBERS)
+        .max_listeners(listeners)
         .max_notifiers(MAX_MODULES)
         .max_nodes(MAX_MODULES)
         .open_or_create()
