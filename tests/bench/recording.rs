@@ -27,7 +27,7 @@ use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Latency windows per payload, recording off and on alternating...
-const WINDOWS: usize = 120;
+const WINDOWS: usize = 240;
 /// ...each this long...
 const WINDOW: Duration = Duration::from_millis(500);
 /// ...of which the start is left out.
@@ -171,9 +171,9 @@ links = ["t1.out -> r1.in"]
 
 fn latency() {
     println!(
-        "| payload | recording off p50 / p99 (µs) | recording on p50 / p99 (µs) | added p50 | added p99 | noise floor p50 / p99 (off against off) | recorded / dropped while on |"
+        "| payload | recording off p50 / p99 (µs) | recording on p50 / p99 (µs) | added p50 | added p99 | added p99, 90 % interval | noise floor p50 / p99 (off against off) | recorded / dropped while on |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     for size in [64usize, 4096, 320 * 240 * 3] {
         let system = unique(&format!("l{size}"));
         let netlist = format!(
@@ -239,33 +239,35 @@ links = ["src.out -> lat.in"]
         let _ = std::fs::remove_dir_all(&dir);
         // Each sample goes to the window it arrived in, unless it came in that window's first
         // SETTLE or between windows (a recorder starting, or finishing its file).
-        let (mut off, mut on, mut off_a, mut off_b) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut per_window: Vec<Vec<u64>> = vec![Vec::new(); windows.len()];
         for (at, ns) in samples {
-            let Some(i) = windows
+            if let Some(i) = windows
                 .iter()
                 .position(|(from, to, _)| *from + SETTLE <= at && at < *to)
-            else {
-                continue;
-            };
-            if windows[i].2 {
-                on.push(ns);
-            } else {
-                off.push(ns);
-                // Off windows alternate between two halves: their difference is what the
-                // measurement itself moves by.
-                if (i / 2) % 2 == 0 {
-                    off_a.push(ns);
-                } else {
-                    off_b.push(ns);
-                }
+            {
+                per_window[i].push(ns);
             }
         }
+        let on_w: Vec<&Vec<u64>> = (0..windows.len())
+            .filter(|&i| windows[i].2)
+            .map(|i| &per_window[i])
+            .collect();
+        let off_w: Vec<&Vec<u64>> = (0..windows.len())
+            .filter(|&i| !windows[i].2)
+            .map(|i| &per_window[i])
+            .collect();
+        // Off windows alternate between two halves: their difference is what the measurement
+        // itself moves by.
+        let off_a: Vec<&Vec<u64>> = off_w.iter().copied().step_by(2).collect();
+        let off_b: Vec<&Vec<u64>> = off_w.iter().copied().skip(1).step_by(2).collect();
+        let pool = |w: &[&Vec<u64>]| w.iter().flat_map(|v| v.iter().copied()).collect::<Vec<_>>();
+        let (off, on) = (pool(&off_w), pool(&on_w));
         let n = (off.len(), on.len());
         let (off, on) = (percentiles(off), percentiles(on));
-        let (a, b) = (percentiles(off_a), percentiles(off_b));
+        let (a, b) = (percentiles(pool(&off_a)), percentiles(pool(&off_b)));
+        let (lo, hi) = bootstrap_p99_ratio(&off_w, &on_w);
         println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.1} % | {:+.1} % | {:+.1} % / {:+.1} % | {recorded} / {dropped} |",
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.1} % | {:+.1} % | {:+.1} % … {:+.1} % | {:+.1} % / {:+.1} % | {recorded} / {dropped} |",
             human(size),
             off.0,
             off.1,
@@ -273,9 +275,45 @@ links = ["src.out -> lat.in"]
             on.1,
             (on.0 / off.0 - 1.0) * 100.0,
             (on.1 / off.1 - 1.0) * 100.0,
+            (lo - 1.0) * 100.0,
+            (hi - 1.0) * 100.0,
             (b.0 / a.0 - 1.0) * 100.0,
             (b.1 / a.1 - 1.0) * 100.0,
         );
         eprintln!("{}: {} samples off, {} on", human(size), n.0, n.1);
     }
+}
+
+/// 90 % interval of p99(on) / p99(off), by resampling whole windows (a block bootstrap: samples
+/// in one window are not independent, a slow phase of the machine spans a window).
+fn bootstrap_p99_ratio(off: &[&Vec<u64>], on: &[&Vec<u64>]) -> (f64, f64) {
+    const RESAMPLES: usize = 1000;
+    // xorshift64*: resampling needs no more than a fixed, repeatable stream.
+    let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    let mut next = move |n: usize| {
+        state ^= state >> 12;
+        state ^= state << 25;
+        state ^= state >> 27;
+        (state.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 33) as usize % n
+    };
+    let mut p99 = |windows: &[&Vec<u64>], buf: &mut Vec<u64>| {
+        buf.clear();
+        for _ in 0..windows.len() {
+            buf.extend_from_slice(windows[next(windows.len())]);
+        }
+        let k = (buf.len() - 1) * 99 / 100;
+        *buf.select_nth_unstable(k).1 as f64
+    };
+    let mut buf = Vec::new();
+    let mut ratios: Vec<f64> = (0..RESAMPLES)
+        .map(|_| {
+            let off = p99(off, &mut buf);
+            p99(on, &mut buf) / off
+        })
+        .collect();
+    ratios.sort_by(f64::total_cmp);
+    (
+        ratios[RESAMPLES / 20],
+        ratios[RESAMPLES - 1 - RESAMPLES / 20],
+    )
 }

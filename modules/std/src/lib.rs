@@ -20,6 +20,7 @@ pub fn registry() -> Registry {
         .register::<sources::BlobSource>()
         .register::<tasks::Relay>()
         .register::<tasks::Pair>()
+        .register::<tasks::Merge>()
         .register::<sinks::Latency>()
 }
 

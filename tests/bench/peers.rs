@@ -1,0 +1,351 @@
+//! Side by side with dora-rs, in one run on this machine:
+//!
+//! 1. the same two-module pipeline (a source at 500 Hz, a sink measuring each payload's delivery
+//!    time; 64 B, 4 KiB, 1 MiB): ours is `blob_source → latency` on one DNM, dora's a
+//!    `dora-source → dora-sink` dataflow started on its daemon (`peers/dora/src/bin/`), both
+//!    stamping CLOCK_MONOTONIC as the payload leaves. Latency p50/p99, CPU per message (every
+//!    process of the system, from `/proc`, over the measured window) and memory (PSS, so shared
+//!    memory counts once);
+//! 2. the same ten-link task change: two sources and five two-input readers, every link moved
+//!    to the other source. Ours is a task switch; dora has none, so its fastest way is to stop
+//!    the dataflow and start the other one (its daemon and coordinator stay up), timed until
+//!    every reader has data again.
+//!
+//! Run: `peers/dora/run`, which builds dora 1.1.0 (pinned, outside the workspace) and its nodes,
+//! then this benchmark with `DORA` (the `dora` command) and `DORA_NODES` (the nodes' folder).
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{cpu_seconds, human, latencies, percentiles, unique, up};
+use dnm::admin::{Request, request};
+use iceoryx2::prelude::{LogLevel, set_log_level};
+
+const SIZES: [usize; 3] = [64, 4096, 1 << 20];
+const RATE_HZ: f64 = 500.0;
+const SAMPLES: usize = 2000;
+const SKIP: usize = 250;
+const SWITCHES: usize = 100;
+const DORA_CHANGES: usize = 6;
+
+fn main() {
+    set_log_level(LogLevel::Error);
+    let (Some(dora), Some(nodes)) = (std::env::var_os("DORA"), std::env::var_os("DORA_NODES"))
+    else {
+        eprintln!(
+            "this benchmark needs dora-rs: run `peers/dora/run`, which builds dora 1.1.0 and its \
+             nodes and then runs it"
+        );
+        std::process::exit(2);
+    };
+    let dora = Dora {
+        exe: PathBuf::from(dora),
+        nodes: PathBuf::from(nodes),
+        dir: std::env::temp_dir().join(unique("dora")),
+    };
+    std::fs::create_dir_all(&dora.dir).unwrap();
+    dora.cli(&["up"]);
+    println!("# side by side with dora-rs 1.1.0 ({SAMPLES} samples per size at {RATE_HZ} Hz)\n");
+    println!(
+        "| payload | ours p50 / p99 (µs) | dora p50 / p99 (µs) | ours CPU per message (µs) | dora CPU per message (µs) | ours memory, PSS (MiB) | dora memory, PSS (MiB) |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for size in SIZES {
+        let ours = ours_pipeline(size);
+        let theirs = dora.pipeline(size);
+        println!(
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.1} | {:.1} | {:.1} | {:.1} |",
+            human(size),
+            ours.p50,
+            ours.p99,
+            theirs.p50,
+            theirs.p99,
+            ours.cpu_us,
+            theirs.cpu_us,
+            ours.pss_mib,
+            theirs.pss_mib
+        );
+    }
+    let (ours_dnm, ours_rt) = ours_change();
+    let theirs = dora.change();
+    println!("\n| ten-link task change | p50 | p99 |");
+    println!("|---|---|---|");
+    println!(
+        "| ours: task switch inside the DNM (µs) | {:.3} | {:.3} |",
+        ours_dnm.0, ours_dnm.1
+    );
+    println!(
+        "| ours: the operator's switch request, round trip (µs) | {:.0} | {:.0} |",
+        ours_rt.0, ours_rt.1
+    );
+    println!(
+        "| dora: stop the dataflow, start the other, until every reader has data (µs) | {:.0} | {:.0} |",
+        theirs.0, theirs.1
+    );
+    println!(
+        "\nratio dora change / our switch request at p50: {:.0}x",
+        theirs.0 / ours_rt.0
+    );
+    dora.cli(&["down"]);
+    let _ = std::fs::remove_dir_all(&dora.dir);
+}
+
+struct Measured {
+    p50: f64,
+    p99: f64,
+    cpu_us: f64,
+    pss_mib: f64,
+}
+
+/// Processes whose command line satisfies `pred`.
+fn processes(pred: impl Fn(&str) -> bool) -> Vec<u32> {
+    let mut pids = Vec::new();
+    for e in std::fs::read_dir("/proc").unwrap().flatten() {
+        let Some(pid) = e.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else {
+            continue;
+        };
+        let Ok(cmd) = std::fs::read(format!("/proc/{pid}/cmdline")) else {
+            continue;
+        };
+        let cmd = String::from_utf8_lossy(&cmd).replace('\0', " ");
+        if pred(&cmd) {
+            pids.push(pid);
+        }
+    }
+    pids
+}
+
+fn cpu(pids: &[u32]) -> f64 {
+    pids.iter().map(|&p| cpu_seconds(p)).sum()
+}
+
+/// Proportional set size of `pids`, MiB: shared pages count once across them.
+fn pss_mib(pids: &[u32]) -> f64 {
+    let kib: u64 = pids
+        .iter()
+        .filter_map(|p| std::fs::read_to_string(format!("/proc/{p}/smaps_rollup")).ok())
+        .filter_map(|s| {
+            s.lines()
+                .find(|l| l.starts_with("Pss:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
+        })
+        .sum();
+    kib as f64 / 1024.0
+}
+
+// ------------------------------------------------------------------------------------------
+// Ours.
+
+fn ours_pipeline(size: usize) -> Measured {
+    let system = unique(&format!("p{size}"));
+    let netlist = format!(
+        "[system]\nname = \"{system}\"\n\
+         [[module]]\nname = \"src\"\nkind = \"blob_source\"\nrate_hz = {RATE_HZ}\nparams = {{ bytes = {size} }}\n\
+         [[module]]\nname = \"lat\"\nkind = \"latency\"\n\
+         [task.run]\nlinks = [\"src.out -> lat.in\"]\n"
+    );
+    let up = up(&system, &netlist, &[], None, 1);
+    let dnm = up.pid();
+    let pids = processes(|cmd| cmd.contains(&format!("\"system\":\"{system}\"")));
+    let pids: Vec<u32> = pids.into_iter().chain([dnm]).collect();
+    // Warm up, then measure over a window of SAMPLES messages.
+    let _ = latencies(&system, "local", "lat", SKIP, 0);
+    let (t, c) = (Instant::now(), cpu(&pids));
+    let lat = latencies(&system, "local", "lat", SAMPLES, 0);
+    let (c, messages) = (cpu(&pids) - c, t.elapsed().as_secs_f64() * RATE_HZ);
+    let pss = pss_mib(&pids);
+    let (p50, p99) = percentiles(lat);
+    Measured {
+        p50,
+        p99,
+        cpu_us: c * 1e6 / messages,
+        pss_mib: pss,
+    }
+}
+
+fn ours_change() -> ((f64, f64), (f64, f64)) {
+    let system = unique("chg");
+    let mut netlist = format!(
+        "[system]\nname = \"{system}\"\ndefault_task = \"a\"\n\
+         [[module]]\nname = \"src_a\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 1 }}\n\
+         [[module]]\nname = \"src_b\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 2 }}\n"
+    );
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for i in 0..5 {
+        netlist += &format!("[[module]]\nname = \"p{i}\"\nkind = \"pair\"\n");
+        a.push(format!("\"src_a.out -> p{i}.a\", \"src_b.out -> p{i}.b\""));
+        b.push(format!("\"src_b.out -> p{i}.a\", \"src_a.out -> p{i}.b\""));
+    }
+    netlist += &format!(
+        "[task.a]\nlinks = [{}]\n[task.b]\nlinks = [{}]\n",
+        a.join(", "),
+        b.join(", ")
+    );
+    let _up = up(&system, &netlist, &[], None, 1);
+    let (mut inside, mut round_trip) = (Vec::new(), Vec::new());
+    for i in 0..SWITCHES {
+        let task = if i % 2 == 0 { "b" } else { "a" };
+        let t = Instant::now();
+        let r = request(&system, &Request::Switch { task: task.into() }).unwrap();
+        round_trip.push(t.elapsed().as_nanos() as u64);
+        assert!(r.ok, "{r:?}");
+        inside.push(r.switches[0].duration_ns);
+    }
+    (percentiles(inside), percentiles(round_trip))
+}
+
+// ------------------------------------------------------------------------------------------
+// dora.
+
+struct Dora {
+    exe: PathBuf,
+    nodes: PathBuf,
+    dir: PathBuf,
+}
+
+impl Dora {
+    fn cli(&self, args: &[&str]) {
+        let out = Command::new(&self.exe)
+            .args(args)
+            .current_dir(&self.dir)
+            .stdin(Stdio::null())
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "dora {}: {}{}",
+            args.join(" "),
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+
+    fn node(&self, name: &str) -> String {
+        self.nodes.join(name).display().to_string()
+    }
+
+    /// Every process of dora's: its coordinator and daemon (the `dora` command) and its nodes.
+    fn processes(&self) -> Vec<u32> {
+        let exe = self.exe.display().to_string();
+        let nodes = self.nodes.display().to_string();
+        processes(|cmd| cmd.starts_with(&exe) || cmd.starts_with(&nodes))
+    }
+
+    fn start(&self, name: &str, yaml: &str) {
+        let path = self.dir.join(format!("{name}.yml"));
+        std::fs::write(&path, yaml).unwrap();
+        self.cli(&["start", path.to_str().unwrap(), "--name", name, "--detach"]);
+    }
+
+    fn stop(&self, name: &str) {
+        self.cli(&["stop", "--name", name]);
+    }
+
+    fn pipeline(&self, size: usize) -> Measured {
+        let name = unique(&format!("d{size}"));
+        let out = self.dir.join(format!("{name}.lat"));
+        let period_ms = (1e3 / RATE_HZ) as u64;
+        let yaml = format!(
+            "nodes:\n\
+             \x20 - id: src\n    path: {src}\n    env:\n      SIZE: \"{size}\"\n    inputs:\n      tick: dora/timer/millis/{period_ms}\n    outputs:\n      - out\n\
+             \x20 - id: lat\n    path: {sink}\n    env:\n      OUT: \"{out}\"\n    inputs:\n      in: src/out\n",
+            src = self.node("dora-source"),
+            sink = self.node("dora-sink"),
+            out = out.display(),
+        );
+        self.start(&name, &yaml);
+        wait_for(&first(&out));
+        std::thread::sleep(Duration::from_secs_f64(SKIP as f64 / RATE_HZ));
+        let pids = self.processes();
+        let (t, c) = (Instant::now(), cpu(&pids));
+        std::thread::sleep(Duration::from_secs_f64(SAMPLES as f64 / RATE_HZ));
+        let (c, messages) = (cpu(&pids) - c, t.elapsed().as_secs_f64() * RATE_HZ);
+        let pss = pss_mib(&pids);
+        self.stop(&name);
+        wait_for(&out);
+        let bytes = std::fs::read(&out).unwrap();
+        let lat: Vec<u64> = bytes
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes(c.try_into().unwrap()))
+            .skip(SKIP)
+            .collect();
+        assert!(
+            lat.len() >= SAMPLES / 2,
+            "dora delivered {} samples",
+            lat.len()
+        );
+        let (p50, p99) = percentiles(lat);
+        Measured {
+            p50,
+            p99,
+            cpu_us: c * 1e6 / messages,
+            pss_mib: pss,
+        }
+    }
+
+    /// Dataflow `task` (a or b) of the ten-link change, its readers writing to `tag`'s files.
+    fn change_yaml(&self, task: &str, tag: &str) -> String {
+        let src = self.node("dora-source");
+        let sink = self.node("dora-sink");
+        let mut yaml = String::from("nodes:\n");
+        for s in ["src_a", "src_b"] {
+            yaml += &format!(
+                "  - id: {s}\n    path: {src}\n    inputs:\n      tick: dora/timer/millis/10\n    outputs:\n      - out\n"
+            );
+        }
+        let (x, y) = if task == "a" {
+            ("src_a", "src_b")
+        } else {
+            ("src_b", "src_a")
+        };
+        for i in 0..5 {
+            let out = self.dir.join(format!("{tag}-p{i}.lat"));
+            yaml += &format!(
+                "  - id: p{i}\n    path: {sink}\n    env:\n      OUT: \"{}\"\n    inputs:\n      a: {x}/out\n      b: {y}/out\n",
+                out.display()
+            );
+        }
+        yaml
+    }
+
+    fn change(&self) -> (f64, f64) {
+        let mut running = unique("chg0");
+        self.start(&running, &self.change_yaml("a", &running));
+        for i in 0..5 {
+            wait_for(&first(&self.dir.join(format!("{running}-p{i}.lat"))));
+        }
+        let mut times = Vec::new();
+        for n in 1..=DORA_CHANGES {
+            let next = unique(&format!("chg{n}"));
+            let task = if n % 2 == 1 { "b" } else { "a" };
+            let yaml = self.change_yaml(task, &next);
+            let t = Instant::now();
+            self.stop(&running);
+            self.start(&next, &yaml);
+            for i in 0..5 {
+                wait_for(&first(&self.dir.join(format!("{next}-p{i}.lat"))));
+            }
+            times.push(t.elapsed().as_nanos() as u64);
+            running = next;
+        }
+        self.stop(&running);
+        percentiles(times)
+    }
+}
+
+fn first(out: &Path) -> PathBuf {
+    PathBuf::from(format!("{}.first", out.display()))
+}
+
+/// Until `path` exists (the benchmark has no time limit: a dataflow that never delivers shows
+/// as a run that does not end).
+fn wait_for(path: &Path) {
+    while !path.exists() {
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
