@@ -172,8 +172,9 @@ impl Dnm {
 
     fn stage(&mut self, p: &mut PendingApply, added: &[String]) -> Result<(), DnmError> {
         let netlist = &p.netlist;
-        // 0. Every port kept has room for its readers in this netlist: a port's subscriber
-        //    slots are fixed when it is made.
+        // 0. Every port kept has room for its readers: those of this netlist and those of the
+        //    one in force, which keep their subscribers until the commit, beside the DNM's own.
+        //    A port's subscriber slots are fixed when it is made.
         for m in netlist.modules_on(&self.name) {
             let Some(spec) = netlist.kind_of(&m.name) else {
                 continue;
@@ -182,24 +183,13 @@ impl Dnm {
                 let Some(services) = self.ports.get(&output_service(&m.name, &port.name)) else {
                     continue;
                 };
-                let needed = netlist.port_subscribers(&m.name, &port.name, &self.name);
+                let readers = self.readers_across(netlist, &m.name, &port.name);
                 let has = services
                     .data
                     .static_config()
                     .max_subscribers()
                     .min(services.event.static_config().max_listeners());
-                if needed > has {
-                    return Err(DnmError::Ipc(format!(
-                        "output `{}.{}` was made for {has} subscribers and this netlist needs \
-                         {needed} ({} readers on DNM `{}` and spares): remove `{}` in one apply \
-                         and add it back in the next, so that its port is made anew",
-                        m.name,
-                        port.name,
-                        netlist.readers(&m.name, &port.name, &self.name),
-                        self.name,
-                        m.name
-                    )));
-                }
+                check_room(&m.name, &port.name, &self.name, readers, has)?;
             }
         }
         // 1. Output services of new and replaced modules exist before anyone subscribes, with
@@ -213,17 +203,32 @@ impl Dnm {
                 if self.ports.contains_key(&service) {
                     continue;
                 }
-                let subscribers = netlist.port_subscribers(name, &port.name, &self.name);
-                let data =
-                    port_service_for(&self.node, &service, &port.message.payload, subscribers)
-                        .map_err(|e| DnmError::Ipc(e.to_string()))?;
+                let readers = self.readers_across(netlist, name, &port.name);
+                let payload = &port.message.payload;
+                let subscribers = payload.subscribers_for(readers);
+                // The service may outlive its last owner (a tool or a reader not yet swept
+                // still holds it): then it is opened as it was made, and must have room.
+                let data = port_service_for(&self.node, &service, payload, subscribers)
+                    .or_else(|_| {
+                        port_service_for(&self.node, &service, payload, payload.subscribers_for(0))
+                    })
+                    .map_err(|e| DnmError::Ipc(e.to_string()))?;
                 // Listeners cost no samples: never fewer than every opener asks for.
+                let event_name = output_event(name, &port.name);
                 let event = dnm_module::event_service_for(
                     &self.node,
-                    &output_event(name, &port.name),
+                    &event_name,
                     subscribers.max(MAX_PORT_SUBSCRIBERS),
                 )
+                .or_else(|_| {
+                    dnm_module::event_service_for(&self.node, &event_name, MAX_PORT_SUBSCRIBERS)
+                })
                 .map_err(|e| DnmError::Ipc(e.to_string()))?;
+                let has = data
+                    .static_config()
+                    .max_subscribers()
+                    .min(event.static_config().max_listeners());
+                check_room(name, &port.name, &self.name, readers, has)?;
                 self.ports
                     .insert(service.clone(), PortServices { data, event });
                 p.new_ports.push(service);
@@ -588,4 +593,38 @@ impl Dnm {
 fn is_executable(path: &std::path::Path) -> bool {
     use std::os::unix::fs::PermissionsExt;
     std::fs::metadata(path).is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+}
+
+impl Dnm {
+    /// Modules on this DNM that read `module.port` in `netlist` or in the netlist in force: both
+    /// hold subscribers while an apply is prepared.
+    fn readers_across(&self, netlist: &Netlist, module: &str, port: &str) -> usize {
+        let mut readers = netlist.reader_names(module, port, &self.name);
+        if let Some(current) = &self.netlist {
+            readers.extend(current.reader_names(module, port, &self.name));
+        }
+        readers.len()
+    }
+}
+
+/// Refuses an apply whose readers of `module.port` on `dnm`, with the DNM's own subscribers,
+/// do not fit the `has` slots its port was made with.
+fn check_room(
+    module: &str,
+    port: &str,
+    dnm: &str,
+    readers: usize,
+    has: usize,
+) -> Result<(), DnmError> {
+    let needed = readers + dnm_netlist::DNM_SUBSCRIBERS;
+    if needed <= has {
+        return Ok(());
+    }
+    Err(DnmError::Ipc(format!(
+        "output `{module}.{port}` was made for {has} subscribers and this apply needs {needed} \
+         ({readers} readers on DNM `{dnm}`, counting those of the netlist in force until the \
+         commit, and {} of the DNM's own): remove `{module}` in one apply and add it back in the \
+         next, so that its port is made anew",
+        dnm_netlist::DNM_SUBSCRIBERS
+    )))
 }

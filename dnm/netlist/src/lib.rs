@@ -28,7 +28,8 @@ pub use model::{
     RestartPolicy, Task, parse_duration_ms,
 };
 pub use spec::{
-    Catalog, CatalogEntry, KindSource, KindSpec, LARGE_PAYLOAD_BYTES, MAX_READERS, MessageType,
-    POD_ENCODING, ParamKind, ParamSpec, ParamValue, Payload, PortSpec, Standard, Trigger,
+    Catalog, CatalogEntry, DNM_SUBSCRIBERS, KindSource, KindSpec, LARGE_PAYLOAD_BYTES, MAX_READERS,
+    MessageType, POD_ENCODING, ParamKind, ParamSpec, ParamValue, Payload, PortSpec, Standard,
+    Trigger,
 };
 pub use wiring::{WiredModule, Wiring};

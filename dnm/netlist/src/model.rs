@@ -343,26 +343,35 @@ impl Netlist {
     }
 
     /// Modules on `dnm` that read output `module.port` in any task.
-    pub fn readers(&self, module: &str, port: &str, dnm: &str) -> usize {
+    pub fn reader_names(&self, module: &str, port: &str, dnm: &str) -> BTreeSet<&str> {
         self.tasks
             .values()
             .flat_map(|t| t.links.iter())
             .filter(|l| l.from.module == module && l.from.port == port)
             .filter(|l| self.module(&l.to.module).is_some_and(|m| m.dnm == dnm))
             .map(|l| l.to.module.as_str())
-            .collect::<BTreeSet<_>>()
-            .len()
+            .collect()
+    }
+
+    /// How many modules on `dnm` read output `module.port` in any task.
+    pub fn readers(&self, module: &str, port: &str, dnm: &str) -> usize {
+        self.reader_names(module, port, dnm).len()
+    }
+
+    /// The payload of output `module.port`, if the module and port exist.
+    pub fn output_payload(&self, module: &str, port: &str) -> Option<Payload> {
+        self.kind_of(module)
+            .and_then(|k| k.output(port))
+            .map(|p| p.message.payload)
     }
 
     /// Subscribers the shared-memory service of output `module.port` admits on `dnm` (where
     /// the module runs, or where its samples are mirrored for readers across DNMs): its readers
     /// there plus spares, at least 16 (6 for a large payload).
     pub fn port_subscribers(&self, module: &str, port: &str, dnm: &str) -> usize {
-        let payload = self
-            .kind_of(module)
-            .and_then(|k| k.output(port))
-            .map_or(Payload::Fixed { size_bytes: 0 }, |p| p.message.payload);
-        payload.subscribers_for(self.readers(module, port, dnm))
+        self.output_payload(module, port)
+            .unwrap_or(Payload::Fixed { size_bytes: 0 })
+            .subscribers_for(self.readers(module, port, dnm))
     }
 
     /// Every distinct link of any task.

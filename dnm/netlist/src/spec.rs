@@ -21,17 +21,24 @@ pub enum Payload {
 /// Payloads above this many bytes are large: their ports reserve fewer, deeper-costing
 /// subscriber slots.
 pub const LARGE_PAYLOAD_BYTES: usize = 64 * 1024;
-/// Subscriber slots a port keeps beyond its readers in the netlist, for the DNM's own (recorder,
-/// Zenoh bridge, port watch), a replacement overlapping the module it replaces, and tools.
+/// Subscribers the DNM itself may hold on a port beside its readers: the recorder, the Zenoh
+/// egress, the bridge's monitor and a watch.
+pub const DNM_SUBSCRIBERS: usize = 4;
+/// Subscriber slots a port keeps beyond its readers in the netlist: the DNM's own, and room for
+/// tools and a crashed reader's slot not yet swept.
 pub const SPARE_SUBSCRIBERS: usize = 8;
 /// The same for a large port, whose every slot reserves samples of shared memory.
-pub const SPARE_LARGE_SUBSCRIBERS: usize = 4;
-/// Shared memory a large port may reserve for its subscribers' samples.
-pub const LARGE_PORT_MEMORY: usize = 64 << 20;
+pub const SPARE_LARGE_SUBSCRIBERS: usize = 5;
+/// Shared memory the subscriber slots of one port may reserve (a port's readers are refused
+/// beyond it, but a large port always admits [`MIN_LARGE_READERS`]).
+pub const PORT_MEMORY: usize = 64 << 20;
+/// Readers a large port admits whatever its samples' size.
+pub const MIN_LARGE_READERS: usize = 4;
 /// Samples one subscriber slot of a port reserves (a recorder's buffer and two borrowed).
 pub(crate) const SAMPLES_PER_SUBSCRIBER: usize = 10;
-/// Readers one port feeds on one DNM at most, whatever its size (a DNM hosts 256 modules).
-pub const MAX_READERS: usize = 256;
+/// Readers one port feeds on one DNM at most, whatever its size: a service admits 256 nodes
+/// (`MAX_MODULES`), and the DNM's own, the publishers' and tools' nodes need some of them.
+pub const MAX_READERS: usize = 240;
 
 impl Payload {
     /// The largest number of payload bytes a sample of this port can hold.
@@ -62,14 +69,16 @@ impl Payload {
         (readers + self.spare()).max(floor)
     }
 
-    /// Readers one port of this payload can feed on one DNM: 256, or for a large port as many
-    /// as [`LARGE_PORT_MEMORY`] holds samples for (at least 4).
+    /// Readers one port of this payload can feed on one DNM: as many as [`PORT_MEMORY`] holds
+    /// samples for (with the spares), at most [`MAX_READERS`], and a large port at least
+    /// [`MIN_LARGE_READERS`].
     pub fn max_readers(&self) -> usize {
+        let slots = PORT_MEMORY / (SAMPLES_PER_SUBSCRIBER * self.max_bytes().max(1));
+        let readers = slots.saturating_sub(self.spare()).min(MAX_READERS);
         if self.is_large() {
-            let slots = LARGE_PORT_MEMORY / (SAMPLES_PER_SUBSCRIBER * self.max_bytes().max(1));
-            (slots.max(8) - self.spare()).min(MAX_READERS)
+            readers.max(MIN_LARGE_READERS)
         } else {
-            MAX_READERS
+            readers
         }
     }
 }

@@ -352,24 +352,43 @@ impl Bridge {
         message: &MessageType,
     ) -> Result<Ingress, String> {
         let (module, p) = service.split_once('/').unwrap_or((service, ""));
-        // As many subscribers as the port has readers here, like a local port.
-        let subscribers = netlist.port_subscribers(module, p, &self.dnm);
-        let port = port_service_for(&self.ts_node, service, &message.payload, subscribers)
+        // As many subscribers as the port has readers here, like a local port; a service that
+        // outlived its last mirror (a reader still holds it) is opened as it was made.
+        let payload = &message.payload;
+        let subscribers = payload.subscribers_for(netlist.readers(module, p, &self.dnm));
+        let port = port_service_for(&self.ts_node, service, payload, subscribers)
+            .or_else(|_| {
+                port_service_for(&self.ts_node, service, payload, payload.subscribers_for(0))
+            })
             .map_err(err("mirror port service"))?;
         let publisher = port
             .publisher_builder()
             .initial_max_slice_len(message.payload.max_bytes())
             .create()
             .map_err(dbg("mirror publisher"))?;
-        let notifier = event_service_for(
+        let event_name = output_event(module, p);
+        let event = event_service_for(
             &self.ts_node,
-            &output_event(module, p),
+            &event_name,
             subscribers.max(dnm_module::protocol::MAX_PORT_SUBSCRIBERS),
         )
-        .map_err(err("mirror event"))?
-        .notifier_builder()
-        .create()
-        .map_err(dbg("mirror notifier"))?;
+        .or_else(|_| {
+            event_service_for(
+                &self.ts_node,
+                &event_name,
+                dnm_module::protocol::MAX_PORT_SUBSCRIBERS,
+            )
+        })
+        .map_err(err("mirror event"))?;
+        let slots = port
+            .static_config()
+            .max_subscribers()
+            .min(event.static_config().max_listeners());
+        room(service, &self.dnm, netlist, slots)?;
+        let notifier = event
+            .notifier_builder()
+            .create()
+            .map_err(dbg("mirror notifier"))?;
         let counters = Arc::new(Counters::default());
         let mirror = Mutex::new(Mirror {
             publisher,
@@ -393,6 +412,7 @@ impl Bridge {
             key: key.to_string(),
             message: message.clone(),
             counters,
+            slots,
             _subscriber: subscriber,
         })
     }
@@ -472,7 +492,17 @@ impl Plugin for Bridge {
     ) -> Result<(), String> {
         self.prepared.clear();
         for (service, key, message) in self.wanted_ingress(netlist) {
-            if self.ingress.contains_key(&service) || ctx.local_outputs.contains(&service) {
+            if let Some(kept) = self.ingress.get(&service) {
+                // A mirror kept across the apply must have room for its readers in this one.
+                if let Err(e) = room(&service, &self.dnm, netlist, kept.slots) {
+                    for s in self.prepared.drain(..) {
+                        self.ingress.remove(&s);
+                    }
+                    return Err(e);
+                }
+                continue;
+            }
+            if ctx.local_outputs.contains(&service) {
                 continue;
             }
             match self.mirror(netlist, &service, &key, &message) {
@@ -1296,6 +1326,8 @@ struct Ingress {
     key: String,
     message: MessageType,
     counters: Arc<Counters>,
+    /// Subscribers (and listeners) its mirror port was made for.
+    slots: usize,
     _subscriber: ZSubscriber<()>,
 }
 
@@ -1484,4 +1516,22 @@ pub(crate) fn newest_netlist_impl(
         }
     }
     best
+}
+
+/// Whether mirror port `service` on `dnm`, made for `slots` subscribers, holds the readers
+/// `netlist` gives it there beside the DNM's own subscribers.
+fn room(service: &str, dnm: &str, netlist: &Netlist, slots: usize) -> Result<(), String> {
+    let (module, port) = service.split_once('/').unwrap_or((service, ""));
+    let readers = netlist.readers(module, port, dnm);
+    let needed = readers + dnm_netlist::DNM_SUBSCRIBERS;
+    if needed <= slots {
+        return Ok(());
+    }
+    Err(format!(
+        "the mirror of remote output `{module}.{port}` on DNM `{dnm}` was made for {slots} \
+         subscribers and this netlist needs {needed} ({readers} readers here and {} of the \
+         DNM's own): remove its readers on `{dnm}` in one apply and add them back in the next, \
+         so that the mirror is made anew",
+        dnm_netlist::DNM_SUBSCRIBERS
+    ))
 }
