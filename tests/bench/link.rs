@@ -21,7 +21,7 @@ use dnm_module::protocol::monotonic_ns;
 use iceoryx2::prelude::{LogLevel, set_log_level};
 use zenoh::Wait;
 
-const SIZES: [usize; 3] = [64, 4096, 320 * 240 * 3];
+const SIZES: [usize; 4] = [64, 4096, 320 * 240 * 3, 1 << 20];
 const SAMPLES: usize = 2000;
 const RATE_HZ: f64 = 500.0;
 const SKIP: usize = 100;
