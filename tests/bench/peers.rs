@@ -7,9 +7,11 @@
 //!    process of the system, from `/proc`, over the measured window) and memory (PSS, so shared
 //!    memory counts once);
 //! 2. the same ten-link task change: two sources and five two-input readers, every link moved
-//!    to the other source. Ours is a task switch; dora has none, so its fastest way is to stop
-//!    the dataflow and start the other one (its daemon and coordinator stay up), timed until
-//!    every reader has data again.
+//!    to the other source. Ours is a task switch, timed inside the DNM, as the operator's
+//!    request and until every reader has read its new sources; dora has none, so its fastest
+//!    way is to stop the dataflow and start the other one (its daemon and coordinator stay up),
+//!    timed until every reader has data again. Both sides' readers are polled every
+//!    millisecond.
 //!
 //! Run: `peers/dora/run`, which builds dora 1.1.0 (pinned, outside the workspace) and its nodes,
 //! then this benchmark with `DORA` (the `dora` command) and `DORA_NODES` (the nodes' folder).
@@ -22,8 +24,12 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{cpu_seconds, human, latencies, percentiles, unique, up};
+use common::{human, latencies, percentiles, raw_node, unique, up};
 use dnm::admin::{Request, request};
+use dnm_module::msg::PairReading;
+use dnm_module::port_service;
+use dnm_module::protocol::{dnm_prefix, output_service};
+use dnm_netlist::Payload;
 use iceoryx2::prelude::{LogLevel, set_log_level};
 
 const SIZES: [usize; 3] = [64, 4096, 1 << 20];
@@ -31,7 +37,7 @@ const RATE_HZ: f64 = 500.0;
 const SAMPLES: usize = 2000;
 const SKIP: usize = 250;
 const SWITCHES: usize = 100;
-const DORA_CHANGES: usize = 6;
+const DORA_CHANGES: usize = 10;
 
 fn main() {
     set_log_level(LogLevel::Error);
@@ -52,14 +58,14 @@ fn main() {
     dora.cli(&["up"]);
     println!("# side by side with dora-rs 1.1.0 ({SAMPLES} samples per size at {RATE_HZ} Hz)\n");
     println!(
-        "| payload | ours p50 / p99 (µs) | dora p50 / p99 (µs) | ours CPU per message (µs) | dora CPU per message (µs) | ours memory, PSS (MiB) | dora memory, PSS (MiB) |"
+        "| payload | ours p50 / p99 (µs) | dora p50 / p99 (µs) | ours CPU per message (µs) | dora CPU per message (µs) | ours memory, PSS (MiB) | dora memory, PSS (MiB) | processes counted, ours / dora |"
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     for size in SIZES {
         let ours = ours_pipeline(size);
         let theirs = dora.pipeline(size);
         println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.1} | {:.1} | {:.1} | {:.1} |",
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {} / {} |",
             human(size),
             ours.p50,
             ours.p99,
@@ -68,28 +74,38 @@ fn main() {
             ours.cpu_us,
             theirs.cpu_us,
             ours.pss_mib,
-            theirs.pss_mib
+            theirs.pss_mib,
+            ours.processes,
+            theirs.processes
         );
     }
-    let (ours_dnm, ours_rt) = ours_change();
+    let ours = ours_change();
     let theirs = dora.change();
-    println!("\n| ten-link task change | p50 | p99 |");
+    println!("\n| ten-link task change | median | max |");
     println!("|---|---|---|");
-    println!(
-        "| ours: task switch inside the DNM (µs) | {:.3} | {:.3} |",
-        ours_dnm.0, ours_dnm.1
+    let row = |what: &str, v: &[u64]| {
+        println!(
+            "| {what} | {:.3} | {:.3} |",
+            median(v) / 1000.0,
+            *v.iter().max().unwrap() as f64 / 1000.0
+        );
+    };
+    row("ours: task switch inside the DNM (µs)", &ours.inside);
+    row(
+        "ours: the operator's switch request, round trip (µs)",
+        &ours.round_trip,
+    );
+    row(
+        "ours: from the request until every reader has read its new sources (µs)",
+        &ours.until_data,
+    );
+    row(
+        "dora: stop the dataflow, start the other, until every reader has data (µs)",
+        &theirs,
     );
     println!(
-        "| ours: the operator's switch request, round trip (µs) | {:.0} | {:.0} |",
-        ours_rt.0, ours_rt.1
-    );
-    println!(
-        "| dora: stop the dataflow, start the other, until every reader has data (µs) | {:.0} | {:.0} |",
-        theirs.0, theirs.1
-    );
-    println!(
-        "\nratio dora change / our switch request at p50: {:.0}x",
-        theirs.0 / ours_rt.0
+        "\nratio dora change / ours until every reader has read its new sources, medians: {:.0}x",
+        median(&theirs) / median(&ours.until_data)
     );
     dora.cli(&["down"]);
     let _ = std::fs::remove_dir_all(&dora.dir);
@@ -100,6 +116,8 @@ struct Measured {
     p99: f64,
     cpu_us: f64,
     pss_mib: f64,
+    /// Processes counted for CPU and memory.
+    processes: usize,
 }
 
 /// Processes whose command line satisfies `pred`.
@@ -120,8 +138,24 @@ fn processes(pred: impl Fn(&str) -> bool) -> Vec<u32> {
     pids
 }
 
+/// CPU time of `pids` so far, in seconds: every thread's time on a CPU in nanoseconds
+/// (`/proc/PID/task/TID/schedstat`), finer than the 10 ms ticks of `/proc/PID/stat`.
 fn cpu(pids: &[u32]) -> f64 {
-    pids.iter().map(|&p| cpu_seconds(p)).sum()
+    let mut ns = 0u64;
+    for pid in pids {
+        let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else {
+            continue;
+        };
+        for t in tasks.flatten() {
+            if let Some(v) = std::fs::read_to_string(t.path().join("schedstat"))
+                .ok()
+                .and_then(|s| s.split_whitespace().next()?.parse::<u64>().ok())
+            {
+                ns += v;
+            }
+        }
+    }
+    ns as f64 / 1e9
 }
 
 /// Proportional set size of `pids`, MiB: shared pages count once across them.
@@ -165,10 +199,25 @@ fn ours_pipeline(size: usize) -> Measured {
         p99,
         cpu_us: c * 1e6 / messages,
         pss_mib: pss,
+        processes: pids.len(),
     }
 }
 
-fn ours_change() -> ((f64, f64), (f64, f64)) {
+fn median(v: &[u64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_unstable();
+    v[v.len() / 2] as f64
+}
+
+/// Our ten-link change, in ns: inside the DNM, the operator's round trip, and until every
+/// reader has read its new sources.
+struct Change {
+    inside: Vec<u64>,
+    round_trip: Vec<u64>,
+    until_data: Vec<u64>,
+}
+
+fn ours_change() -> Change {
     let system = unique("chg");
     let mut netlist = format!(
         "[system]\nname = \"{system}\"\ndefault_task = \"a\"\n\
@@ -187,16 +236,53 @@ fn ours_change() -> ((f64, f64), (f64, f64)) {
         b.join(", ")
     );
     let _up = up(&system, &netlist, &[], None, 1);
-    let (mut inside, mut round_trip) = (Vec::new(), Vec::new());
+    // The readers' outputs: which source each of their inputs read.
+    let node = raw_node(&dnm_prefix(&system, "local"));
+    let payload = Payload::Fixed {
+        size_bytes: size_of::<PairReading>(),
+    };
+    let readers: Vec<_> = (0..5)
+        .map(|i| {
+            port_service(&node, &output_service(&format!("p{i}"), "out"), &payload)
+                .unwrap()
+                .subscriber_builder()
+                .create()
+                .unwrap()
+        })
+        .collect();
+    let mut change = Change {
+        inside: Vec::new(),
+        round_trip: Vec::new(),
+        until_data: Vec::new(),
+    };
     for i in 0..SWITCHES {
-        let task = if i % 2 == 0 { "b" } else { "a" };
+        let (task, a_origin) = if i % 2 == 0 { ("b", 2) } else { ("a", 1) };
+        for r in &readers {
+            while let Ok(Some(_)) = r.receive() {}
+        }
         let t = Instant::now();
         let r = request(&system, &Request::Switch { task: task.into() }).unwrap();
-        round_trip.push(t.elapsed().as_nanos() as u64);
+        change.round_trip.push(t.elapsed().as_nanos() as u64);
         assert!(r.ok, "{r:?}");
-        inside.push(r.switches[0].duration_ns);
+        change.inside.push(r.switches[0].duration_ns);
+        // Polled every millisecond, as dora's readers' files are.
+        let mut fed = [false; 5];
+        while !fed.iter().all(|f| *f) {
+            for (k, r) in readers.iter().enumerate() {
+                while let Ok(Some(s)) = r.receive() {
+                    let p: PairReading = bytemuck::pod_read_unaligned(s.payload());
+                    if p.a_origin == a_origin && p.b_origin == 3 - a_origin {
+                        fed[k] = true;
+                    }
+                }
+            }
+            if !fed.iter().all(|f| *f) {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+        }
+        change.until_data.push(t.elapsed().as_nanos() as u64);
     }
-    (percentiles(inside), percentiles(round_trip))
+    change
 }
 
 // ------------------------------------------------------------------------------------------
@@ -260,31 +346,38 @@ impl Dora {
         );
         self.start(&name, &yaml);
         wait_for(&first(&out));
+        let started = Instant::now();
         std::thread::sleep(Duration::from_secs_f64(SKIP as f64 / RATE_HZ));
         let pids = self.processes();
         let (t, c) = (Instant::now(), cpu(&pids));
         std::thread::sleep(Duration::from_secs_f64(SAMPLES as f64 / RATE_HZ));
-        let (c, messages) = (cpu(&pids) - c, t.elapsed().as_secs_f64() * RATE_HZ);
+        let (c, window) = (cpu(&pids) - c, t.elapsed().as_secs_f64());
         let pss = pss_mib(&pids);
+        // A little more than the window, so that SAMPLES samples follow the warm-up even if
+        // dora's timer runs a little slow.
+        std::thread::sleep(Duration::from_millis(500));
+        let running = started.elapsed().as_secs_f64();
         self.stop(&name);
         wait_for(&out);
         let bytes = std::fs::read(&out).unwrap();
+        // Messages in the window at the rate the sink actually received them.
+        let messages = window * (bytes.len() / 8) as f64 / running;
+        // The samples of the measured window: those after the warm-up, not those sent while
+        // the dataflow was being stopped.
         let lat: Vec<u64> = bytes
             .chunks_exact(8)
             .map(|c| u64::from_le_bytes(c.try_into().unwrap()))
             .skip(SKIP)
+            .take(SAMPLES)
             .collect();
-        assert!(
-            lat.len() >= SAMPLES / 2,
-            "dora delivered {} samples",
-            lat.len()
-        );
+        assert_eq!(lat.len(), SAMPLES, "dora delivered too few samples");
         let (p50, p99) = percentiles(lat);
         Measured {
             p50,
             p99,
             cpu_us: c * 1e6 / messages,
             pss_mib: pss,
+            processes: pids.len(),
         }
     }
 
@@ -313,7 +406,8 @@ impl Dora {
         yaml
     }
 
-    fn change(&self) -> (f64, f64) {
+    /// Each change, ns.
+    fn change(&self) -> Vec<u64> {
         let mut running = unique("chg0");
         self.start(&running, &self.change_yaml("a", &running));
         for i in 0..5 {
@@ -334,7 +428,7 @@ impl Dora {
             running = next;
         }
         self.stop(&running);
-        percentiles(times)
+        times
     }
 }
 
