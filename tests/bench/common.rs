@@ -245,3 +245,57 @@ pub fn cpu_seconds(pid: u32) -> f64 {
     // SAFETY: sysconf with a valid name has no side effects.
     ticks / unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64
 }
+
+/// Real rewiring of `links` links, `times` times (ns each): as many live iceoryx2 services with
+/// publishers, every subscriber destroyed and created again.
+pub fn real_rewiring(links: usize, times: usize) -> Vec<u64> {
+    let node = raw_node(&format!("{}_", unique(&format!("rw{links}"))));
+    let payload = Payload::Fixed {
+        size_bytes: size_of::<Tick>(),
+    };
+    let services: Vec<_> = (0..links)
+        .map(|i| port_service(&node, &format!("s{i}/out"), &payload).unwrap())
+        .collect();
+    let _pubs: Vec<_> = services
+        .iter()
+        .map(|s| s.publisher_builder().create().unwrap())
+        .collect();
+    let mut subs: Vec<_> = services
+        .iter()
+        .map(|s| s.subscriber_builder().create().unwrap())
+        .collect();
+    let mut real = Vec::new();
+    for _ in 0..times {
+        let t = Instant::now();
+        subs.clear();
+        for i in 0..links {
+            let s = port_service(&node, &format!("s{i}/out"), &payload).unwrap();
+            subs.push(s.subscriber_builder().create().unwrap());
+        }
+        real.push(t.elapsed().as_nanos() as u64);
+    }
+    real
+}
+
+/// A system whose tasks `a` and `b` differ in ten links: two tickers at 100 Hz (origins 1 and
+/// 2) and five `pair` modules whose inputs the two tasks cross; `extra` adds modules.
+pub fn crossed_pairs(system: &str, extra: &str) -> String {
+    let mut netlist = format!(
+        "[system]\nname = \"{system}\"\ndefault_task = \"a\"\n\
+         [[module]]\nname = \"src_a\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 1 }}\n\
+         [[module]]\nname = \"src_b\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 2 }}\n"
+    );
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    for i in 0..5 {
+        netlist += &format!("[[module]]\nname = \"p{i}\"\nkind = \"pair\"\n");
+        a.push(format!("\"src_a.out -> p{i}.a\", \"src_b.out -> p{i}.b\""));
+        b.push(format!("\"src_b.out -> p{i}.a\", \"src_a.out -> p{i}.b\""));
+    }
+    netlist
+        + extra
+        + &format!(
+            "[task.a]\nlinks = [{}]\n[task.b]\nlinks = [{}]\n",
+            a.join(", "),
+            b.join(", ")
+        )
+}

@@ -16,13 +16,14 @@
 mod common;
 
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use common::{human, latencies, percentiles, raw_node, unique, up, use_dnm};
+use common::{
+    crossed_pairs, human, latencies, percentiles, raw_node, real_rewiring, unique, up, use_dnm,
+};
 
 use dnm::admin::{Request, request};
 use dnm_module::event_service;
-use dnm_module::msg::Tick;
 use dnm_module::port_service;
 use dnm_module::protocol::{PortHeader, monotonic_ns};
 use dnm_netlist::Payload;
@@ -190,25 +191,10 @@ links = ["src.out -> lat.in"]
 
 fn switch_and_memory() {
     let system = unique("sw");
-    let mut netlist = format!(
-        "[system]\nname = \"{system}\"\ndefault_task = \"a\"\n\
-         [[module]]\nname = \"src_a\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 1 }}\n\
-         [[module]]\nname = \"src_b\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 2 }}\n"
-    );
-    let (mut a, mut b) = (Vec::new(), Vec::new());
-    for i in 0..5 {
-        netlist += &format!("[[module]]\nname = \"p{i}\"\nkind = \"pair\"\n");
-        a.push(format!("\"src_a.out -> p{i}.a\", \"src_b.out -> p{i}.b\""));
-        b.push(format!("\"src_b.out -> p{i}.a\", \"src_a.out -> p{i}.b\""));
-    }
-    for i in 0..8 {
-        netlist += &format!("[[module]]\nname = \"idle{i}\"\nkind = \"ticker\"\nrate_hz = 10\n");
-    }
-    netlist += &format!(
-        "[task.a]\nlinks = [{}]\n[task.b]\nlinks = [{}]\n",
-        a.join(", "),
-        b.join(", ")
-    );
+    let idle: String = (0..8)
+        .map(|i| format!("[[module]]\nname = \"idle{i}\"\nkind = \"ticker\"\nrate_hz = 10\n"))
+        .collect();
+    let netlist = crossed_pairs(&system, &idle);
     let _up = up(&system, &netlist, &[], None, 1);
 
     let mut virt = Vec::new();
@@ -223,31 +209,7 @@ fn switch_and_memory() {
     let status = request(&system, &Request::Status).unwrap().dnms.remove(0);
 
     // Real rewiring: 10 subscribers destroyed and created again on live services.
-    let node = raw_node(&format!("{}_", unique("rw")));
-    let payload = Payload::Fixed {
-        size_bytes: size_of::<Tick>(),
-    };
-    let services: Vec<_> = (0..10)
-        .map(|i| port_service(&node, &format!("s{i}/out"), &payload).unwrap())
-        .collect();
-    let _pubs: Vec<_> = services
-        .iter()
-        .map(|s| s.publisher_builder().create().unwrap())
-        .collect();
-    let mut subs: Vec<_> = services
-        .iter()
-        .map(|s| s.subscriber_builder().create().unwrap())
-        .collect();
-    let mut real = Vec::new();
-    for _ in 0..50 {
-        let t = Instant::now();
-        subs.clear();
-        for i in 0..10 {
-            let s = port_service(&node, &format!("s{i}/out"), &payload).unwrap();
-            subs.push(s.subscriber_builder().create().unwrap());
-        }
-        real.push(t.elapsed().as_nanos() as u64);
-    }
+    let real = real_rewiring(10, 50);
     let (v50, v99) = percentiles(virt);
     let (r50, r99) = percentiles(real);
     println!("| task switch, 10 links | p50 (µs) | p99 (µs) |");

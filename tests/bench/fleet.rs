@@ -7,29 +7,20 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
 
+mod common;
 #[path = "../support/mod.rs"]
 mod support;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use common::cpu_seconds;
 use dnm_proto::station::{Fate, Order};
 use support::ground::{Api, Proc, ROVER, TASKS, text, wait_in_step, zenoh_args};
 use support::{endpoint, eventually, free_port, zenoh_client};
 
 const ROVERS: usize = 10;
 const COMMANDS: usize = 30;
-
-/// utime + stime of a process so far, in seconds.
-fn cpu_seconds(pid: u32) -> f64 {
-    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
-    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<&str> = after.split_whitespace().collect();
-    let ticks: f64 = f.get(11).and_then(|x| x.parse().ok()).unwrap_or(0.0)
-        + f.get(12).and_then(|x| x.parse().ok()).unwrap_or(0.0);
-    // SAFETY: sysconf with a valid name has no side effects.
-    ticks / unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64
-}
 
 fn quantile(v: &[f64], q: f64) -> f64 {
     let mut s = v.to_vec();

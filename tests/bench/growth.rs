@@ -20,11 +20,8 @@ mod plot;
 
 use std::time::{Duration, Instant};
 
-use common::{cpu_seconds, latencies, percentiles, raw_node, unique, up};
+use common::{cpu_seconds, latencies, percentiles, real_rewiring, unique, up};
 use dnm::admin::{Request, request};
-use dnm_module::msg::Tick;
-use dnm_module::port_service;
-use dnm_netlist::Payload;
 use iceoryx2::prelude::{LogLevel, set_log_level};
 use plot::Series;
 
@@ -265,31 +262,7 @@ fn switch() {
         }
         // Real rewiring of as many links: each input's subscriber destroyed and created again on
         // live services.
-        let node = raw_node(&format!("{}_", unique(&format!("rw{links}"))));
-        let payload = Payload::Fixed {
-            size_bytes: size_of::<Tick>(),
-        };
-        let services: Vec<_> = (0..links)
-            .map(|i| port_service(&node, &format!("s{i}/out"), &payload).unwrap())
-            .collect();
-        let _pubs: Vec<_> = services
-            .iter()
-            .map(|s| s.publisher_builder().create().unwrap())
-            .collect();
-        let mut subs: Vec<_> = services
-            .iter()
-            .map(|s| s.subscriber_builder().create().unwrap())
-            .collect();
-        let mut r = Vec::new();
-        for _ in 0..20 {
-            let t = Instant::now();
-            subs.clear();
-            for i in 0..links {
-                let s = port_service(&node, &format!("s{i}/out"), &payload).unwrap();
-                subs.push(s.subscriber_builder().create().unwrap());
-            }
-            r.push(t.elapsed().as_nanos() as u64);
-        }
+        let r = real_rewiring(links, 20);
         let (v50, v99) = percentiles(v);
         let (r50, r99) = percentiles(r);
         println!(

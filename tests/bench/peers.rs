@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{human, latencies, percentiles, raw_node, unique, up};
+use common::{crossed_pairs, human, latencies, percentiles, raw_node, unique, up};
 use dnm::admin::{Request, request};
 use dnm_module::msg::PairReading;
 use dnm_module::port_service;
@@ -219,22 +219,7 @@ struct Change {
 
 fn ours_change() -> Change {
     let system = unique("chg");
-    let mut netlist = format!(
-        "[system]\nname = \"{system}\"\ndefault_task = \"a\"\n\
-         [[module]]\nname = \"src_a\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 1 }}\n\
-         [[module]]\nname = \"src_b\"\nkind = \"ticker\"\nrate_hz = 100\nparams = {{ origin = 2 }}\n"
-    );
-    let (mut a, mut b) = (Vec::new(), Vec::new());
-    for i in 0..5 {
-        netlist += &format!("[[module]]\nname = \"p{i}\"\nkind = \"pair\"\n");
-        a.push(format!("\"src_a.out -> p{i}.a\", \"src_b.out -> p{i}.b\""));
-        b.push(format!("\"src_b.out -> p{i}.a\", \"src_a.out -> p{i}.b\""));
-    }
-    netlist += &format!(
-        "[task.a]\nlinks = [{}]\n[task.b]\nlinks = [{}]\n",
-        a.join(", "),
-        b.join(", ")
-    );
+    let netlist = crossed_pairs(&system, "");
     let _up = up(&system, &netlist, &[], None, 1);
     // The readers' outputs: which source each of their inputs read.
     let node = raw_node(&dnm_prefix(&system, "local"));

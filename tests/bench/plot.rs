@@ -16,6 +16,23 @@ pub fn dir() -> PathBuf {
 /// Text needs a font: DejaVu Sans, as Debian installs it (`fonts-dejavu-core`).
 const FONT: &str = "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf";
 
+/// Registers [`FONT`] with plotters, once per process.
+fn font() -> Result<(), String> {
+    static REGISTERED: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
+    REGISTERED
+        .get_or_init(|| {
+            let font = std::fs::read(FONT)
+                .map_err(|e| format!("{FONT}: {e} (install fonts-dejavu-core to get the plots)"))?;
+            register_font(
+                "sans-serif",
+                FontStyle::Normal,
+                Box::leak(font.into_boxed_slice()),
+            )
+            .map_err(|_| format!("{FONT} is not a font plotters can read"))
+        })
+        .clone()
+}
+
 /// One line of a plot.
 pub struct Series {
     pub name: String,
@@ -32,14 +49,7 @@ pub fn log_x(
     series: &[Series],
     log_y: bool,
 ) -> Result<PathBuf, String> {
-    let font = std::fs::read(FONT)
-        .map_err(|e| format!("{FONT}: {e} (install fonts-dejavu-core to get the plots)"))?;
-    register_font(
-        "sans-serif",
-        FontStyle::Normal,
-        Box::leak(font.into_boxed_slice()),
-    )
-    .map_err(|_| format!("{FONT} is not a font plotters can read"))?;
+    font()?;
     std::fs::create_dir_all(dir()).map_err(|e| format!("{}: {e}", dir().display()))?;
     let path = dir().join(format!("{name}.png"));
     let (w, h) = (800u32, 480u32);

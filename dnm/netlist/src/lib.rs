@@ -29,7 +29,7 @@ pub use model::{
 };
 pub use spec::{
     Catalog, CatalogEntry, DNM_SUBSCRIBERS, KindSource, KindSpec, LARGE_PAYLOAD_BYTES, MAX_READERS,
-    MessageType, POD_ENCODING, ParamKind, ParamSpec, ParamValue, Payload, PortSpec, Standard,
-    Trigger,
+    MIN_LARGE_SUBSCRIBERS, MIN_SUBSCRIBERS, MessageType, POD_ENCODING, ParamKind, ParamSpec,
+    ParamValue, Payload, PortSpec, Standard, Trigger,
 };
 pub use wiring::{WiredModule, Wiring};

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use toml::Spanned;
 
 use crate::error::{NetlistError, Reporter, suggest};
-use crate::spec::{Catalog, KindSource, KindSpec, ParamValue, Payload};
+use crate::spec::{Catalog, KindSource, KindSpec, ParamValue};
 
 /// The DNM that hosts modules which name none, when the netlist declares no DNM at all.
 pub const DEFAULT_DNM: &str = "local";
@@ -356,22 +356,6 @@ impl Netlist {
     /// How many modules on `dnm` read output `module.port` in any task.
     pub fn readers(&self, module: &str, port: &str, dnm: &str) -> usize {
         self.reader_names(module, port, dnm).len()
-    }
-
-    /// The payload of output `module.port`, if the module and port exist.
-    pub fn output_payload(&self, module: &str, port: &str) -> Option<Payload> {
-        self.kind_of(module)
-            .and_then(|k| k.output(port))
-            .map(|p| p.message.payload)
-    }
-
-    /// Subscribers the shared-memory service of output `module.port` admits on `dnm` (where
-    /// the module runs, or where its samples are mirrored for readers across DNMs): its readers
-    /// there plus spares, at least 16 (6 for a large payload).
-    pub fn port_subscribers(&self, module: &str, port: &str, dnm: &str) -> usize {
-        self.output_payload(module, port)
-            .unwrap_or(Payload::Fixed { size_bytes: 0 })
-            .subscribers_for(self.readers(module, port, dnm))
     }
 
     /// Every distinct link of any task.

@@ -21,6 +21,10 @@ pub enum Payload {
 /// Payloads above this many bytes are large: their ports reserve fewer, deeper-costing
 /// subscriber slots.
 pub const LARGE_PAYLOAD_BYTES: usize = 64 * 1024;
+/// Subscribers an output port admits at least (its readers and spares may need more).
+pub const MIN_SUBSCRIBERS: usize = 16;
+/// The same for a large port: each subscriber reserves whole samples.
+pub const MIN_LARGE_SUBSCRIBERS: usize = 6;
 /// Subscribers the DNM itself may hold on a port beside its readers: the recorder, the Zenoh
 /// egress, the bridge's monitor and a watch.
 pub const DNM_SUBSCRIBERS: usize = 4;
@@ -63,9 +67,13 @@ impl Payload {
     }
 
     /// Subscribers a port of this payload admits with `readers` modules reading it on its DNM:
-    /// at least 16 (6 for a large port), and the readers plus the spares.
+    /// at least [`MIN_SUBSCRIBERS`] ([`MIN_LARGE_SUBSCRIBERS`]), and the readers plus the spares.
     pub fn subscribers_for(&self, readers: usize) -> usize {
-        let floor = if self.is_large() { 6 } else { 16 };
+        let floor = if self.is_large() {
+            MIN_LARGE_SUBSCRIBERS
+        } else {
+            MIN_SUBSCRIBERS
+        };
         (readers + self.spare()).max(floor)
     }
 

@@ -38,10 +38,10 @@ pub struct PortHeader {
 /// Largest plan message, in bytes.
 pub const MAX_PLAN_BYTES: usize = 64 * 1024;
 /// Subscribers an output port admits at least. The DNM creates each port's service for its
-/// readers in the netlist plus spares ([`dnm_netlist::Netlist::port_subscribers`]).
-pub const MAX_PORT_SUBSCRIBERS: usize = 16;
+/// readers in the netlist plus spares ([`dnm_netlist::Payload::subscribers_for`]).
+pub const MAX_PORT_SUBSCRIBERS: usize = dnm_netlist::MIN_SUBSCRIBERS;
 /// The same for a large (over 64 KiB) byte port: each subscriber reserves whole samples.
-pub const MAX_LARGE_PORT_SUBSCRIBERS: usize = 6;
+pub const MAX_LARGE_PORT_SUBSCRIBERS: usize = dnm_netlist::MIN_LARGE_SUBSCRIBERS;
 /// Payloads above this many bytes use the large-port limits.
 pub use dnm_netlist::LARGE_PAYLOAD_BYTES;
 /// Publishers one output port admits: the module, a replacement starting while the old one is

@@ -622,7 +622,7 @@ pub fn port_service<S: iceoryx2::service::Service>(
 }
 
 /// [`port_service`] admitting `subscribers` (the DNM creates a port for its readers in the
-/// netlist: [`dnm_netlist::Netlist::port_subscribers`]).
+/// netlist: [`dnm_netlist::Payload::subscribers_for`]).
 pub fn port_service_for<S: iceoryx2::service::Service>(
     node: &Node<S>,
     name: &str,
