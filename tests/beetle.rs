@@ -20,6 +20,12 @@ use support::{eventually, free_port, zenoh_client};
 const DNM: &str = env!("CARGO_BIN_EXE_dnm");
 const BEETLE: &str = include_str!("../configs/beetle.toml");
 
+/// One simulated rover at a time. Each test runs the whole of Beetle-One (four DNMs, about
+/// twenty module processes, the simulator at 100 Hz) and is sized for a two-core machine; two at
+/// once starve each other for hundreds of milliseconds, and then the simulation's dead reckoning,
+/// the watchdog and the recorders see an overload no rover computer would run.
+static ONE_ROVER: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// configs/beetle.toml under a system name of its own, in a folder of its own.
 fn netlist(tag: &str) -> (String, PathBuf) {
     let system = format!("beetle{}{tag}", std::process::id());
@@ -39,6 +45,7 @@ fn netlist(tag: &str) -> (String, PathBuf) {
 
 #[test]
 fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
+    let _one = ONE_ROVER.lock().unwrap_or_else(|e| e.into_inner());
     let (system, path) = netlist("demo");
     let out = Command::new(DNM)
         .args([
@@ -565,7 +572,34 @@ fn odometry_is_deterministic_on_its_recorded_inputs(session: &std::path::Path) {
     );
     // Positions come from encoder counts alone: bit for bit, not just within tolerance.
     assert!(odom["identical"].as_u64().unwrap() > 0, "{r:#}");
+    assert_eq!(r["unrecorded_inputs"], 0, "{r:#}");
     eprintln!("determinism check: {odom}");
+
+    // A recording that lost encoder counts says so, and a divergence after them is marked as
+    // perhaps the recording's.
+    let lossy = with_lost_ticks(session, 200..204);
+    let out = Command::new(DNM)
+        .args(["replay", "--json", "--check", "odometry"])
+        .arg(&lossy)
+        .output()
+        .unwrap();
+    let r: Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|_| panic!("{}", String::from_utf8_lossy(&out.stderr)));
+    assert_eq!(r["unrecorded_inputs"], 4, "{r:#}");
+    let gap = &r["first_unrecorded_input"];
+    assert_eq!(gap["source"], "/encoders/ticks", "{r:#}");
+    assert_eq!(
+        (gap["from_seq"].as_u64(), gap["to_seq"].as_u64()),
+        (Some(200), Some(203))
+    );
+    assert!(
+        gap["after_unix_ns"].as_u64() < gap["before_unix_ns"].as_u64(),
+        "{r:#}"
+    );
+    if !r["divergence"].is_null() {
+        assert_eq!(r["divergence"]["after_unrecorded_inputs"], true, "{r:#}");
+    }
+    let _ = std::fs::remove_dir_all(&lossy);
 
     let (code, r) = check(&["--set", "wheel_radius=0.16"]);
     assert_eq!(code, Some(1), "{r:#}");
@@ -584,6 +618,35 @@ fn odometry_is_deterministic_on_its_recorded_inputs(session: &std::path::Path) {
         "{r:#}"
     );
     assert!(d["recorded"]["x"] != d["replayed"]["x"], "{r:#}");
+}
+
+/// A copy of `session` (its recordings only) whose drive DNM's files lost the encoder counts
+/// numbered `lost`.
+fn with_lost_ticks(session: &std::path::Path, lost: std::ops::Range<u32>) -> PathBuf {
+    let copy = session.with_extension("lossy");
+    std::fs::create_dir_all(&copy).unwrap();
+    for e in std::fs::read_dir(session).unwrap().flatten() {
+        let (path, name) = (e.path(), e.file_name());
+        if path.extension().is_none_or(|x| x != "mcap") {
+            continue;
+        }
+        if !name.to_string_lossy().starts_with("rec-drive") {
+            std::fs::copy(&path, copy.join(&name)).unwrap();
+            continue;
+        }
+        let bytes = std::fs::read(&path).unwrap();
+        let file = std::fs::File::create(copy.join(&name)).unwrap();
+        let mut w = mcap::Writer::new(std::io::BufWriter::new(file)).unwrap();
+        for m in mcap::MessageStream::new(&bytes).unwrap() {
+            let m = m.unwrap();
+            if m.channel.topic == "/drive/encoders/ticks" && lost.contains(&m.sequence) {
+                continue;
+            }
+            w.write(&m).unwrap();
+        }
+        w.finish().unwrap();
+    }
+    copy
 }
 
 const MIRROR: &str = r#"
@@ -746,6 +809,7 @@ fn last<T: bytemuck::Pod>(
 
 #[test]
 fn watchdog_stops_the_motors_when_the_joystick_dies() {
+    let _one = ONE_ROVER.lock().unwrap_or_else(|e| e.into_inner());
     let (system, path) = netlist("wd");
     let port = free_port();
     let _up = Up(Command::new(DNM)

@@ -669,6 +669,25 @@ fn check_module(
                 println!("  replayed: {}", d.replayed.clone().unwrap_or_default());
             }
         }
+        if let Some(u) = &r.first_unrecorded_input {
+            println!(
+                "the recording lost {} samples of the module's inputs, the first of {} (#{}..#{}, sent between {} and {} ns){}",
+                r.unrecorded_inputs,
+                u.source,
+                u.from_seq,
+                u.to_seq,
+                u.after_unix_ns,
+                u.before_unix_ns,
+                if r.divergence
+                    .as_ref()
+                    .is_some_and(|d| d.after_unrecorded_inputs)
+                {
+                    ": the divergence comes after them and may be the recording's, not the module's"
+                } else {
+                    ""
+                }
+            );
+        }
     }
     Ok(if r.ok {
         ExitCode::SUCCESS

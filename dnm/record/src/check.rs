@@ -39,6 +39,25 @@ pub struct Divergence {
     pub replayed: Option<serde_json::Value>,
     /// The fields that differ.
     pub fields: Vec<String>,
+    /// The recording had lost inputs of the module before this message (see
+    /// [`CheckReport::first_unrecorded_input`]): what the module read there is unknown, so the
+    /// divergence may be the recording's rather than the module's.
+    pub after_unrecorded_inputs: bool,
+}
+
+/// Where the recording first lost samples of one of the module's inputs.
+#[derive(Debug, Clone, Serialize)]
+pub struct UnrecordedInputs {
+    /// The input's source port, `/<module>/<port>`.
+    pub source: String,
+    /// The first sequence number missing...
+    pub from_seq: u64,
+    /// ...and the last.
+    pub to_seq: u64,
+    /// They were sent after the recorded sample before them (Unix ns)...
+    pub after_unix_ns: u64,
+    /// ...and before the next.
+    pub before_unix_ns: u64,
 }
 
 /// One output's messages, recorded and replayed, compared in order up to the first
@@ -64,6 +83,12 @@ pub struct CheckReport {
     pub steps: u64,
     /// Outputs the recording missed (sequence numbers skipped): stepped for, not compared.
     pub unrecorded: u64,
+    /// Samples of the module's inputs the recording missed (their sequence numbers skipped,
+    /// while the module read that input): it read them on the rover, the check could not. A
+    /// port with two publishers at once (a replay beside its module) can read as such a gap.
+    pub unrecorded_inputs: u64,
+    /// The first such gap found.
+    pub first_unrecorded_input: Option<UnrecordedInputs>,
     /// Relative tolerance numbers were compared with (0: bit for bit).
     pub tolerance: f64,
     /// Per output port.
@@ -176,6 +201,10 @@ pub fn check(
     // Per output: (sent, sequence, bytes; None where the recording missed it).
     let mut recorded: BTreeMap<usize, Vec<RecordedOutput>> = BTreeMap::new();
     let mut unrecorded = 0u64;
+    let mut unrecorded_inputs = 0u64;
+    let mut first_unrecorded_input: Option<UnrecordedInputs> = None;
+    // The earliest time any gap of the inputs began (they are found in the order they end).
+    let mut unrecorded_since: Option<u64> = None;
     let mut replayed: BTreeMap<usize, Vec<Vec<u8>>> = BTreeMap::new();
     let (mut fed, mut steps) = (0u64, 0u64);
     for pass in 0..2 {
@@ -191,6 +220,9 @@ pub fn check(
         let mut pending: std::collections::VecDeque<(u64, usize, u64, Vec<u8>)> =
             std::collections::VecDeque::new();
         let mut last_input: Option<u64> = None;
+        // Last sequence number seen per input source, for the samples the recording lost.
+        // (sequence number, send time, whether the module read that input then).
+        let mut input_seq: HashMap<Arc<str>, (u64, u64, bool)> = HashMap::new();
         // What the module went through, to rebuild it where what it read is uncertain.
         let mut history: Vec<Act> = vec![Act::Task(task.clone())];
         let mut history_bytes = 0usize;
@@ -253,6 +285,30 @@ pub fn check(
                     let Some(targets) = feeds.get(source) else {
                         continue;
                     };
+                    let seq = u64::from(m.seq);
+                    let read = targets
+                        .iter()
+                        .any(|(t, _)| task.as_deref() == Some(t.as_str()));
+                    // A restarted source counts from 0 again: only a jump forward is a loss.
+                    // Samples lost while the module was not reading the input do not count.
+                    if let Some((last, last_time, was_read)) =
+                        input_seq.insert(m.topic.clone(), (seq, m.time, read))
+                        && seq > last + 1
+                        && read
+                        && was_read
+                        && feeding
+                    {
+                        unrecorded_inputs += seq - last - 1;
+                        unrecorded_since =
+                            Some(unrecorded_since.map_or(last_time, |t| t.min(last_time)));
+                        first_unrecorded_input.get_or_insert_with(|| UnrecordedInputs {
+                            source: source.clone(),
+                            from_seq: last + 1,
+                            to_seq: seq - 1,
+                            after_unix_ns: last_time,
+                            before_unix_ns: m.time,
+                        });
+                    }
                     for (t, i) in targets {
                         if task.as_deref() != Some(t.as_str()) {
                             continue;
@@ -577,6 +633,8 @@ pub fn check(
                 recorded: r.and_then(|(_, _, a)| a.as_deref().map(value)),
                 replayed: p.map(|b| value(b)),
                 fields,
+                after_unrecorded_inputs: unrecorded_since
+                    .is_some_and(|since| r.is_none_or(|(t, _, _)| since < *t)),
             };
             let earlier = match (&divergence, d.recorded_unix_ns) {
                 (None, _) => true,
@@ -604,6 +662,8 @@ pub fn check(
         inputs_fed: fed,
         steps,
         unrecorded,
+        unrecorded_inputs,
+        first_unrecorded_input,
         tolerance,
         outputs,
         ok: divergence.is_none() && compared > 0,

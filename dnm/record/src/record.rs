@@ -1,11 +1,14 @@
 //! Recording a DNM's output ports to MCAP, off the hot path.
 //!
 //! A reader thread holds its own subscriber on every recorded port and drains them every 10 ms
-//! (it does not wake per sample); it copies each sample into a bounded queue and never blocks: if the queue is full
-//! the sample is counted as dropped, and samples a slow reader missed are counted from gaps in
-//! the per-port sequence numbers. A writer thread turns the queue into an MCAP file: one channel
-//! per output port (`/<dnm>/<module>/<port>`), zstd-compressed chunks finished every second, so a
-//! killed DNM leaves a file readable up to its last second. Files rotate by size and age.
+//! (it does not wake per sample); it copies each sample into a bounded queue and never blocks:
+//! if the queue is full the sample is counted as dropped, and samples a slow reader missed are
+//! counted from gaps in the per-port sequence numbers. Samples are copied into buffers the writer
+//! hands back (in normal operation the reader alone allocates and frees them, and a sample
+//! costs no allocation once they are in use); large samples (camera frames) are encoded
+//! straight from shared memory. A writer thread at nice 10 turns the queue into an MCAP file:
+//! one channel per output port (`/<dnm>/<module>/<port>`), zstd-compressed chunks finished
+//! every second, so a killed DNM leaves a file readable up to its last second. Files rotate by size and age.
 //!
 //! Encodings the robotics tools read without our code: fixed-size messages are ROS 2 `.msg`
 //! schemas with CDR messages (their `repr(C)` layout of 8-byte fields is CDR's, after the
@@ -51,6 +54,10 @@ const QUEUE: usize = 65_536;
 const QUEUE_BYTES: u64 = 256 << 20;
 /// Longest a chunk stays open: what a crash can lose.
 const CHUNK_PERIOD: Duration = Duration::from_secs(1);
+/// Buffers the reader keeps for reuse: small samples' (up to [`LARGE_PAYLOAD_BYTES`])...
+const SPARE_SMALL: usize = 256;
+/// ...and large samples' (a camera frame then costs no allocation and no fresh pages).
+const SPARE_LARGE: usize = 8;
 
 /// Where and what a DNM records.
 #[derive(Debug, Clone)]
@@ -186,6 +193,9 @@ impl Recorder {
         let counters = Arc::new(Counters::default());
         let clock = Clock::new();
         let (queue, items) = mpsc::sync_channel::<Item>(QUEUE);
+        // Sample buffers go back to the reader, which reuses them and frees the ones it does not
+        // keep: in normal operation the writer takes no lock of the reader's allocator arena.
+        let (spare, spares) = mpsc::sync_channel::<Vec<u8>>(QUEUE);
         let writer = {
             let counters = counters.clone();
             let options = options.clone();
@@ -193,7 +203,7 @@ impl Recorder {
             std::thread::Builder::new()
                 .name(format!("record-{dnm}"))
                 .spawn(move || {
-                    if let Err(e) = write_loop(&dnm, &options, &items, &counters, clock) {
+                    if let Err(e) = write_loop(&dnm, &options, &items, &spare, &counters, clock) {
                         tracing::error!(dnm, "recording stopped: {e}");
                         if let Ok(mut err) = counters.error.lock() {
                             *err = Some(e);
@@ -209,7 +219,7 @@ impl Recorder {
                 format!("record-in-{dnm}"),
                 prefix,
                 RECORDER_EVENT,
-                move |control| read_loop(&control, &queue, &counters, clock),
+                move |control| read_loop(&control, &queue, &spares, &counters, clock),
             )?
         };
         Ok(Self {
@@ -367,6 +377,7 @@ const DRAIN_PERIOD: Duration = Duration::from_millis(10);
 fn read_loop(
     control: &Control<RecPort>,
     queue: &SyncSender<Item>,
+    spares: &Receiver<Vec<u8>>,
     counters: &Counters,
     clock: Clock,
 ) -> Result<(), String> {
@@ -376,6 +387,7 @@ fn read_loop(
     // The previous set's subscribers, with their sequence numbers: a port in both sets keeps
     // its subscriber, so nothing it sends while the set changes (an apply) is missed.
     let mut previous: Vec<(RecPort, Option<PortSubscriber>, SeqByPublisher)> = Vec::new();
+    let mut buffers = Buffers::default();
     loop {
         // If the writer is gone (disk full, folder removed), the ports are still drained and
         // every sample counted as dropped.
@@ -441,6 +453,7 @@ fn read_loop(
             waitset
                 .wait_and_process_once(|_| CallbackProgression::Continue)
                 .map_err(dbg("recorder wait"))?;
+            buffers.take(spares);
             for (i, (o, next)) in open.iter().zip(next_seq.iter_mut()).enumerate() {
                 let Some(subscriber) = o else { continue };
                 while let Ok(Some(s)) = subscriber.receive() {
@@ -463,16 +476,26 @@ fn read_loop(
                             && p.message.standard.is_none()
                     });
                     let bytes = match frame {
-                        Some(p) => encode(
-                            &p.message,
-                            &p.module,
-                            clock.unix(header.stamp_ns),
-                            s.payload(),
-                        ),
-                        None => s.payload().to_vec(),
+                        Some(p) => {
+                            let mut bytes = buffers.fitting(s.payload().len());
+                            encode_into(
+                                &mut bytes,
+                                &p.message,
+                                &p.module,
+                                clock.unix(header.stamp_ns),
+                                s.payload(),
+                            );
+                            bytes
+                        }
+                        None => {
+                            let mut bytes = buffers.fitting(s.payload().len());
+                            bytes.extend_from_slice(s.payload());
+                            bytes
+                        }
                     };
-                    // What the writer subtracts when it takes the item.
-                    let len = bytes.len() as u64;
+                    // What the writer subtracts when it takes the item: the memory held, not
+                    // the bytes used.
+                    let len = bytes.capacity() as u64;
                     let item = Item::Sample {
                         port: i,
                         header,
@@ -480,11 +503,14 @@ fn read_loop(
                         encoded: frame.is_some(),
                     };
                     counters.queued.fetch_add(len, Ordering::Relaxed);
-                    if let Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) =
+                    if let Err(TrySendError::Full(item) | TrySendError::Disconnected(item)) =
                         queue.try_send(item)
                     {
                         counters.queued.fetch_sub(len, Ordering::Relaxed);
                         counters.dropped.fetch_add(1, Ordering::Relaxed);
+                        if let Item::Sample { bytes, .. } = item {
+                            buffers.keep(bytes);
+                        }
                     }
                 }
             }
@@ -492,13 +518,66 @@ fn read_loop(
     }
 }
 
-/// Runs the calling thread only on time no module wants (Linux `SCHED_IDLE`): the recorder's
-/// writer encodes and compresses on the computer's spare time and never delays a module's step
-/// (when there is none, its queue fills and what does not fit is counted as dropped).
-fn idle_priority() {
-    let param = libc::sched_param { sched_priority: 0 };
-    // SAFETY: sched_setscheduler(2) on the calling thread (pid 0) with a valid parameter.
-    let r = unsafe { libc::sched_setscheduler(0, libc::SCHED_IDLE, &param) };
+/// Sample buffers the writer gave back, kept by size for the reader's next samples.
+#[derive(Default)]
+struct Buffers {
+    small: Vec<Vec<u8>>,
+    large: Vec<Vec<u8>>,
+}
+
+impl Buffers {
+    /// Takes what the writer gave back; what is not kept is freed here, by the thread that
+    /// allocated it.
+    fn take(&mut self, spares: &Receiver<Vec<u8>>) {
+        while let Ok(b) = spares.try_recv() {
+            self.keep(b);
+        }
+    }
+
+    fn keep(&mut self, b: Vec<u8>) {
+        if b.capacity() > LARGE_PAYLOAD_BYTES {
+            if self.large.len() < SPARE_LARGE {
+                self.large.push(b);
+            }
+        } else if self.small.len() < SPARE_SMALL {
+            self.small.push(b);
+        }
+    }
+
+    /// An empty buffer for a sample of `len` bytes: a kept one if it is not much larger (a
+    /// large buffer never carries a small sample through the queue), else a new one.
+    fn fitting(&mut self, len: usize) -> Vec<u8> {
+        let pool = if len > LARGE_PAYLOAD_BYTES {
+            &mut self.large
+        } else {
+            &mut self.small
+        };
+        match pool.pop() {
+            Some(mut b) if b.capacity() <= (4 * len).max(256) => {
+                b.clear();
+                b
+            }
+            // Too large for this sample: freed here.
+            _ => Vec::with_capacity(len + 64),
+        }
+    }
+}
+
+/// Runs the recorder's writer at nice 10 (or its process's, if lower): it encodes and
+/// compresses mostly on time the modules leave, and when the computer is saturated its queue
+/// fills and what does not fit is counted as dropped. Not `SCHED_IDLE`: a thread of that class
+/// gets almost no CPU while the computer is busy, and if it is stopped holding a lock the DNM's
+/// other threads need (an allocator arena's, above all), they wait with it. That is our reading
+/// of a recording whose reader stopped for 0.7 s, losing samples of every port of its DNM, on
+/// a saturated machine.
+fn low_priority() {
+    // SAFETY: getpriority(2)/setpriority(2) on the calling thread (its thread id); no memory is
+    // passed.
+    let r = unsafe {
+        let tid = libc::gettid() as libc::id_t;
+        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+        libc::setpriority(libc::PRIO_PROCESS, tid, now.max(10))
+    };
     if r != 0 {
         tracing::debug!(
             "recorder thread keeps its priority: {}",
@@ -572,15 +651,31 @@ const IMAGE_SCHEMA: &str = "std_msgs/Header header\nuint32 height\nuint32 width\
 
 /// The bytes a port sample is stored as.
 pub fn encode(message: &MessageType, frame: &str, stamp_unix_ns: u64, bytes: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    encode_into(&mut out, message, frame, stamp_unix_ns, bytes);
+    out
+}
+
+/// [`encode`] into `out`, reusing its memory.
+pub fn encode_into(
+    out: &mut Vec<u8>,
+    message: &MessageType,
+    frame: &str,
+    stamp_unix_ns: u64,
+    bytes: &[u8],
+) {
+    if message.encoding == "application/json" {
+        out.clear();
+        out.extend_from_slice(bytes);
+        return;
+    }
+    let mut c = Cdr::reuse(std::mem::take(out), bytes.len());
     if message.encoding == dnm_module::msg::POD_ENCODING {
-        let mut c = Cdr::new(bytes.len());
         c.0.extend_from_slice(bytes);
-        c.0
     } else if message.encoding == "dnm-image-rgb8" && bytes.len() >= 12 {
         let word =
             |i: usize| u32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
         let (width, height, step) = (word(0), word(4), word(8));
-        let mut c = Cdr::new(bytes.len());
         c.i32((stamp_unix_ns / 1_000_000_000) as i32);
         c.u32((stamp_unix_ns % 1_000_000_000) as u32);
         c.string(frame);
@@ -590,14 +685,10 @@ pub fn encode(message: &MessageType, frame: &str, stamp_unix_ns: u64, bytes: &[u
         c.0.push(0); // is_bigendian
         c.u32(step);
         c.bytes(&bytes[12..]);
-        c.0
-    } else if message.encoding == "application/json" {
-        bytes.to_vec()
     } else {
-        let mut c = Cdr::new(bytes.len());
         c.bytes(bytes);
-        c.0
     }
+    *out = c.0;
 }
 
 struct OpenFile {
@@ -822,10 +913,11 @@ fn write_loop(
     dnm: &str,
     options: &RecordOptions,
     items: &Receiver<Item>,
+    spares: &SyncSender<Vec<u8>>,
     counters: &Counters,
     clock: Clock,
 ) -> Result<(), String> {
-    idle_priority();
+    low_priority();
     let mut ports: Vec<RecPort> = Vec::new();
     let mut netlist: Option<(u64, String, String)> = None;
     let mut index = 0u64;
@@ -892,8 +984,9 @@ fn write_loop(
             }) => {
                 counters
                     .queued
-                    .fetch_sub(bytes.len() as u64, Ordering::Relaxed);
+                    .fetch_sub(bytes.capacity() as u64, Ordering::Relaxed);
                 let (Some(f), Some(p)) = (file.as_mut(), ports.get(port)) else {
+                    let _ = spares.try_send(bytes);
                     continue;
                 };
                 let time = clock.unix(header.stamp_ns);
@@ -936,6 +1029,8 @@ fn write_loop(
                 written += data.len();
                 counters.messages.fetch_add(1, Ordering::Relaxed);
                 counters.bytes.fetch_add(written as u64, Ordering::Relaxed);
+                // The buffer goes back to the reader.
+                let _ = spares.try_send(bytes);
             }
             None => {}
         }
@@ -1035,7 +1130,8 @@ mod tests {
         }
         drop(tx);
         let counters = Counters::default();
-        write_loop("d", &options, &rx, &counters, Clock::new()).unwrap();
+        let (spare, _spares) = mpsc::sync_channel(n as usize);
+        write_loop("d", &options, &rx, &spare, &counters, Clock::new()).unwrap();
         crate::session::settle();
         assert_eq!(counters.messages.load(Ordering::Relaxed), n);
         let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
@@ -1082,6 +1178,65 @@ mod tests {
         seqs.sort_unstable();
         let _ = std::fs::remove_dir_all(&dir);
         (files, seqs)
+    }
+
+    #[test]
+    fn a_kept_buffer_is_reused_only_for_a_sample_of_about_its_size() {
+        let mut buffers = Buffers::default();
+        buffers.keep(Vec::with_capacity(60 << 10));
+        buffers.keep(Vec::with_capacity(300 << 10));
+        // A 16-byte sample does not carry a 60 KiB buffer through the queue...
+        let small = buffers.fitting(16);
+        assert!(small.capacity() < 1024, "{}", small.capacity());
+        assert!(buffers.small.is_empty());
+        // ...and a camera frame takes the kept large buffer, emptied.
+        let large = buffers.fitting(225 << 10);
+        assert_eq!(large.capacity(), 300 << 10);
+        assert!(large.is_empty());
+        // Beyond what is kept, buffers given back are freed.
+        for _ in 0..SPARE_LARGE + 3 {
+            buffers.keep(Vec::with_capacity(100 << 10));
+        }
+        assert_eq!(buffers.large.len(), SPARE_LARGE);
+    }
+
+    #[test]
+    fn a_reused_buffer_encodes_like_a_new_one() {
+        use dnm_module::msg::BytesMessage;
+        struct Frame;
+        impl BytesMessage for Frame {
+            const SCHEMA_NAME: &'static str = "test/Frame";
+            const ENCODING: &'static str = "application/octet-stream";
+            const SCHEMA: &'static str = "uint8[] data";
+        }
+        let mut image = vec![0u8; 12 + 2 * 3 * 4];
+        image[0] = 4; // width
+        image[4] = 2; // height
+        image[8] = 12; // step
+        let image_type = MessageType {
+            encoding: "dnm-image-rgb8".into(),
+            ..Frame::message_type(image.len())
+        };
+        let json_type = MessageType {
+            encoding: "application/json".into(),
+            ..Frame::message_type(64)
+        };
+        // A buffer that held a longer message before.
+        let mut buf = vec![0xee; 4096];
+        for (message, bytes) in [
+            (Frame::message_type(100), vec![7u8; 100]),
+            (image_type, image),
+            (Tick::message_type(), vec![1u8; 16]),
+            (json_type, br#"{"a":1}"#.to_vec()),
+        ] {
+            encode_into(&mut buf, &message, "cam", 1_700_000_000_123_456_789, &bytes);
+            assert_eq!(
+                buf,
+                encode(&message, "cam", 1_700_000_000_123_456_789, &bytes),
+                "{}",
+                message.encoding
+            );
+        }
     }
 
     #[test]

@@ -721,7 +721,12 @@ pub(crate) struct Cdr(pub(crate) Vec<u8>);
 impl Cdr {
     /// A message of about `capacity` bytes, its encapsulation header written.
     pub(crate) fn new(capacity: usize) -> Self {
-        let mut v = Vec::with_capacity(capacity + 64);
+        Self::reuse(Vec::new(), capacity)
+    }
+    /// [`Cdr::new`] in `v`'s memory (its contents are dropped).
+    pub(crate) fn reuse(mut v: Vec<u8>, capacity: usize) -> Self {
+        v.clear();
+        v.reserve(capacity + 64);
         v.extend_from_slice(&[0, 1, 0, 0]);
         Cdr(v)
     }
