@@ -89,6 +89,13 @@ impl Rig {
         let station = Proc::dnm(&dir, "station", &st);
         let api = Api(format!("http://{http}"));
         eventually("the station's API", || api.up().then_some(()));
+        // The page opens on a running system: the station has the netlist in force from the
+        // rover (starting a system's module processes can take long on a loaded machine).
+        support::eventually_within(
+            "the station holding the rover's netlist",
+            Duration::from_secs(600),
+            || (api.status("/api/netlist") == 200).then_some(()),
+        );
         Self {
             system,
             dir,

@@ -69,8 +69,24 @@ impl Proc {
     }
 }
 
+/// How many lines of a process's log a failed test prints.
+const LOG_TAIL: usize = 40;
+
 impl Drop for Proc {
     fn drop(&mut self) {
+        if std::thread::panicking() {
+            // A failed test shows what its processes said last (their logs live in a temporary
+            // folder that is gone by the time anyone reads the failure).
+            let log = std::fs::read_to_string(&self.log).unwrap_or_default();
+            let lines: Vec<&str> = log.lines().collect();
+            let tail = &lines[lines.len().saturating_sub(LOG_TAIL)..];
+            eprintln!(
+                "--- the last {} lines of {} ---\n{}",
+                tail.len(),
+                self.log.display(),
+                tail.join("\n")
+            );
+        }
         // SAFETY: kill(2) on our own child.
         unsafe { libc::kill(self.child.id() as i32, libc::SIGTERM) };
         let deadline = Instant::now() + Duration::from_secs(15);
@@ -133,6 +149,14 @@ impl Api {
             return None;
         }
         serde_json::from_str(&r.body_mut().read_to_string().ok()?).ok()
+    }
+
+    /// The status `GET path` answers with (0: no answer).
+    pub fn status(&self, path: &str) -> u16 {
+        Self::agent()
+            .get(format!("{}{path}", self.0))
+            .call()
+            .map_or(0, |r| r.status().as_u16())
     }
 
     pub fn entries(&self) -> Vec<Entry> {
