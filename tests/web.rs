@@ -232,10 +232,12 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_and_watc
     let drawn = draft_links(&b);
     let want: Vec<String> = CREEP.iter().map(|(f, t)| format!("{f} -> {t}")).collect();
     assert_eq!(drawn, want);
+    // The check of this very draft (the edit above started a new one; until it answers, the
+    // previous check is still the page's and the apply button is disabled).
     until(
         &b,
         "the draft checked valid",
-        "window.__dnm.check && window.__dnm.check.ok && window.__dnm.check.toml.includes('[task.creep]')",
+        "document.getElementById('check-state').textContent === 'valid' && !document.getElementById('draft-apply').disabled && window.__dnm.check.ok && window.__dnm.check.toml.includes('[task.creep]') && window.__dnm.check.toml.includes('timeout = 0.4')",
     );
     b.screenshot(&shots().join("tasks.png"));
 

@@ -8,7 +8,8 @@
 //!    every half second, same payloads; what the recorder recorded and dropped meanwhile.
 //!
 //! Run: `cargo bench -p dnm --bench recording` (or `-- writer`, `-- live`, `-- latency` for
-//! one part).
+//! one part; `DNM_BENCH_SIZES=230400 DNM_BENCH_WINDOWS=960` for the latency of camera frames
+//! alone, in four times the windows).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
 
@@ -26,7 +27,8 @@ use iceoryx2::prelude::{LogLevel, set_log_level};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-/// Latency windows per payload, recording off and on alternating...
+/// Latency windows per payload, recording off and on alternating (`DNM_BENCH_WINDOWS` sets
+/// another number: four times as many halve the interval)...
 const WINDOWS: usize = 240;
 /// ...each this long...
 const WINDOW: Duration = Duration::from_millis(500);
@@ -174,7 +176,9 @@ fn latency() {
         "| payload | recording off p50 / p99 (µs) | recording on p50 / p99 (µs) | added p50 | added p99 | added p99, 90 % interval | noise floor p50 / p99 (off against off) | recorded / dropped while on |"
     );
     println!("|---|---|---|---|---|---|---|---|");
-    for size in [64usize, 4096, 320 * 240 * 3] {
+    let windows = env_or("DNM_BENCH_WINDOWS", vec![WINDOWS])[0].max(2);
+    // `DNM_BENCH_SIZES=230400` measures camera frames only.
+    for size in env_or("DNM_BENCH_SIZES", vec![64usize, 4096, 320 * 240 * 3]) {
         let system = unique(&format!("l{size}"));
         let netlist = format!(
             r#"[system]
@@ -205,7 +209,7 @@ links = ["src.out -> lat.in"]
             let mut windows: Vec<(Instant, Instant, bool)> = Vec::new();
             let (mut recorded, mut dropped) = (0, 0);
             let mut toggling = Duration::ZERO;
-            for w in 0..WINDOWS {
+            for w in 0..windows {
                 if w % 2 == 1 {
                     let t = Instant::now();
                     let mut options = RecordOptions::timestamped(&dir);
@@ -232,7 +236,7 @@ links = ["src.out -> lat.in"]
             eprintln!(
                 "{}: starting and stopping the recorder took {:?} on average",
                 human(size),
-                toggling / (WINDOWS as u32 / 2)
+                toggling / (windows as u32 / 2)
             );
             (reader.join().unwrap(), windows, recorded, dropped)
         });
@@ -281,6 +285,21 @@ links = ["src.out -> lat.in"]
             (b.1 / a.1 - 1.0) * 100.0,
         );
         eprintln!("{}: {} samples off, {} on", human(size), n.0, n.1);
+    }
+}
+
+/// The comma-separated numbers in environment variable `name`, or `default` if it is unset.
+fn env_or(name: &str, default: Vec<usize>) -> Vec<usize> {
+    match std::env::var(name) {
+        Err(_) => default,
+        Ok(v) => v
+            .split(',')
+            .map(|x| {
+                x.trim()
+                    .parse()
+                    .unwrap_or_else(|e| panic!("{name}={v}: {x:?} is not a number ({e})"))
+            })
+            .collect(),
     }
 }
 
