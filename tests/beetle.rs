@@ -422,6 +422,32 @@ fn standard_messages_read_with_a_cdr_reader(session: &std::path::Path) {
             "{topic}: own bytes kept beside it exactly when the standard message cannot hold them"
         );
     }
+    // The rover's body beside its pose, as tools that draw URDF look for it: once per file of
+    // the DNM that records the pose, its root link the pose's frame.
+    let ((schema, enc, msg_enc), bodies) = ch
+        .get("/drive/_robot_description/world")
+        .expect("the rover's body beside its pose");
+    assert_eq!(
+        (schema.as_str(), enc.as_str(), msg_enc.as_str()),
+        ("std_msgs/msg/String", "ros2msg", "cdr")
+    );
+    let drive_files = support::mcap_files(session)
+        .iter()
+        .filter(|f| f.file_name().unwrap().to_string_lossy().contains("-drive"))
+        .count();
+    assert_eq!(
+        bodies.len(),
+        drive_files,
+        "one body per file of the drive DNM"
+    );
+    for (_, _, data) in bodies {
+        let urdf: String = ros::read(data);
+        assert!(
+            urdf.contains("<robot name=\"beetle_one\">")
+                && urdf.contains("<link name=\"base_link\">"),
+            "{urdf}"
+        );
+    }
     // The pairs of (standard, own) messages of a port, matched by sequence number.
     let pairs = |topic: &str| -> Vec<(&[u8], &[u8])> {
         let own: std::collections::HashMap<u32, &[u8]> = ch[&format!("{topic}/raw")]

@@ -131,6 +131,12 @@ pub struct Standard {
     pub name: String,
     /// `[standard field path, source]` pairs.
     pub fields: Vec<[String; 2]>,
+    /// Where the message is a body's pose (a transform to the body's frame): the body, as a URDF
+    /// document whose root link is that frame. Recordings carry it once per file, as a
+    /// `std_msgs/msg/String` on `/<dnm>/_robot_description/<module>`, so tools that draw URDF
+    /// (Rerun, Foxglove) draw the body where the poses put it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub body: Option<String>,
 }
 
 impl MessageType {

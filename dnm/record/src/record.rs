@@ -821,6 +821,9 @@ fn open_file(
             _ => None,
         };
         channels.push(Channel { id, raw, plan });
+        if let Some(body) = p.message.standard.as_ref().and_then(|s| s.body.as_deref()) {
+            write_body(&mut writer, dnm, &p.module, body)?;
+        }
     }
     let schema_id = writer
         .add_schema(
@@ -865,6 +868,43 @@ fn open_file(
         write_netlist(&mut f, *revision, file, text)?;
     }
     Ok(f)
+}
+
+/// Topic of the body a module's poses move (see [`dnm_netlist::Standard::body`]): `robot_description`
+/// in the topic is what tools look for; the `_` keeps it apart from ports.
+pub fn body_topic(dnm: &str, module: &str) -> String {
+    format!("/{dnm}/_robot_description/{module}")
+}
+
+/// Writes `body` (a URDF document) once, as a `std_msgs/msg/String`, at the file's start.
+fn write_body(
+    writer: &mut mcap::Writer<Counting<BufWriter<File>>>,
+    dnm: &str,
+    module: &str,
+    body: &str,
+) -> Result<(), String> {
+    let schema_id = writer
+        .add_schema("std_msgs/msg/String", "ros2msg", b"string data\n")
+        .map_err(|e| e.to_string())?;
+    let mut meta = BTreeMap::new();
+    meta.insert("dnm".to_string(), dnm.to_string());
+    let channel = writer
+        .add_channel(schema_id, &body_topic(dnm, module), "cdr", &meta)
+        .map_err(|e| e.to_string())?;
+    let mut cdr = Cdr::new(body.len() + 4);
+    cdr.string(body);
+    let now = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    let header = mcap::records::MessageHeader {
+        channel_id: channel,
+        sequence: 0,
+        log_time: now,
+        publish_time: now,
+    };
+    writer
+        .write_to_known_channel(&header, &cdr.0)
+        .map_err(|e| e.to_string())
 }
 
 /// Writes the summary and footer and flushes the file, reporting any error (a full disk);

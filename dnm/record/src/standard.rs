@@ -820,6 +820,7 @@ mod tests {
                     .iter()
                     .map(|(a, b)| [a.to_string(), b.to_string()])
                     .collect(),
+                body: None,
             }),
         }
     }

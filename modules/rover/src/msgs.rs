@@ -110,6 +110,8 @@ impl Message for WorldState {
             ("transform.rotation", "roll pitch yaw"),
         ],
     ));
+    /// Beetle-One's hull, wheels and camera mast, drawn at the pose.
+    const BODY: Option<&'static str> = Some(include_str!("../assets/beetle.urdf"));
 }
 
 /// Quadrature encoder counts of both wheels since start.

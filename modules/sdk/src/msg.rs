@@ -25,6 +25,9 @@ pub trait Message: Pod {
     /// &[("pose.pose.position.x", "x"), ("pose.pose.orientation", "yaw"), …])`. `None`: recorded
     /// as it is, under `SCHEMA_NAME`.
     const STANDARD: StandardMap = None;
+    /// Where [`Message::STANDARD`] makes this a body's pose: the body, as a URDF document whose
+    /// root link is the pose's frame (see [`dnm_netlist::Standard::body`]).
+    const BODY: Option<&'static str> = None;
 
     fn message_type() -> MessageType {
         MessageType {
@@ -40,6 +43,7 @@ pub trait Message: Pod {
                     .iter()
                     .map(|(to, from)| [to.to_string(), from.to_string()])
                     .collect(),
+                body: Self::BODY.map(str::to_string),
             }),
         }
     }
