@@ -90,6 +90,8 @@ function changed(what) {
 
 function scheduleCheck() {
   clearTimeout(S.checkTimer);
+  // A check still on its way is of an older draft: its answer must not enable Apply.
+  S.checkSeq++;
   $('check-state').className = 'pending';
   $('check-state').textContent = 'checking…';
   $('draft-apply').disabled = true;

@@ -77,7 +77,8 @@ impl Drop for Proc {
         if std::thread::panicking() {
             // A failed test shows what its processes said last (their logs live in a temporary
             // folder that is gone by the time anyone reads the failure).
-            let log = std::fs::read_to_string(&self.log).unwrap_or_default();
+            let log =
+                String::from_utf8_lossy(&std::fs::read(&self.log).unwrap_or_default()).into_owned();
             let lines: Vec<&str> = log.lines().collect();
             let tail = &lines[lines.len().saturating_sub(LOG_TAIL)..];
             eprintln!(

@@ -170,6 +170,19 @@ pub struct PortSpec {
     pub message: MessageType,
 }
 
+impl PortSpec {
+    /// The port as tools away from its DNM are told of it: without a body's URDF
+    /// ([`Standard::body`]), which only the DNM's recorder writes and which would cross the
+    /// radio in every answer otherwise.
+    pub fn without_body(&self) -> PortSpec {
+        let mut p = self.clone();
+        if let Some(s) = p.message.standard.as_mut() {
+            s.body = None;
+        }
+        p
+    }
+}
+
 /// The type of a parameter.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -333,6 +346,17 @@ pub struct Catalog {
 impl Catalog {
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// The catalog as tools away from the DNM are told of it (see [`PortSpec::without_body`]).
+    pub fn without_bodies(&self) -> Catalog {
+        let mut c = self.clone();
+        for e in c.kinds.values_mut() {
+            for p in e.spec.inputs.iter_mut().chain(e.spec.outputs.iter_mut()) {
+                *p = p.without_body();
+            }
+        }
+        c
     }
 
     /// Adds or replaces a kind.

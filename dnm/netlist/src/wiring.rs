@@ -53,8 +53,12 @@ impl Wiring {
                         kind: m.kind.clone(),
                         dnm: m.dnm.clone(),
                         params: m.params.clone(),
-                        inputs: kind.map(|k| k.inputs.clone()).unwrap_or_default(),
-                        outputs: kind.map(|k| k.outputs.clone()).unwrap_or_default(),
+                        inputs: kind
+                            .map(|k| k.inputs.iter().map(PortSpec::without_body).collect())
+                            .unwrap_or_default(),
+                        outputs: kind
+                            .map(|k| k.outputs.iter().map(PortSpec::without_body).collect())
+                            .unwrap_or_default(),
                     }
                 })
                 .collect(),

@@ -740,6 +740,7 @@ fn open_file(
     index: u64,
     ports: &[RecPort],
     netlist: Option<&(u64, String, String)>,
+    clock: Clock,
 ) -> Result<OpenFile, String> {
     // `.n` numbers a DNM's later files: a DNM's name has no dot, so `rec-cam.2.mcap` is never
     // another DNM's first file. An existing file is never overwritten.
@@ -768,6 +769,8 @@ fn open_file(
         })
         .map_err(|e| e.to_string())?;
     let mut channels = Vec::new();
+    // Modules whose body is written (once per file, whatever their ports).
+    let mut bodies: Vec<&str> = Vec::new();
     for p in ports {
         let topic = format!("/{dnm}/{}/{}", p.module, p.port);
         let mut meta = BTreeMap::new();
@@ -821,8 +824,11 @@ fn open_file(
             _ => None,
         };
         channels.push(Channel { id, raw, plan });
-        if let Some(body) = p.message.standard.as_ref().and_then(|s| s.body.as_deref()) {
-            write_body(&mut writer, dnm, &p.module, body)?;
+        if let Some(body) = p.message.standard.as_ref().and_then(|s| s.body.as_deref())
+            && !bodies.contains(&p.module.as_str())
+        {
+            bodies.push(&p.module);
+            write_body(&mut writer, dnm, &p.module, body, clock)?;
         }
     }
     let schema_id = writer
@@ -882,6 +888,7 @@ fn write_body(
     dnm: &str,
     module: &str,
     body: &str,
+    clock: Clock,
 ) -> Result<(), String> {
     let schema_id = writer
         .add_schema("std_msgs/msg/String", "ros2msg", b"string data\n")
@@ -893,9 +900,9 @@ fn write_body(
         .map_err(|e| e.to_string())?;
     let mut cdr = Cdr::new(body.len() + 4);
     cdr.string(body);
-    let now = SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64);
+    // On the recorder's clock, like the samples: a step of the system clock since the recorder
+    // started does not set the body apart from the data.
+    let now = clock.unix(monotonic_ns());
     let header = mcap::records::MessageHeader {
         channel_id: channel,
         sequence: 0,
@@ -981,7 +988,7 @@ fn write_loop(
                 if ports.is_empty() {
                     continue;
                 }
-                let f = open_file(dnm, options, index, &ports, netlist.as_ref())?;
+                let f = open_file(dnm, options, index, &ports, netlist.as_ref(), clock)?;
                 counters.files.fetch_add(1, Ordering::Relaxed);
                 if let Ok(mut name) = counters.file.lock() {
                     *name = f.path.display().to_string();
@@ -1087,7 +1094,7 @@ fn write_loop(
         if rotate && let Some(f) = file.take() {
             close(f, options)?;
             index += 1;
-            let f = open_file(dnm, options, index, &ports, netlist.as_ref())?;
+            let f = open_file(dnm, options, index, &ports, netlist.as_ref(), clock)?;
             counters.files.fetch_add(1, Ordering::Relaxed);
             if let Ok(mut name) = counters.file.lock() {
                 *name = f.path.display().to_string();

@@ -591,7 +591,7 @@ impl Plugin for Bridge {
             *w = Some(Wiring::of(netlist, &self.dnm, revision, None));
         }
         if let Ok(mut k) = self.shared.kinds.lock() {
-            *k = Some(Arc::new(netlist.catalog.clone()));
+            *k = Some(Arc::new(netlist.catalog.without_bodies()));
         }
 
         let watch = self.watchable(netlist);
