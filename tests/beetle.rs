@@ -907,3 +907,44 @@ fn watchdog_stops_the_motors_when_the_joystick_dies() {
     assert_eq!((wd.tripped, wd.trips), (1, 1));
     let _ = std::fs::remove_dir_all(path.parent().unwrap());
 }
+
+/// The rover's body (its URDF) is for the DNM's recorder: the wiring and the kind catalog that
+/// tools fetch over the radio leave it out.
+#[test]
+fn the_body_stays_on_the_rover() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/beetle.toml");
+    let netlist = dnm::parse_netlist(&path, &std::fs::read_to_string(&path).unwrap()).unwrap();
+    let has_body = |p: &dnm_netlist::PortSpec| {
+        p.message
+            .standard
+            .as_ref()
+            .is_some_and(|s| s.body.is_some())
+    };
+    let world = netlist.kind_of("world").unwrap();
+    assert!(
+        world.outputs.iter().any(has_body),
+        "the pose declares its body on the DNM"
+    );
+    let wiring = dnm_netlist::Wiring::of(&netlist, "drive", 1, None);
+    assert!(
+        wiring
+            .modules
+            .iter()
+            .flat_map(|m| m.inputs.iter().chain(&m.outputs))
+            .all(|p| !has_body(p))
+    );
+    let catalog = netlist.catalog.without_bodies();
+    assert!(
+        catalog
+            .iter()
+            .flat_map(|e| e.spec.inputs.iter().chain(&e.spec.outputs))
+            .all(|p| !has_body(p))
+    );
+    assert!(
+        netlist
+            .catalog
+            .iter()
+            .flat_map(|e| e.spec.outputs.iter())
+            .any(has_body)
+    );
+}
