@@ -671,7 +671,7 @@ fn check_module(
         }
         if let Some(u) = &r.first_unrecorded_input {
             println!(
-                "the recording lost {} samples of the module's inputs, the first of {} (#{}..#{}, sent between {} and {} ns){}",
+                "the recording lost {} samples of the module's inputs, the first gap to end in {} (#{}..#{}, sent between {} and {} ns){}",
                 r.unrecorded_inputs,
                 u.source,
                 u.from_seq,

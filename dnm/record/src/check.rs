@@ -87,7 +87,9 @@ pub struct CheckReport {
     /// while the module read that input): it read them on the rover, the check could not. A
     /// port with two publishers at once (a replay beside its module) can read as such a gap.
     pub unrecorded_inputs: u64,
-    /// The first such gap found.
+    /// The first such gap to end (the recording's samples are read in time order, so a gap is
+    /// found at the sample after it); [`Divergence::after_unrecorded_inputs`] counts from the
+    /// earliest start of any gap.
     pub first_unrecorded_input: Option<UnrecordedInputs>,
     /// Relative tolerance numbers were compared with (0: bit for bit).
     pub tolerance: f64,

@@ -195,7 +195,8 @@ impl Recorder {
         let (queue, items) = mpsc::sync_channel::<Item>(QUEUE);
         // Sample buffers go back to the reader, which reuses them and frees the ones it does not
         // keep: in normal operation the writer takes no lock of the reader's allocator arena.
-        let (spare, spares) = mpsc::sync_channel::<Vec<u8>>(QUEUE);
+        // Room for as many as the reader keeps (a bounded channel reserves its slots up front).
+        let (spare, spares) = mpsc::sync_channel::<Vec<u8>>(SPARE_SMALL + SPARE_LARGE);
         let writer = {
             let counters = counters.clone();
             let options = options.clone();
@@ -876,9 +877,9 @@ fn open_file(
     Ok(f)
 }
 
-/// Topic of the body a module's poses move (see [`dnm_netlist::Standard::body`]): `robot_description`
-/// in the topic is what tools look for; the `_` keeps it apart from ports.
-pub fn body_topic(dnm: &str, module: &str) -> String {
+/// Topic of the body a module's poses move (see [`dnm_netlist::Standard::body`]):
+/// `robot_description` in the topic is what tools look for; the `_` keeps it apart from ports.
+fn body_topic(dnm: &str, module: &str) -> String {
     format!("/{dnm}/_robot_description/{module}")
 }
 
