@@ -385,6 +385,7 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
                 task: "b".into(),
                 at_unix_ns: None,
             },
+            safings_seen: 0,
         }],
         pending_from: 1,
         waiting: vec![],

@@ -398,7 +398,9 @@ fn run_dnm(
         )
         .map_err(dnm_core::DnmError::Refused)?;
         let bridge = match netlist.authority().filter(|_| follow) {
-            Some(a) => bridge.follow_authority(a),
+            Some(a) => bridge
+                .follow_authority(a)
+                .map_err(dnm_core::DnmError::Refused)?,
             None => bridge,
         };
         dnm.add_plugin(Box::new(bridge));

@@ -617,6 +617,16 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
             }));
             granted.push(id);
             if authority {
+                // Its beat: the lease every DNM of the rover keeps on it.
+                let id = format!("beat-{}", i.name);
+                rules.push(json!({
+                    "id": id,
+                    "flows": ["ingress"],
+                    "permission": "allow",
+                    "messages": ["put"],
+                    "key_exprs": [keys::authority_beat(sys)],
+                }));
+                granted.push(id);
                 let id = format!("transact-{}", i.name);
                 rules.push(json!({
                     "id": id,

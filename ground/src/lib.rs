@@ -141,6 +141,10 @@ pub struct Entry {
     pub sends: u32,
     pub acknowledged_unix_ns: Option<u64>,
     pub done_unix_ns: Option<u64>,
+    /// The rover's safings this station had seen when the command was given: one given before
+    /// the station saw the rover's newest safing is refused by the rover.
+    #[serde(default)]
+    pub safings_seen: u64,
 }
 
 /// The radio link as the station sees it.
@@ -318,6 +322,12 @@ impl Station {
             .lock()
             .map_err(|_| StationError::Store("lock poisoned".into()))?;
         let seq = inner.next_seq;
+        let safings_seen = inner
+            .link
+            .rover
+            .as_ref()
+            .and_then(|r| r.last_safing.as_ref())
+            .map_or(0, |l| l.epoch);
         let entry = Entry {
             seq,
             id: format!("{}-{seq}-{:x}", self.shared.options.name, now_unix_ns()),
@@ -328,6 +338,7 @@ impl Station {
             sends: 0,
             acknowledged_unix_ns: None,
             done_unix_ns: None,
+            safings_seen,
         };
         persist(&self.shared.db, &[&entry], Some(seq + 1))?;
         inner.next_seq = seq + 1;
@@ -527,6 +538,7 @@ fn uplink(s: &Shared) -> (bool, bool, bool) {
                 seq: e.seq,
                 id: e.id.clone(),
                 order: e.order.clone(),
+                safings_seen: e.safings_seen,
             })
             .take_while(|c| {
                 let first = bytes == 0;
@@ -701,8 +713,28 @@ fn take_downlink(s: &Shared, d: Downlink, rtt: Duration) {
     }
     inner.link.rover = Some(d.rover);
     let now = now_unix_ns();
-    let mut changed = Vec::new();
+    let mut changed: Vec<Entry> = Vec::new();
+    for o in &d.outcomes {
+        // The rover has not taken this station's commands from `expected` on (its store was
+        // lost, or an uplink was): every one not final from there is sent again, in order.
+        if let Fate::OutOfOrder { expected } = o.fate {
+            for e in inner.entries.range_mut(expected..).map(|(_, e)| e) {
+                if !e.state.is_final() && e.state != CommandState::Sent {
+                    tracing::warn!(
+                        seq = e.seq,
+                        "the rover does not have this command: sending it again"
+                    );
+                    e.state = CommandState::Sent;
+                    e.fate = Some(o.fate.clone());
+                    changed.push(e.clone());
+                }
+            }
+        }
+    }
     for o in d.outcomes {
+        if matches!(o.fate, Fate::OutOfOrder { .. }) {
+            continue;
+        }
         let Some(e) = inner.entries.get_mut(&o.seq) else {
             continue;
         };

@@ -504,19 +504,31 @@ impl Rig {
     }
 
     pub fn station(&self) -> (Proc, Api) {
+        self.station_named("ground-1", &self.http)
+    }
+
+    /// A station of its own name, outbox and API address.
+    pub fn station_named(&self, name: &str, http: &str) -> (Proc, Api) {
         let mut args = zenoh_args("client", self.ground_port);
         args.extend([
             "ground".into(),
             "serve".into(),
             "--system".into(),
             self.system.clone(),
+            "--station".into(),
+            name.into(),
             "--db".into(),
-            self.dir.join("ground-1.redb").display().to_string(),
+            self.dir.join(format!("{name}.redb")).display().to_string(),
             "--http".into(),
-            self.http.clone(),
+            http.into(),
         ]);
-        let p = Proc::dnm(&self.dir, "station", &args);
-        let api = Api(format!("http://{}", self.http));
+        let log = if name == "ground-1" {
+            "station".to_string()
+        } else {
+            format!("station-{name}")
+        };
+        let p = Proc::dnm(&self.dir, &log, &args);
+        let api = Api(format!("http://{http}"));
         eventually("the station's API", || api.up().then_some(()));
         (p, api)
     }

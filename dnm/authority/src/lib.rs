@@ -35,6 +35,7 @@
 //! ```
 
 mod edit;
+mod safing;
 mod store;
 
 use std::path::{Path, PathBuf};
@@ -99,14 +100,14 @@ const UPLINK_QUEUE: usize = 64;
 /// Events and time-tagged commands in an answer to a station, at most.
 const STATE_EVENTS: usize = 16;
 
-fn now_unix_ns() -> u64 {
+pub(crate) fn now_unix_ns() -> u64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// What the worker decides with: the durable state and the netlist in force.
-struct Core {
+pub(crate) struct Core {
     state: State,
     netlist: Netlist,
     digest: String,
@@ -145,7 +146,7 @@ impl Timing {
 const MIN_BUSY: Duration = Duration::from_millis(500);
 const MAX_BUSY: Duration = Duration::from_secs(5);
 
-struct Shared {
+pub(crate) struct Shared {
     timing: Mutex<Timing>,
     system: String,
     name: String,
@@ -160,6 +161,8 @@ struct Shared {
     contact: Mutex<Instant>,
     heard: AtomicBool,
     wake: (Mutex<bool>, Condvar),
+    /// Wakes the beat thread (a safing is announced at once).
+    beat: (Mutex<bool>, Condvar),
     stop: AtomicBool,
 }
 
@@ -226,17 +229,35 @@ impl Authority {
                 s
             }
             None => {
-                let used = reports(&session, &system, Duration::from_secs(1))
+                let found = reports(&session, &system, Duration::from_secs(1));
+                let used = found
                     .iter()
                     .map(|r| r.last_attempt.max(r.revision))
                     .max()
                     .unwrap_or(0);
                 let revision = used + 1;
+                // A rover already running (this store was lost or replaced) goes on with what
+                // it runs: the newest netlist in force on its DNMs, in its task.
+                let (file, text, task) = match running(&session, &system, &parse) {
+                    Some((n, task)) => {
+                        tracing::warn!(
+                            file = %n.file.display(),
+                            task = ?task,
+                            "a new store for a running rover: continuing with what it runs"
+                        );
+                        (n.file.display().to_string(), n.text.clone(), task)
+                    }
+                    None => (
+                        netlist.file.display().to_string(),
+                        netlist.text.clone(),
+                        netlist.initial_task().map(str::to_string),
+                    ),
+                };
                 let s = State {
                     revision,
-                    task: netlist.initial_task().map(str::to_string),
-                    file: netlist.file.display().to_string(),
-                    text: netlist.text.clone(),
+                    task,
+                    file,
+                    text,
                     // Ids never seen before by any DNM, even if this database is new again:
                     // they start from the time it was created.
                     next_txn: (now_unix_ns() / 1_000_000_000) << 24,
@@ -269,6 +290,7 @@ impl Authority {
             contact: Mutex::new(Instant::now()),
             heard: AtomicBool::new(false),
             wake: (Mutex::new(false), Condvar::new()),
+            beat: (Mutex::new(false), Condvar::new()),
             stop: AtomicBool::new(false),
         });
         if let Ok(core) = shared.core.lock() {
@@ -293,7 +315,12 @@ impl Authority {
                 .spawn(f)
                 .map_err(|e| AuthorityError::Zenoh(format!("spawning {name}: {e}")))
         };
+        let publisher = safing::beat_publisher(&session, &system)?;
         let threads = vec![
+            spawn("authority-beat", {
+                let s = shared.clone();
+                Box::new(move || safing::beat_loop(&s, &publisher))
+            })?,
             spawn("authority-intake", {
                 let s = shared.clone();
                 Box::new(move || intake_loop(&s, &rx))
@@ -323,6 +350,7 @@ impl Authority {
     pub fn stop(self) {
         self.shared.stop.store(true, Ordering::Relaxed);
         self.shared.wake();
+        safing::beat_now(&self.shared);
         for t in self.threads {
             let _ = t.join();
         }
@@ -405,7 +433,7 @@ fn take_uplink(s: &Shared, q: &Query) -> Downlink {
     }
 }
 
-fn publish_rover(s: &Shared, core: &Core) {
+pub(crate) fn publish_rover(s: &Shared, core: &Core) {
     let scheduled = s
         .store
         .timers()
@@ -429,6 +457,8 @@ fn publish_rover(s: &Shared, core: &Core) {
             task: core.state.task.clone(),
             events,
             scheduled,
+            last_safing: core.state.last_safing.clone(),
+            safe: core.state.safe,
         };
     }
 }
@@ -474,10 +504,11 @@ impl Job {
     }
 
     /// Whether it changes what the DNMs run (and so needs them all in step first).
-    fn transacts(&self, core: &Core) -> bool {
+    fn transacts(&self) -> bool {
         match self {
             Job::LinkBack => false,
-            Job::LinkLoss { task, .. } => core.state.task.as_ref() != Some(task),
+            // Safing is no transaction: DNMs that cannot be reached make themselves safe.
+            Job::LinkLoss { .. } => false,
             Job::Timer(_) => true,
             Job::Command(_, c) => !matches!(c.order, Order::Cancel { .. }),
         }
@@ -548,7 +579,7 @@ fn work_once(s: &Shared, gate: &mut Option<(String, Instant)>) -> Result<bool, A
             *gate = None;
             return Ok(false);
         };
-        let snapshot = job.transacts(&core).then(|| Snapshot::of(&core));
+        let snapshot = job.transacts().then(|| Snapshot::of(&core));
         (job, snapshot)
     };
     if let Some(snap) = snapshot {
@@ -584,46 +615,41 @@ fn work_once(s: &Shared, gate: &mut Option<(String, Instant)>) -> Result<bool, A
             core.state.event(e);
             s.store.save_state(&core.state)?;
         }
+        Job::LinkLoss { task, silent }
+            if core.state.safe && core.state.task.as_ref() == Some(&task) =>
+        {
+            // Safe already (a DNM's safing adopted, say): the loss is recorded, nothing more.
+            tracing::warn!(
+                "no ground station heard for {:.1} s; the rover is safe already",
+                silent.as_secs_f64()
+            );
+            s.heard.store(false, Ordering::Relaxed);
+            core.state.link_lost = true;
+            s.store.save_state(&core.state)?;
+        }
         Job::LinkLoss { task, silent } => {
-            let detail = format!(
+            let reason = format!(
                 "no ground station heard for {:.1} s: switching to `{task}`",
                 silent.as_secs_f64()
             );
-            let fate = if core.state.task.as_ref() == Some(&task) {
-                None
-            } else {
-                tracing::warn!("{detail}");
-                Some(transact(s, core, None, Some(task), None, None, None))
-            };
-            if let Some(Fate::Refused { reason }) = &fate {
-                // Not in force anywhere: tried again after the back-off, until it is.
-                tracing::error!("{detail}; refused, trying again: {reason}");
-                return Ok(false);
-            }
             s.heard.store(false, Ordering::Relaxed);
             core.state.link_lost = true;
-            let e = RoverEvent {
-                at_unix_ns: now_unix_ns(),
-                what: "link_loss".into(),
-                detail: match fate {
-                    None => format!(
-                        "no ground station heard for {:.1} s; already in `{}`",
-                        silent.as_secs_f64(),
-                        core.state.task.as_deref().unwrap_or("-")
-                    ),
-                    Some(_) => detail,
-                },
-                revision: core.state.revision,
-                task: core.state.task.clone(),
-            };
-            core.state.event(e);
-            s.store.save_state(&core.state)?;
+            safing::make_safe(s, core, task, "link_loss", reason)?;
         }
         Job::Timer(t) if !core.netlist.tasks.contains_key(&t.task) => {
             let reason = format!(
                 "task `{}` is no longer defined (a netlist applied since removed it)",
                 t.task
             );
+            tracing::warn!(station = %t.station, seq = t.seq, "time-tagged switch refused: {reason}");
+            s.store.finish(Finish {
+                fates: vec![(&t.station, t.seq, &t.id, Fate::Refused { reason })],
+                timer_remove: Some((&t.station, t.seq)),
+                ..Finish::default()
+            })?;
+        }
+        Job::Timer(t) if safing::stale(core, t.safings_seen).is_some() => {
+            let reason = safing::stale(core, t.safings_seen).unwrap_or_default();
             tracing::warn!(station = %t.station, seq = t.seq, "time-tagged switch refused: {reason}");
             s.store.finish(Finish {
                 fates: vec![(&t.station, t.seq, &t.id, Fate::Refused { reason })],
@@ -722,6 +748,9 @@ fn run_command(
     sent: Sent,
 ) -> Result<(), AuthorityError> {
     let cmd = Some((station.to_string(), sent.seq, sent.id.clone()));
+    if let Some(reason) = safing::stale(core, sent.safings_seen) {
+        return refuse(s, station, &sent, reason);
+    }
     match &sent.order {
         Order::Switch { task, at_unix_ns } => {
             if !core.netlist.tasks.contains_key(task) {
@@ -756,6 +785,7 @@ fn run_command(
                         id: sent.id.clone(),
                         task: task.clone(),
                         at_unix_ns: at,
+                        safings_seen: sent.safings_seen,
                     }),
                     ..Finish::default()
                 });
@@ -864,6 +894,7 @@ fn transact(
             done: cmd.as_ref().map(|(st, seq, _)| (st.as_str(), *seq)),
             timer_add: None,
             timer_remove: timer_remove.as_ref().map(|(st, seq)| (st.as_str(), *seq)),
+            timers_remove: Vec::new(),
             state: Some(&core.state),
             decision: core.state.decisions.last(),
         });
@@ -1148,6 +1179,40 @@ fn reports_of(s: &Shared, dnms: &[String], timeout: Duration) -> Vec<Option<DnmB
         .collect()
 }
 
+/// The newest netlist in force on the reachable DNMs (that still validates here) and its task.
+fn running(
+    session: &zenoh::Session,
+    system: &str,
+    parse: &ParseNetlist,
+) -> Option<(Netlist, Option<String>)> {
+    let replies = session
+        .get(dnm_proto::keys::netlist(system, "*"))
+        .target(QueryTarget::All)
+        .consolidation(ConsolidationMode::None)
+        .timeout(Duration::from_secs(1))
+        .wait()
+        .ok()?;
+    let mut newest: Option<dnm_proto::NetlistState> = None;
+    while let Ok(r) = replies.recv() {
+        if let Ok(sample) = r.result()
+            && let Ok(n) =
+                serde_json::from_slice::<dnm_proto::NetlistState>(&sample.payload().to_bytes())
+            && n.text.is_some()
+            && newest.as_ref().is_none_or(|x| n.revision > x.revision)
+        {
+            newest = Some(n);
+        }
+    }
+    let n = newest?;
+    let file = n.file.unwrap_or_else(|| "netlist.toml".into());
+    let netlist = parse(Path::new(&file), n.text.as_deref()?).ok()?;
+    if netlist.system != system {
+        return None;
+    }
+    let task = n.active_task.filter(|t| netlist.tasks.contains_key(t));
+    Some((netlist, task))
+}
+
 /// What every reachable DNM runs.
 fn reports(session: &zenoh::Session, system: &str, timeout: Duration) -> Vec<DnmBrief> {
     let Ok(replies) = session
@@ -1221,6 +1286,11 @@ fn reconcile(s: &Shared, side: Side) {
         return;
     }
     let found = reports_of(s, &names, side.report_timeout(s));
+    // A DNM that made itself safe since the last decision: the whole rover is made safe
+    // before anything else (and before any DNM is made to adopt the task it left).
+    if safing::adopt_dnm_safing(s, &found) {
+        return;
+    }
     // Taken after the reports: a report is never newer than the decisions it is judged by.
     let snap = match s.core.lock() {
         Ok(core) => Snapshot::of(&core),
@@ -1274,6 +1344,15 @@ fn reconcile(s: &Shared, side: Side) {
         {
             return;
         }
+        // A DNM that already used the decided revision's number for something else (it was
+        // out of reach when a new store chose it) could never adopt it: the decided state
+        // gets a number no DNM has used, and every DNM adopts that.
+        let used = r.last_attempt.max(r.revision);
+        if used >= snap.revision && (r.revision != snap.revision || r.netlist_digest != snap.digest)
+        {
+            renumber(s, used);
+            return;
+        }
         // A rover DNM behind is only ever one that restarted (the others hold what they
         // prepared until decided); a radio DNM follows whenever it is reachable.
         tracing::info!(
@@ -1298,6 +1377,29 @@ fn reconcile(s: &Shared, side: Side) {
             s.options.prepare_timeout,
         ));
     }
+}
+
+/// Gives the decided state a revision number above `used`.
+fn renumber(s: &Shared, used: u64) {
+    let Ok(mut core) = s.core.lock() else {
+        return;
+    };
+    if core.state.revision > used {
+        return;
+    }
+    let from = core.state.revision;
+    core.state.burned = core.state.burned.max(used) + 1;
+    core.state.revision = core.state.burned;
+    if let Err(e) = s.store.save_state(&core.state) {
+        tracing::error!("renumbering the decided revision: {e}");
+        return;
+    }
+    tracing::warn!(
+        from,
+        to = core.state.revision,
+        "a DNM had used the decided revision's number: decided again as a new revision"
+    );
+    publish_rover(s, &core);
 }
 
 fn log_answers(answers: Vec<(String, Result<Response, String>)>) {

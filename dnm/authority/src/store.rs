@@ -7,7 +7,7 @@ use std::path::Path;
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
 
-use dnm_proto::station::{Fate, Outcome, RoverEvent, Sent};
+use dnm_proto::station::{Fate, Outcome, RoverEvent, Safing, Sent};
 
 use crate::AuthorityError;
 
@@ -18,6 +18,10 @@ const INBOX: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("inbox");
 const FATES: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("fates");
 /// Time-tagged switches waiting, by `station \0 seq`.
 const TIMERS: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("timers");
+/// Commands in the inbox in the order they arrived (across stations): arrival number -> inbox key.
+const ARRIVALS: TableDefinition<'_, u64, &str> = TableDefinition::new("arrivals");
+/// The arrival number of each command in the inbox, by inbox key.
+const ARRIVAL_OF: TableDefinition<'_, &str, u64> = TableDefinition::new("arrival_of");
 /// Every decision, by transaction id: a DNM cut off for long still learns its own.
 const DECISIONS: TableDefinition<'_, u64, &[u8]> = TableDefinition::new("decisions");
 
@@ -69,13 +73,30 @@ pub(crate) struct State {
     pub(crate) events: Vec<RoverEvent>,
     /// Switched away on losing the ground; cleared when a station is heard again.
     pub(crate) link_lost: bool,
+    /// The rover's newest safing (its epoch counts them).
+    #[serde(default)]
+    pub(crate) last_safing: Option<Safing>,
+    /// Whether that safing is still in force (no decision since).
+    #[serde(default)]
+    pub(crate) safe: bool,
+    /// Rover time of the last decision put in force or safing: a DNM that made itself safe
+    /// after it is adopted.
+    #[serde(default)]
+    pub(crate) changed_at_unix_ns: u64,
 }
 
 impl State {
+    /// The epoch of the newest safing (0: never safe).
+    pub(crate) fn safings(&self) -> u64 {
+        self.last_safing.as_ref().map_or(0, |s| s.epoch)
+    }
+
     pub(crate) fn decided(&mut self, d: DecisionRecord) {
         if d.commit {
             self.revision = d.revision;
             self.task = d.task.clone();
+            self.safe = false;
+            self.changed_at_unix_ns = self.changed_at_unix_ns.max(d.at_unix_ns);
         }
         self.decisions.push(d);
         if self.decisions.len() > DECISIONS_KEPT {
@@ -99,6 +120,9 @@ pub(crate) struct Timer {
     pub(crate) id: String,
     pub(crate) task: String,
     pub(crate) at_unix_ns: u64,
+    /// The station's [`Sent::safings_seen`].
+    #[serde(default)]
+    pub(crate) safings_seen: u64,
 }
 
 /// What finishing a command changes, written in one transaction.
@@ -110,6 +134,8 @@ pub(crate) struct Finish<'a> {
     pub(crate) done: Option<(&'a str, u64)>,
     pub(crate) timer_add: Option<Timer>,
     pub(crate) timer_remove: Option<(&'a str, u64)>,
+    /// More time tags taken out (a safing refuses them all).
+    pub(crate) timers_remove: Vec<(&'a str, u64)>,
     pub(crate) state: Option<&'a State>,
     pub(crate) decision: Option<&'a DecisionRecord>,
 }
@@ -131,6 +157,8 @@ impl Store {
         for t in [META, INBOX, FATES, TIMERS] {
             tx.open_table(t).map_err(db)?;
         }
+        tx.open_table(ARRIVALS).map_err(db)?;
+        tx.open_table(ARRIVAL_OF).map_err(db)?;
         tx.open_table(DECISIONS).map_err(db)?;
         tx.commit().map_err(db)?;
         Ok(Self { db: database })
@@ -186,13 +214,45 @@ impl Store {
             None => 0,
         };
         let mut gap = None;
+        let mut taken_by_other = Vec::new();
         let tx = self.db.begin_write().map_err(db)?;
         {
             let mut inbox = tx.open_table(INBOX).map_err(db)?;
+            let mut arrivals = tx.open_table(ARRIVALS).map_err(db)?;
+            let mut arrival_of = tx.open_table(ARRIVAL_OF).map_err(db)?;
+            let mut arrival = arrivals.last().map_err(db)?.map_or(0, |(k, _)| k.value());
+            let fates = tx.open_table(FATES).map_err(db)?;
             let mut sorted: Vec<&Sent> = commands.iter().collect();
             sorted.sort_by_key(|c| c.seq);
             for c in sorted {
                 if c.seq <= received {
+                    // A number already taken: by this very command (a re-send), or by another
+                    // one, which is refused explicitly (never skipped).
+                    let k = key(station, c.seq);
+                    let stored = match fates.get(k.as_str()).map_err(db)? {
+                        Some(v) => serde_json::from_slice::<(String, Fate)>(v.value())
+                            .ok()
+                            .map(|(id, _)| id),
+                        None => inbox
+                            .get(k.as_str())
+                            .map_err(db)?
+                            .and_then(|v| serde_json::from_slice::<Sent>(v.value()).ok())
+                            .map(|s| s.id),
+                    };
+                    if let Some(other) = stored.filter(|id| *id != c.id) {
+                        taken_by_other.push(Outcome {
+                            seq: c.seq,
+                            id: c.id.clone(),
+                            fate: Fate::Refused {
+                                reason: format!(
+                                    "station `{station}`'s number {} is taken by command `{other}`: \
+                                     two stations share a name, or the outbox was replaced; give \
+                                     each station its own name",
+                                    c.seq
+                                ),
+                            },
+                        });
+                    }
                     continue;
                 }
                 if c.seq != received + 1 {
@@ -200,9 +260,11 @@ impl Store {
                     break;
                 }
                 let bytes = serde_json::to_vec(c).map_err(db)?;
-                inbox
-                    .insert(key(station, c.seq).as_str(), bytes.as_slice())
-                    .map_err(db)?;
+                let k = key(station, c.seq);
+                inbox.insert(k.as_str(), bytes.as_slice()).map_err(db)?;
+                arrival += 1;
+                arrivals.insert(arrival, k.as_str()).map_err(db)?;
+                arrival_of.insert(k.as_str(), arrival).map_err(db)?;
                 received = c.seq;
             }
             let mut meta = tx.open_table(META).map_err(db)?;
@@ -224,12 +286,24 @@ impl Store {
         }
         let mut out = self.fates_of(station, asked.iter().copied().take(MAX_ASKED))?;
         out.retain(|o| commands.iter().any(|c| c.seq == o.seq) || o.fate != Fate::Acknowledged);
-        if let Some((seq, id, expected)) = gap {
-            out.push(Outcome {
+        out.extend(taken_by_other);
+        // Commands the station waits for that this rover never took (its store was lost or
+        // replaced): the station sends again from the first it has not taken.
+        let unknown = waiting.iter().copied().filter(|w| *w > received).min();
+        match (gap, unknown) {
+            (Some((seq, id, expected)), _) => out.push(Outcome {
                 seq,
                 id,
                 fate: Fate::OutOfOrder { expected },
-            });
+            }),
+            (None, Some(seq)) => out.push(Outcome {
+                seq,
+                id: String::new(),
+                fate: Fate::OutOfOrder {
+                    expected: received + 1,
+                },
+            }),
+            (None, None) => {}
         }
         Ok(out)
     }
@@ -273,19 +347,36 @@ impl Store {
         Ok(Some(fate))
     }
 
-    /// The oldest command in the inbox (stations in name order, each in its order).
+    /// The command in the inbox that arrived first, whichever station sent it (each
+    /// station's commands arrive in its order). Commands taken by an older version of the
+    /// store, without arrival numbers, come first, in station order.
     pub(crate) fn next_command(&self) -> Result<Option<(String, Sent)>, AuthorityError> {
         let rx = self.db.begin_read().map_err(db)?;
         let inbox = rx.open_table(INBOX).map_err(db)?;
-        let Some(row) = inbox.iter().map_err(db)?.next() else {
+        let arrival_of = rx.open_table(ARRIVAL_OF).map_err(db)?;
+        let arrivals = rx.open_table(ARRIVALS).map_err(db)?;
+        let mut k = None;
+        for row in inbox.iter().map_err(db)?.take(1) {
+            let (key, _) = row.map_err(db)?;
+            if arrival_of.get(key.value()).map_err(db)?.is_none() {
+                k = Some(key.value().to_string());
+            }
+        }
+        if k.is_none()
+            && let Some((_, key)) = arrivals.first().map_err(db)?
+        {
+            k = Some(key.value().to_string());
+        }
+        let Some(k) = k else {
             return Ok(None);
         };
-        let (k, v) = row.map_err(db)?;
-        let Some((station, _)) = split(k.value()) else {
+        let Some(v) = inbox.get(k.as_str()).map_err(db)? else {
             return Err(AuthorityError::Store(format!(
-                "bad inbox key {:?}",
-                k.value()
+                "inbox key {k:?} in the arrival order but not in the inbox"
             )));
+        };
+        let Some((station, _)) = split(&k) else {
+            return Err(AuthorityError::Store(format!("bad inbox key {k:?}")));
         };
         let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
         Ok(Some((station, sent)))
@@ -355,7 +446,13 @@ impl Store {
             }
             let mut inbox = tx.open_table(INBOX).map_err(db)?;
             if let Some((station, seq)) = f.done {
-                inbox.remove(key(station, seq).as_str()).map_err(db)?;
+                let k = key(station, seq);
+                inbox.remove(k.as_str()).map_err(db)?;
+                let mut arrival_of = tx.open_table(ARRIVAL_OF).map_err(db)?;
+                if let Some(a) = arrival_of.remove(k.as_str()).map_err(db)? {
+                    let a = a.value();
+                    tx.open_table(ARRIVALS).map_err(db)?.remove(a).map_err(db)?;
+                }
             }
             let mut timers = tx.open_table(TIMERS).map_err(db)?;
             if let Some(t) = &f.timer_add {
@@ -366,6 +463,9 @@ impl Store {
             }
             if let Some((station, seq)) = f.timer_remove {
                 timers.remove(key(station, seq).as_str()).map_err(db)?;
+            }
+            for (station, seq) in &f.timers_remove {
+                timers.remove(key(station, *seq).as_str()).map_err(db)?;
             }
             if let Some(d) = f.decision {
                 let mut t = tx.open_table(DECISIONS).map_err(db)?;

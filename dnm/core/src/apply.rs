@@ -326,7 +326,18 @@ impl Dnm {
             return;
         };
         if p.held {
-            // Prepared: it waits for the authority's decision, however long that takes.
+            // Prepared: it waits for the authority's decision, up to the hold limit.
+            if Instant::now() >= p.deadline
+                && let Some(p) = self.apply.take()
+            {
+                let id = p.txn.unwrap_or_default();
+                let why = format!(
+                    "transaction {id} given up: no decision within {} s",
+                    crate::safe::HOLD_LIMIT.as_secs()
+                );
+                self.remember_decided(id, Err(why.clone()));
+                self.abort_apply(p, why);
+            }
             return;
         }
         let revision = p.revision;
@@ -388,6 +399,7 @@ impl Dnm {
         if waiting.is_empty() {
             if let Some(p) = self.apply.as_mut().filter(|p| p.txn.is_some()) {
                 p.held = true;
+                p.deadline = Instant::now() + crate::safe::HOLD_LIMIT;
                 let ready = std::mem::take(&mut p.ready);
                 tracing::info!(dnm = %self.name, revision, "prepared; waiting for the decision");
                 self.publish();
@@ -474,6 +486,8 @@ impl Dnm {
     /// Returns the task it left and the one in force.
     pub(crate) fn commit(&mut self, mut p: PendingApply) -> (Option<String>, Option<String>) {
         let revision = p.revision;
+        // A decided revision in force: the DNM is no longer safe on its own.
+        self.safed = None;
         let netlist = p.netlist.clone();
         // The task the transaction names, else the active task carries over if the new
         // netlist still defines it.

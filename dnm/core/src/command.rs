@@ -81,6 +81,22 @@ pub enum Command {
         netlist: Box<Netlist>,
         reply: Reply<Result<u64, String>>,
     },
+    /// See [`SafeOrder`]. Answered once the safe task is in force here.
+    Safe {
+        order: SafeOrder,
+        reply: Reply<Result<(), String>>,
+    },
+}
+
+/// Put the DNM's own modules on its safe task now: its authority's safing (`epoch`), or its
+/// lease on the authority that ran out (`epoch` `None`). Whatever the DNM holds (a prepared
+/// transaction, a decision waiting for its instant) is dropped first, so nothing decided
+/// before the safing is put in force after it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SafeOrder {
+    pub task: String,
+    pub epoch: Option<u64>,
+    pub reason: String,
 }
 
 /// What a transaction puts in force: `revision` with `task` active. With a netlist it is an

@@ -35,12 +35,13 @@ mod pending;
 pub mod plan;
 mod plugin;
 pub mod procfs;
+mod safe;
 mod slot;
 mod supervise;
 mod txn;
 pub mod worker;
 
-pub use command::{Command, CommandKey, Decision, Reply, Txn};
+pub use command::{Command, CommandKey, Decision, Reply, SafeOrder, Txn};
 pub use dnm_proto as proto;
 pub use dnm_proto::{
     DnmReport, ModuleEvent, ModuleReport, ModuleRunState, NetlistState, SwitchRecord,

@@ -154,6 +154,8 @@ pub struct Dnm {
     pub(crate) held_switch: Option<HeldSwitch>,
     pub(crate) scheduled: Option<Scheduled>,
     pub(crate) decided: Decided,
+    /// On the safe task by the authority's safing or its own lease, until the next decision.
+    pub(crate) safed: Option<dnm_proto::Safed>,
     /// At real-time priority until a decision is in force.
     pub(crate) hurried: bool,
     pub(crate) warned_realtime: bool,
@@ -264,6 +266,7 @@ impl Dnm {
             held_switch: None,
             scheduled: None,
             decided: Decided::new(),
+            safed: None,
             hurried: false,
             warned_realtime: false,
             commands,
@@ -417,6 +420,8 @@ impl Dnm {
             last_attempt: self.last_attempt,
             holding: self.holding(),
             scheduled_at_unix_ns: self.scheduled_at(),
+            safed: self.safed.clone(),
+            lease: None,
             cpu_percent: self.cpu.percent,
             memory: self.memory,
             modules: self
@@ -535,6 +540,7 @@ impl Dnm {
                     Err(std::sync::mpsc::TryRecvError::Disconnected) => return Ok(()),
                 }
             }
+            self.give_up_stale_hold();
             if self.quiet() {
                 continue;
             }
@@ -609,6 +615,7 @@ impl Dnm {
                 Command::Prepare { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
                 Command::Decide { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
                 Command::Adopt { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
+                Command::Safe { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
             }
         }
     }
@@ -665,6 +672,7 @@ impl Dnm {
                 netlist,
                 reply,
             } => self.adopt(revision, task, *netlist, reply),
+            Command::Safe { order, reply } => self.make_safe(order, reply),
         }
     }
 }

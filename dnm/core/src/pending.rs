@@ -71,6 +71,10 @@ pub(crate) const DECIDED: usize = 256;
 /// How long a prepared switch keeps the loop quiet while it waits for the decision.
 pub(crate) const QUIET_HOLD: Duration = Duration::from_secs(1);
 
+/// From this long before a decided instant the loop leaves supervision and starting processes
+/// until the decision is in force (before, a DNM waiting for an instant supervises as usual).
+pub(crate) const QUIET_BEFORE: Duration = Duration::from_millis(200);
+
 /// From this long before a decided instant the DNM's loop does nothing but wait for it.
 pub(crate) const NEAR: Duration = Duration::from_millis(25);
 

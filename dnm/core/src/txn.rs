@@ -14,7 +14,9 @@ use dnm_proto::SwitchRecord;
 use crate::command::{Decision, Reply, Txn};
 use crate::error::DnmError;
 use crate::node::Dnm;
-use crate::pending::{DECIDED, DecideResult, FINE_WAIT, HeldSwitch, QUIET_HOLD, Scheduled};
+use crate::pending::{
+    DECIDED, DecideResult, FINE_WAIT, HeldSwitch, QUIET_BEFORE, QUIET_HOLD, Scheduled,
+};
 
 fn now_unix_ns() -> u64 {
     SystemTime::now()
@@ -50,7 +52,7 @@ impl Dnm {
             .map(|(_, r)| r.clone())
     }
 
-    fn remember_decided(&mut self, id: u64, r: DecideResult) {
+    pub(crate) fn remember_decided(&mut self, id: u64, r: DecideResult) {
         self.decided.push_back((id, r));
         if self.decided.len() > DECIDED {
             self.decided.pop_front();
@@ -218,7 +220,7 @@ impl Dnm {
         }
     }
 
-    fn calm(&mut self) {
+    pub(crate) fn calm(&mut self) {
         if !self.hurried {
             return;
         }
@@ -233,7 +235,7 @@ impl Dnm {
     /// store. A prepared switch counts for a short while only: an authority that went away
     /// must not stop supervision.
     pub(crate) fn quiet(&self) -> bool {
-        self.scheduled.is_some()
+        self.until_due().is_some_and(|d| d < QUIET_BEFORE)
             || self
                 .held_switch
                 .as_ref()
@@ -280,6 +282,7 @@ impl Dnm {
 
     fn put_in_force(&mut self, d: &Decision) -> Result<SwitchRecord, String> {
         if let Some(h) = self.held_switch.take_if(|h| h.id == d.id) {
+            self.safed = None;
             return self.switch(&h.task).map_err(|e| e.to_string());
         }
         if let Some(p) = self.apply.take_if(|p| p.txn == Some(d.id) && p.held) {
@@ -319,6 +322,7 @@ impl Dnm {
             .is_some_and(|n| n.digest() == netlist.digest());
         if revision == self.revision && same {
             if let Some(t) = task.filter(|t| self.active.as_ref() != Some(t)) {
+                self.safed = None;
                 if let Err(e) = self.switch(&t) {
                     return reply.send(Err(e.to_string()));
                 }

@@ -4,6 +4,8 @@
 //! | key                                   | Zenoh primitive      | what                                                     |
 //! |---------------------------------------|----------------------|----------------------------------------------------------|
 //! | `<system>/dnm/<dnm>`                  | queryable, liveliness | the DNM's report (JSON): revision, task, CPU, modules, peers; `?brief`, `?glance`: smaller forms |
+//! | `<system>/authority`                  | queryable            | ground stations' uplinks (JSON `station::Uplink`), answered by the authority |
+//! | `<system>/authority/beat`             | pub/sub              | the authority's heartbeat (JSON `station::Beat`): the DNMs' lease, its clock, the safing in force |
 //! | `<system>/dnm/<dnm>/netlist`          | queryable            | the applied netlist (JSON: revision, digest, file, text) |
 //! | `<system>/dnm/<dnm>/cmd`              | queryable            | commands (JSON request in the query payload; JSON reply) |
 //! | `<system>/module/<dnm>/<module>`      | queryable, liveliness | one module's state and the last value of each output (JSON) |
@@ -50,6 +52,12 @@ pub fn cmd(system: &str, dnm: &str) -> String {
 /// [`crate::station::Uplink`]); the rover's authority DNM answers.
 pub fn authority(system: &str) -> String {
     format!("{system}/authority")
+}
+
+/// `<system>/authority/beat`: the authority's heartbeat ([`crate::station::Beat`]), the lease
+/// every DNM of the rover keeps on it (a DNM that stops hearing it makes itself safe).
+pub fn authority_beat(system: &str) -> String {
+    format!("{system}/authority/beat")
 }
 
 /// `<system>/module/<dnm>/<module>`.

@@ -123,6 +123,20 @@ pub struct RouteReport {
     pub dropped: u64,
 }
 
+/// A DNM's lease on its authority: when it last heard the authority's beat, and how far its
+/// wall clock is from the authority's.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LeaseReport {
+    pub authority: String,
+    /// Since the last beat, ms (`None`: never heard).
+    pub heard_ms: Option<u64>,
+    /// The authority's wall clock minus this DNM's, ms (the beat's one-way delay included,
+    /// the smallest of the last few), `None` before the first beat.
+    pub clock_offset_ms: Option<f64>,
+    /// Beyond this offset the DNM refuses transactions (it would switch at the wrong moment).
+    pub max_clock_offset_ms: u64,
+}
+
 /// A DNM's routes to and from other DNMs.
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct NetReport {
@@ -164,6 +178,19 @@ pub struct SupervisionReport {
     pub max_gap_ms: u64,
 }
 
+/// A DNM on the task its netlist names for loss of signal because it was told to or by itself:
+/// its authority's safing (`epoch`), or its own lease on the authority that ran out (`epoch`
+/// `None` until the authority adopts it). Cleared by the next decision put in force.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Safed {
+    /// The authority's safing it follows; `None`: made safe on its own.
+    pub epoch: Option<u64>,
+    /// Wall clock, ns since the Unix epoch.
+    pub at_unix_ns: u64,
+    pub task: String,
+    pub reason: String,
+}
+
 /// The state of one DNM, for operators and tools.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct DnmReport {
@@ -188,6 +215,12 @@ pub struct DnmReport {
     /// When the scheduled decision takes effect, wall-clock ns since the Unix epoch.
     #[serde(default)]
     pub scheduled_at_unix_ns: Option<u64>,
+    /// On its loss-of-signal task by the authority's safing or its own lease, if it is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub safed: Option<Safed>,
+    /// Its lease on the system's authority, where it follows one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lease: Option<LeaseReport>,
     pub cpu_percent: f64,
     pub memory: Option<Memory>,
     pub modules: Vec<ModuleReport>,
@@ -278,7 +311,7 @@ impl DnmGlance {
 
 /// What a DNM runs, in brief: `<system>/dnm/<dnm>?brief` answers it (a few hundred bytes
 /// instead of the whole report, for checks across a slow link).
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct DnmBrief {
     pub dnm: String,
     pub pid: u32,
@@ -290,6 +323,11 @@ pub struct DnmBrief {
     pub holding: Option<u64>,
     /// Modules not running (starting, failed, hung, stopped).
     pub modules_down: u32,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub safed: Option<Safed>,
+    /// The authority's wall clock minus this DNM's, ms.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clock_offset_ms: Option<f64>,
 }
 
 impl DnmBrief {
@@ -308,6 +346,8 @@ impl DnmBrief {
                 .iter()
                 .filter(|m| m.state != ModuleRunState::Running)
                 .count() as u32,
+            safed: r.safed.clone(),
+            clock_offset_ms: r.lease.as_ref().and_then(|l| l.clock_offset_ms),
         }
     }
 }

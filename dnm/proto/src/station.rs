@@ -62,6 +62,11 @@ pub struct Sent {
     /// Unique across stations and restarts.
     pub id: String,
     pub order: Order,
+    /// How many times the station had seen the rover make itself safe when the operator gave
+    /// this command ([`Safing::epoch`] of the newest it knew). A command given before the
+    /// station saw the latest safing is refused: it was meant for a rover that was not safe.
+    #[serde(default)]
+    pub safings_seen: u64,
 }
 
 /// What a station sends the authority.
@@ -131,11 +136,47 @@ pub struct Outcome {
 pub struct RoverEvent {
     /// Rover time, ns since the Unix epoch.
     pub at_unix_ns: u64,
-    /// `link_loss` (switched to the task the netlist names), `link_back`.
+    /// `link_loss` (switched to the task the netlist names), `safed` (a DNM of the rover made
+    /// itself safe, adopted), `link_back`.
     pub what: String,
     pub detail: String,
     pub revision: u64,
     pub task: Option<String>,
+}
+
+/// The rover making itself safe: its authority after losing every ground station, or a DNM of
+/// the rover on its own after losing its authority (adopted by the authority when it is back).
+/// Nothing taken before it runs: commands stored and not yet run and time tags waiting are
+/// refused with it as the reason, and so is any command a station gave before it saw it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Safing {
+    /// 1 for the rover's first safing, then one more each time.
+    pub epoch: u64,
+    /// Rover time, ns since the Unix epoch.
+    pub at_unix_ns: u64,
+    /// The task the rover went to (the netlist's `on_link_loss.task`).
+    pub task: String,
+    /// Why, in words.
+    pub reason: String,
+}
+
+/// The authority's heartbeat, published a few times a second on
+/// [`crate::keys::authority_beat`]: every DNM of the rover keeps a lease on it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Beat {
+    /// The authority DNM.
+    pub authority: String,
+    /// The authority's wall clock when it sent the beat, ns since the Unix epoch: each DNM
+    /// measures its clock's offset with it.
+    pub at_unix_ns: u64,
+    /// The decided revision and task.
+    pub revision: u64,
+    pub task: Option<String>,
+    /// Since a ground station was last heard, ms (the authority's loss-of-signal clock).
+    pub ground_silent_ms: u64,
+    /// The safing in force (the rover is on its task and no command ran since), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub safing: Option<Safing>,
 }
 
 /// The rover as its authority sees it.
@@ -151,6 +192,13 @@ pub struct RoverState {
     /// Time-tagged commands waiting: (station, seq, at).
     #[serde(default)]
     pub scheduled: Vec<(String, u64, u64)>,
+    /// The rover's newest safing, kept after the rover left it: a station stamps its commands
+    /// with its epoch ([`Sent::safings_seen`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_safing: Option<Safing>,
+    /// Whether the rover is still in that safing (no command has run since).
+    #[serde(default)]
+    pub safe: bool,
 }
 
 /// What the authority answers an [`Uplink`].

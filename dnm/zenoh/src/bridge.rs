@@ -35,9 +35,11 @@ use dnm_module::protocol::{PortHeader, dnm_config, output_event, output_service}
 use dnm_module::{event_service, event_service_for, port_service, port_service_for};
 use dnm_netlist::{MessageType, Netlist, Wiring};
 
+use crate::lease::{Lease, lease_loop};
 use crate::watch::{WATCH_EVENT, WatchPort, watch_loop};
 use crate::wire::{encoding, from_wire, to_wire, traffic_class};
 use dnm_proto::keys;
+use dnm_proto::station::Beat;
 use dnm_proto::{
     NetReport, NetlistState, PeerReport, RemoteCommand, Request, Response, RouteReport,
 };
@@ -101,6 +103,8 @@ struct Shared {
     /// The system's authority, when it has one: switches and applies then come only from it
     /// (as transactions); a direct one would put this DNM on a task the others are not on.
     authority: std::sync::OnceLock<String>,
+    /// The DNM's lease on that authority.
+    lease: Mutex<Lease>,
 }
 
 impl Shared {
@@ -131,6 +135,10 @@ pub struct Bridge {
     command_thread: Option<std::thread::JoinHandle<()>>,
     query_tx: Option<SyncSender<(Target, Query)>>,
     command_tx: Option<SyncSender<CommandJob>>,
+    /// For the lease: it makes the DNM safe.
+    commander: Commander,
+    _beats: Option<ZSubscriber<()>>,
+    lease_thread: Option<std::thread::JoinHandle<()>>,
 }
 
 impl std::fmt::Debug for Bridge {
@@ -149,10 +157,48 @@ enum CommandJob {
 
 impl Bridge {
     /// Takes switches and applies only from the system's authority `dnm` (see
-    /// `dnm-authority`); other clients are told to go through a ground station.
-    pub fn follow_authority(self, dnm: &str) -> Self {
+    /// `dnm-authority`); other clients are told to go through a ground station. Keeps a lease
+    /// on it (see [`crate::lease`]): the DNM makes itself safe when it must, whoever is down.
+    pub fn follow_authority(mut self, dnm: &str) -> Result<Self, String> {
         let _ = self.shared.authority.set(dnm.to_string());
-        self
+        let beats = {
+            let shared = self.shared.clone();
+            let authority = dnm.to_string();
+            self.session
+                .declare_subscriber(keys::authority_beat(&self.system))
+                .callback(move |sample| {
+                    let Ok(beat) = serde_json::from_slice::<Beat>(&sample.payload().to_bytes())
+                    else {
+                        return;
+                    };
+                    if let Ok(mut l) = shared.lease.lock() {
+                        l.heard(&authority, beat);
+                    }
+                })
+                .wait()
+                .map_err(err("subscribing to the authority's beat"))?
+        };
+        let thread = {
+            let shared = self.shared.clone();
+            let commander = self.commander.clone();
+            let (me, authority) = (self.dnm.clone(), dnm.to_string());
+            std::thread::Builder::new()
+                .name(format!("lease-{me}"))
+                .spawn(move || {
+                    lease_loop(
+                        &me,
+                        &authority,
+                        &shared.lease,
+                        &|| shared.snapshot(),
+                        &commander,
+                        &shared.stop,
+                    )
+                })
+                .map_err(err("spawning the lease thread"))?
+        };
+        self._beats = Some(beats);
+        self.lease_thread = Some(thread);
+        Ok(self)
     }
 
     /// Declares the DNM on `session`: its liveliness token, queryables, the watch on the other
@@ -184,6 +230,7 @@ impl Bridge {
                 .map_err(err("spawning the query thread"))?
         };
         let (command_tx, command_rx) = mpsc::sync_channel::<CommandJob>(COMMAND_QUEUE * 2);
+        let lease_commander = commander.clone();
         let command_thread = {
             let shared = shared.clone();
             let tx = command_tx.clone();
@@ -313,6 +360,9 @@ impl Bridge {
             command_thread: Some(command_thread),
             query_tx: Some(query_tx),
             command_tx: Some(command_tx),
+            commander: lease_commander,
+            _beats: None,
+            lease_thread: None,
         })
     }
 
@@ -531,6 +581,14 @@ impl Plugin for Bridge {
     /// and gives the query thread the outputs to keep last values of.
     fn commit(&mut self, _ctx: &Context<'_>, netlist: &Netlist, revision: u64) {
         self.prepared.clear();
+        if let Ok(mut l) = self.shared.lease.lock() {
+            l.committed(
+                netlist
+                    .on_link_loss
+                    .as_ref()
+                    .map(|l| (Duration::from_millis(l.after_ms), l.task.clone())),
+            );
+        }
         self.declared_dnms = netlist.dnms.iter().map(|d| d.name.clone()).collect();
         let wanted = self.wanted_ingress(netlist);
         let names: BTreeSet<&String> = wanted.iter().map(|(s, _, _)| s).collect();
@@ -603,6 +661,9 @@ impl Plugin for Bridge {
 
     fn report(&self, report: &mut DnmReport) {
         report.peers = self.peer_reports();
+        if let Some(a) = self.shared.authority.get() {
+            report.lease = self.shared.lease.lock().ok().map(|l| l.report(a));
+        }
         report.routes = NetReport {
             published: self
                 .egress
@@ -634,6 +695,9 @@ impl Drop for Bridge {
         self.query_tx.take();
         self.command_tx.take();
         if let Some(t) = self.query_thread.take() {
+            let _ = t.join();
+        }
+        if let Some(t) = self.lease_thread.take() {
             let _ = t.join();
         }
         if let Some(t) = self.command_thread.take() {
@@ -1140,6 +1204,13 @@ fn command_loop(
                 file,
                 text,
             } => {
+                // A DNM whose clock is off would put the decision in force at the wrong moment.
+                let clock = shared.lease.lock().ok().and_then(|l| l.clock_refusal(dnm));
+                if let Some(why) = clock {
+                    tracing::warn!(dnm, txn, "transaction refused: {why}");
+                    finish(query, &Response::error(why));
+                    continue;
+                }
                 let netlist = match text.map(|t| {
                     let file = file.unwrap_or_else(|| "netlist.toml".into());
                     parse_here(parse, system, &file, &t)

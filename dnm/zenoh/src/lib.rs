@@ -15,6 +15,7 @@
 //! ```
 
 mod bridge;
+pub mod lease;
 pub mod remote;
 mod watch;
 mod wire;

@@ -1,0 +1,193 @@
+//! The rover making itself safe: the authority's heartbeat (the DNMs' lease on it), its safing
+//! when every ground station is lost, and its adopting a safing a DNM made on its own.
+//!
+//! The rules (README, "Commanding the rover from the ground"):
+//! - With `on_link_loss = { after, task }`, no ground station heard for `after`: the authority
+//!   records a safing (durably, with a new epoch) and announces it in its beat; every DNM that
+//!   hears it puts `task` in force by itself. No transaction: a DNM that cannot be reached
+//!   makes itself safe by its lease, so nobody waits for anybody.
+//! - A DNM that has not heard the beat for `after` makes itself safe; when the authority hears
+//!   of it (the DNM's brief), it adopts it as a safing of the whole rover.
+//! - Nothing taken before a safing runs after it: time tags waiting are refused at once, and
+//!   every command a station gave before it had seen the safing (its `safings_seen`) is
+//!   refused when its turn comes, with the safing as the reason.
+
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use dnm_proto::DnmBrief;
+use dnm_proto::keys;
+use dnm_proto::station::{Beat, Fate, RoverEvent, Safing};
+use zenoh::Wait;
+use zenoh::qos::{CongestionControl, Priority};
+
+use crate::store::Finish;
+use crate::{AuthorityError, Core, Shared, now_unix_ns, publish_rover};
+
+/// How often the authority beats (and so how soon a DNM hears of a safing at the latest).
+pub(crate) const BEAT_EVERY: Duration = Duration::from_millis(200);
+
+/// Records a safing of the whole rover on `task`, refuses every time tag waiting, and
+/// announces it at once. `what` names the event (`link_loss`, `safed`).
+pub(crate) fn make_safe(
+    s: &Shared,
+    core: &mut Core,
+    task: String,
+    what: &str,
+    reason: String,
+) -> Result<Safing, AuthorityError> {
+    let now = now_unix_ns();
+    let safing = Safing {
+        epoch: core.state.safings() + 1,
+        at_unix_ns: now,
+        task: task.clone(),
+        reason: reason.clone(),
+    };
+    core.state.task = Some(task);
+    core.state.last_safing = Some(safing.clone());
+    core.state.safe = true;
+    core.state.changed_at_unix_ns = now;
+    core.state.event(RoverEvent {
+        at_unix_ns: now,
+        what: what.into(),
+        detail: reason,
+        revision: core.state.revision,
+        task: core.state.task.clone(),
+    });
+    let timers = s.store.timers()?;
+    let refusal = refusal(&safing);
+    let fates = timers
+        .iter()
+        .map(|t| {
+            (
+                t.station.as_str(),
+                t.seq,
+                t.id.as_str(),
+                Fate::Refused {
+                    reason: refusal.clone(),
+                },
+            )
+        })
+        .collect();
+    s.store.finish(Finish {
+        fates,
+        timers_remove: timers.iter().map(|t| (t.station.as_str(), t.seq)).collect(),
+        state: Some(&core.state),
+        ..Finish::default()
+    })?;
+    tracing::warn!(
+        epoch = safing.epoch,
+        task = %safing.task,
+        refused_time_tags = timers.len(),
+        "the rover is made safe: {}",
+        safing.reason
+    );
+    publish_rover(s, core);
+    beat_now(s);
+    Ok(safing)
+}
+
+/// Why a command taken before `safing` does not run.
+pub(crate) fn refusal(safing: &Safing) -> String {
+    format!(
+        "not run: the rover made itself safe (safing {}, on `{}`, at {} ns rover time: {}) after \
+         this command was given; nothing given before the station saw the safing runs after \
+         it. Send it again if it is still wanted",
+        safing.epoch, safing.task, safing.at_unix_ns, safing.reason
+    )
+}
+
+/// Whether a command given after the station had seen `seen` safings must be refused, and why.
+pub(crate) fn stale(core: &Core, seen: u64) -> Option<String> {
+    core.state
+        .last_safing
+        .as_ref()
+        .filter(|l| seen < l.epoch)
+        .map(refusal)
+}
+
+/// Adopts a safing a DNM made on its own since the last decision (it lost the authority, or
+/// the authority had lost the ground and could not say so). Returns whether it did.
+pub(crate) fn adopt_dnm_safing(s: &Shared, found: &[Option<DnmBrief>]) -> bool {
+    let Some((dnm, safed)) = found.iter().flatten().find_map(|b| {
+        b.safed
+            .as_ref()
+            .filter(|x| x.epoch.is_none())
+            .map(|x| (b.dnm.clone(), x.clone()))
+    }) else {
+        return false;
+    };
+    let Ok(mut core) = s.core.lock() else {
+        return false;
+    };
+    if safed.at_unix_ns <= core.state.changed_at_unix_ns {
+        // Made safe before what was decided since: that decision has it adopt, not this.
+        return false;
+    }
+    let reason = format!(
+        "DNM `{dnm}` made itself safe on `{}`: {}",
+        safed.task, safed.reason
+    );
+    match make_safe(s, &mut core, safed.task, "safed", reason) {
+        Ok(_) => true,
+        Err(e) => {
+            tracing::error!("adopting the safing of DNM `{dnm}`: {e}");
+            false
+        }
+    }
+}
+
+/// Wakes the beat thread: a beat goes out now.
+pub(crate) fn beat_now(s: &Shared) {
+    if let Ok(mut b) = s.beat.0.lock() {
+        *b = true;
+        s.beat.1.notify_all();
+    }
+}
+
+/// Publishes the beat every [`BEAT_EVERY`], and at once when woken.
+pub(crate) fn beat_loop(s: &Shared, publisher: &zenoh::pubsub::Publisher<'_>) {
+    while !s.stop.load(Ordering::Relaxed) {
+        let beat = {
+            let rover = s.rover.lock().map(|r| r.clone()).unwrap_or_default();
+            Beat {
+                authority: s.name.clone(),
+                at_unix_ns: now_unix_ns(),
+                revision: rover.revision,
+                task: rover.task.clone(),
+                ground_silent_ms: s
+                    .contact
+                    .lock()
+                    .map(|c| c.elapsed().as_millis() as u64)
+                    .unwrap_or(0),
+                safing: rover.last_safing.filter(|_| rover.safe),
+            }
+        };
+        if let Ok(bytes) = serde_json::to_vec(&beat)
+            && let Err(e) = publisher.put(bytes).wait()
+        {
+            tracing::debug!("beat: {e}");
+        }
+        let Ok(b) = s.beat.0.lock() else {
+            return;
+        };
+        if let Ok((mut b, _)) = s.beat.1.wait_timeout_while(b, BEAT_EVERY, |b| !*b) {
+            *b = false;
+        }
+    }
+}
+
+/// The beat's publisher: first on the link, never blocking (a lost beat is followed by the
+/// next).
+pub(crate) fn beat_publisher(
+    session: &zenoh::Session,
+    system: &str,
+) -> Result<zenoh::pubsub::Publisher<'static>, AuthorityError> {
+    session
+        .declare_publisher(keys::authority_beat(system))
+        .priority(Priority::InteractiveHigh)
+        .congestion_control(CongestionControl::Drop)
+        .express(true)
+        .wait()
+        .map_err(|e| AuthorityError::Zenoh(e.to_string()))
+}

@@ -1,0 +1,200 @@
+//! The DNM's lease on its authority: it hears the authority's beat
+//! ([`dnm_proto::station::Beat`]) a few times a second and makes itself safe when it must,
+//! whoever else is down.
+//!
+//! With `on_link_loss = { after, task }` in the netlist in force, a DNM that follows an
+//! authority puts its own modules on `task`:
+//! - when the beat carries the authority's safing (the authority lost every ground station);
+//! - when it has not heard a beat for `after` (the authority's computer, or the network to it,
+//!   is down): through the authority it has lost the ground too;
+//! - when the beat says no ground station was heard for `after` + [`GRACE`] and the authority
+//!   has still not made the rover safe (its worker is held up, by a transaction waiting for a
+//!   DNM that died, say).
+//!
+//! Every DNM that is cut off converges on the same task, so none needs another to get there.
+//! The beat also carries the authority's wall clock: each DNM measures its own clock's offset,
+//! reports it, and refuses transactions while it is beyond [`MAX_CLOCK_OFFSET`].
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use dnm_core::{Command, Commander, Reply, SafeOrder, Snapshot};
+use dnm_proto::LeaseReport;
+use dnm_proto::station::Beat;
+
+/// Beyond the loss-of-signal time, how long DNMs give the authority to make the rover safe
+/// itself before each does it on its own.
+pub const GRACE: Duration = Duration::from_secs(1);
+
+/// The largest offset between a DNM's wall clock and its authority's at which it takes part in
+/// transactions: the DNMs put a decision in force at one wall-clock instant, so an offset is a
+/// switch that much early or late.
+pub const MAX_CLOCK_OFFSET: Duration = Duration::from_millis(250);
+
+/// How often the lease is checked.
+const CHECK_EVERY: Duration = Duration::from_millis(100);
+
+/// An order not yet seen in force is sent again after this long.
+const RESEND_AFTER: Duration = Duration::from_secs(1);
+
+/// Clock offsets kept (the largest is the best estimate: a beat's delay only lowers it).
+const OFFSETS: usize = 8;
+
+fn now_unix_ns() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// What the lease knows.
+#[derive(Debug, Default)]
+pub(crate) struct Lease {
+    /// `on_link_loss` of the netlist in force: (after, task).
+    rule: Option<(Duration, String)>,
+    /// When a netlist was first put in force here (the lease runs from then until a beat).
+    since: Option<Instant>,
+    last: Option<(Instant, Beat)>,
+    offsets: VecDeque<f64>,
+    /// The last order sent and when.
+    sent: Option<(SafeOrder, Instant)>,
+}
+
+impl Lease {
+    /// The netlist in force changed.
+    pub(crate) fn committed(&mut self, rule: Option<(Duration, String)>) {
+        self.rule = rule;
+        self.since.get_or_insert_with(Instant::now);
+    }
+
+    /// A beat arrived from `authority` (others are ignored).
+    pub(crate) fn heard(&mut self, authority: &str, beat: Beat) {
+        if beat.authority != authority {
+            return;
+        }
+        let offset_ms = (beat.at_unix_ns as f64 - now_unix_ns() as f64) / 1e6;
+        self.offsets.push_back(offset_ms);
+        if self.offsets.len() > OFFSETS {
+            self.offsets.pop_front();
+        }
+        self.last = Some((Instant::now(), beat));
+    }
+
+    /// The authority's clock minus this DNM's, ms.
+    pub(crate) fn clock_offset_ms(&self) -> Option<f64> {
+        self.offsets.iter().copied().reduce(f64::max)
+    }
+
+    pub(crate) fn report(&self, authority: &str) -> LeaseReport {
+        LeaseReport {
+            authority: authority.to_string(),
+            heard_ms: self
+                .last
+                .as_ref()
+                .map(|(t, _)| t.elapsed().as_millis() as u64),
+            clock_offset_ms: self.clock_offset_ms(),
+            max_clock_offset_ms: MAX_CLOCK_OFFSET.as_millis() as u64,
+        }
+    }
+
+    /// Why a transaction must be refused here, if it must: this DNM's clock is too far from
+    /// the authority's.
+    pub(crate) fn clock_refusal(&self, dnm: &str) -> Option<String> {
+        let offset = self.clock_offset_ms()?;
+        if offset.abs() <= MAX_CLOCK_OFFSET.as_secs_f64() * 1e3 {
+            return None;
+        }
+        Some(format!(
+            "DNM `{dnm}`'s clock is {:.3} s {} the authority's (at most {} ms is taken): it would \
+             switch at the wrong moment; synchronise its clock (NTP/PTP) and send the command again",
+            offset.abs() / 1e3,
+            if offset > 0.0 { "behind" } else { "ahead of" },
+            MAX_CLOCK_OFFSET.as_millis()
+        ))
+    }
+
+    /// What the DNM must do now, if anything: the order to put in force.
+    fn due(&self, authority: &str, snapshot: Option<&Snapshot>) -> Option<SafeOrder> {
+        let (after, task) = self.rule.as_ref()?;
+        let report = &snapshot?.report;
+        if report.revision == 0 {
+            return None;
+        }
+        let safed = report.safed.as_ref();
+        let on = |task: &str| report.active_task.as_deref() == Some(task);
+        match &self.last {
+            Some((at, beat)) if at.elapsed() < *after => {
+                if let Some(s) = &beat.safing {
+                    let followed = safed.is_some_and(|x| x.epoch == Some(s.epoch)) && on(&s.task);
+                    return (!followed).then(|| SafeOrder {
+                        task: s.task.clone(),
+                        epoch: Some(s.epoch),
+                        reason: s.reason.clone(),
+                    });
+                }
+                let silent = Duration::from_millis(beat.ground_silent_ms);
+                (silent >= *after + GRACE && safed.is_none()).then(|| SafeOrder {
+                    task: task.clone(),
+                    epoch: None,
+                    reason: format!(
+                        "the authority `{authority}` has heard no ground station for {:.1} s and \
+                         has not made the rover safe",
+                        silent.as_secs_f64()
+                    ),
+                })
+            }
+            last => {
+                let since = last.as_ref().map(|(t, _)| *t).or(self.since)?;
+                let silent = since.elapsed();
+                (silent >= *after && safed.is_none()).then(|| SafeOrder {
+                    task: task.clone(),
+                    epoch: None,
+                    reason: format!(
+                        "no word from the authority `{authority}` for {:.1} s",
+                        silent.as_secs_f64()
+                    ),
+                })
+            }
+        }
+    }
+}
+
+/// Checks the lease every [`CHECK_EVERY`] until `stop`, and hands the DNM what is due.
+pub(crate) fn lease_loop(
+    dnm: &str,
+    authority: &str,
+    lease: &Mutex<Lease>,
+    snapshot: &dyn Fn() -> Option<Arc<Snapshot>>,
+    commander: &Commander,
+    stop: &std::sync::atomic::AtomicBool,
+) {
+    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+        std::thread::sleep(CHECK_EVERY);
+        let snap = snapshot();
+        let Ok(mut l) = lease.lock() else {
+            return;
+        };
+        let Some(order) = l.due(authority, snap.as_deref()) else {
+            l.sent = None;
+            continue;
+        };
+        if l.sent
+            .as_ref()
+            .is_some_and(|(o, t)| *o == order && t.elapsed() < RESEND_AFTER)
+        {
+            continue;
+        }
+        l.sent = Some((order.clone(), Instant::now()));
+        drop(l);
+        tracing::warn!(dnm, task = %order.task, epoch = ?order.epoch, "making the DNM safe: {}", order.reason);
+        let name = dnm.to_string();
+        let reply = Reply::new(move |r: Result<(), String>| {
+            if let Err(e) = r {
+                tracing::error!(dnm = %name, "could not make the DNM safe: {e}");
+            }
+        });
+        if let Err(e) = commander.send(Command::Safe { order, reply }) {
+            tracing::error!(dnm, "could not make the DNM safe: {e}");
+        }
+    }
+}
