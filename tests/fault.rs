@@ -23,6 +23,7 @@ fn switch(task: &str) -> Order {
     Order::Switch {
         task: task.into(),
         at_unix_ns: None,
+        late_by_ms: None,
     }
 }
 
@@ -176,6 +177,7 @@ fn safing_holds_nothing_taken_before_it_runs_after_it() {
     let tag = api.submit(&Order::Switch {
         task: "b".into(),
         at_unix_ns: Some(dnm_ground::now_unix_ns() + 8_000_000_000),
+        late_by_ms: None,
     });
     eventually("the tag scheduled", || {
         (api.entry(tag.seq, 0).state == CommandState::Scheduled).then_some(())
@@ -268,6 +270,7 @@ fn a_station_goes_on_after_the_authority_lost_its_store() {
     let tag = api.submit(&Order::Switch {
         task: "b".into(),
         at_unix_ns: Some(dnm_ground::now_unix_ns() + 600_000_000_000),
+        late_by_ms: None,
     });
     eventually("the tag scheduled", || {
         (api.entry(tag.seq, 0).state == CommandState::Scheduled).then_some(())

@@ -46,6 +46,7 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
                 task: "b".into(),
                 // Far enough ahead that its cancel arrives first, whatever the radio does.
                 at_unix_ns: Some(dnm_ground::now_unix_ns() + 300_000_000_000),
+                late_by_ms: None,
             },
             60 => Order::Cancel {
                 seq: cancelled_target.unwrap(),
@@ -67,10 +68,12 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
             _ if i % 10 == 5 => Order::Switch {
                 task: TASKS[(i as usize / 10) % 3].into(),
                 at_unix_ns: Some(dnm_ground::now_unix_ns() + 2_000_000_000 + i * 30_000_000),
+                late_by_ms: None,
             },
             _ => Order::Switch {
                 task: TASKS[i as usize % 3].into(),
                 at_unix_ns: None,
+                late_by_ms: None,
             },
         };
         let e = api.submit(&order);
@@ -241,6 +244,7 @@ fn the_rover_goes_safe_when_the_ground_is_lost_and_the_station_shows_it() {
     let e = api.submit(&Order::Switch {
         task: "b".into(),
         at_unix_ns: None,
+        late_by_ms: None,
     });
     assert_eq!(api.entry(e.seq, 60).state, CommandState::Applied);
     wait_in_step(&session, &rig.system, &ROVER, "b");
@@ -302,6 +306,7 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
             Order::Switch {
                 task: "nope".into(),
                 at_unix_ns: None,
+                late_by_ms: None,
             },
             "unknown task `nope`; the tasks are a, b, c",
         ),
@@ -384,6 +389,7 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
             order: Order::Switch {
                 task: "b".into(),
                 at_unix_ns: None,
+                late_by_ms: None,
             },
             safings_seen: 0,
         }],
@@ -401,6 +407,7 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
     let e = api.submit(&Order::Switch {
         task: "b".into(),
         at_unix_ns: None,
+        late_by_ms: None,
     });
     assert_eq!(api.entry(e.seq, 120).state, CommandState::Applied);
     let c = api.submit(&Order::Cancel { seq: e.seq });

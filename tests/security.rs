@@ -499,6 +499,7 @@ fn through_the_authority_only_the_operators_station_commands() {
     let e = op.submit(&Order::Switch {
         task: "idle".into(),
         at_unix_ns: None,
+        late_by_ms: None,
     });
     let applied = op.entry(e.seq, 60);
     assert_eq!(applied.state, CommandState::Applied, "{applied:?}");
@@ -513,10 +514,12 @@ fn through_the_authority_only_the_operators_station_commands() {
     let o = obs.submit(&Order::Switch {
         task: "feed".into(),
         at_unix_ns: None,
+        late_by_ms: None,
     });
     let e = op.submit(&Order::Switch {
         task: "idle".into(),
         at_unix_ns: None,
+        late_by_ms: None,
     });
     assert_eq!(op.entry(e.seq, 60).state, CommandState::Applied);
     eventually("the router records the observer's uplink refused", || {

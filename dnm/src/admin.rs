@@ -335,9 +335,15 @@ fn start(
     {
         None => None,
         Some(_) => {
-            let db = options
-                .state_dir
-                .join(format!("{}-authority.redb", netlist.system));
+            let Some(dir) = options.state_dir.as_ref() else {
+                dnm_core::request_stop();
+                for h in handles {
+                    drop(h.commander);
+                    let _ = h.thread.join();
+                }
+                anyhow::bail!("the authority did not start: {}", crate::NO_STATE_DIR);
+            };
+            let db = dir.join(format!("{}-authority.redb", netlist.system));
             let parse: dnm_authority::ParseNetlist = Arc::new(crate::parse_remote_netlist_text);
             let a = dnm_authority::Authority::start(
                 session.clone(),

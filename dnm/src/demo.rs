@@ -351,6 +351,7 @@ impl Mission<'_> {
         let (revision, at) = self.command(dnm_proto::station::Order::Switch {
             task: task.into(),
             at_unix_ns: None,
+            late_by_ms: None,
         })?;
         // Each DNM of the rover recorded its switch; those across the radio follow later.
         let status = self.probe.request(&Request::Status)?;
@@ -451,7 +452,7 @@ pub fn run(zenoh: &dnm::ZenohOptions, args: &DemoArgs) -> anyhow::Result<ExitCod
     // live in a folder of their own.
     let state = std::env::temp_dir().join(format!("dnm-demo-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&state);
-    options.state_dir = state.clone();
+    options.state_dir = Some(state.clone());
     // With Rerun, the monitor (a process of its own, as on a real ground station) joins the
     // demo's Zenoh network on a known loopback port.
     let mut zenoh = zenoh.clone();

@@ -44,6 +44,10 @@ pub enum GroundCmd {
         /// `+30s` from now, or seconds since the Unix epoch (rover time).
         #[arg(long)]
         at: Option<String>,
+        /// With `--at`: how late after its time the switch may still run (e.g. `5s`, `2m`;
+        /// default 60 s); later, the rover refuses it.
+        #[arg(long, requires = "at")]
+        late_by: Option<String>,
         #[command(flatten)]
         common: Common,
     },
@@ -110,11 +114,16 @@ pub fn parse_at(at: &str, rover_clock_offset_ms: f64) -> anyhow::Result<u64> {
         let ms = dnm_netlist::parse_duration_ms(rel)
             .with_context(|| format!("`{at}`: write e.g. `+30s` or `+2m`"))?;
         let now = dnm_ground::now_unix_ns() as i128 + (rover_clock_offset_ms * 1e6) as i128;
-        return Ok((now + i128::from(ms) * 1_000_000).max(0) as u64);
+        return u64::try_from((now + i128::from(ms) * 1_000_000).max(0))
+            .ok()
+            .with_context(|| format!("`{at}` is beyond any time the rover can keep"));
     }
     let s: f64 = at
         .parse()
         .with_context(|| format!("`{at}`: write `+30s` or seconds since the Unix epoch"))?;
+    if !(0.0..1.8e10).contains(&s) {
+        bail!("`{at}`: seconds since the Unix epoch, before the year 2540");
+    }
     Ok((s * 1e9) as u64)
 }
 
@@ -194,7 +203,9 @@ fn submit(order: &Order, common: &Common) -> anyhow::Result<ExitCode> {
 fn describe(e: &Entry) -> String {
     use dnm_proto::station::Fate;
     let what = match &e.order {
-        Order::Switch { task, at_unix_ns } => match at_unix_ns {
+        Order::Switch {
+            task, at_unix_ns, ..
+        } => match at_unix_ns {
             Some(at) => format!("switch to `{task}` at {:.3}", *at as f64 / 1e9),
             None => format!("switch to `{task}`"),
         },
@@ -269,9 +280,12 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             token,
             monitor,
         } => {
-            let db = db.unwrap_or_else(|| {
-                dnm::default_state_dir().join(format!("{system}-{station}.redb"))
-            });
+            let db = match db {
+                Some(db) => db,
+                None => dnm::default_state_dir()
+                    .context(dnm::NO_STATE_DIR)?
+                    .join(format!("{system}-{station}.redb")),
+            };
             // The ground router may come up after the station: wait for it.
             let session = loop {
                 match z.open() {
@@ -315,7 +329,19 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             drop(api);
             Ok(ExitCode::SUCCESS)
         }
-        GroundCmd::Switch { task, at, common } => {
+        GroundCmd::Switch {
+            task,
+            at,
+            late_by,
+            common,
+        } => {
+            let late_by_ms = late_by
+                .as_deref()
+                .map(|l| {
+                    dnm_netlist::parse_duration_ms(l)
+                        .with_context(|| format!("--late-by `{l}`: write e.g. `5s` or `2m`"))
+                })
+                .transpose()?;
             let offset = match &at {
                 Some(a) if a.starts_with('+') => {
                     let link: LinkStatus =
@@ -325,7 +351,14 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
                 _ => 0.0,
             };
             let at_unix_ns = at.as_deref().map(|a| parse_at(a, offset)).transpose()?;
-            submit(&Order::Switch { task, at_unix_ns }, &common)
+            submit(
+                &Order::Switch {
+                    task,
+                    at_unix_ns,
+                    late_by_ms,
+                },
+                &common,
+            )
         }
         GroundCmd::Apply { netlist, common } => {
             let text = std::fs::read_to_string(&netlist)

@@ -36,24 +36,28 @@ pub struct HostOptions {
     pub dnm: DnmOptions,
     /// Record every output port to MCAP; `None`: no recording.
     pub record: Option<record::RecordOptions>,
-    /// Where durable state lives (the authority's database).
-    pub state_dir: std::path::PathBuf,
+    /// Where durable state lives (the authority's database); `None`: nowhere lasting is
+    /// known, and a host that needs one refuses to start.
+    pub state_dir: Option<std::path::PathBuf>,
 }
 
 /// Where durable state goes by default: `$DNM_STATE_DIR`, else `$XDG_STATE_HOME/dnm`, else
-/// `~/.local/state/dnm`, else a folder under the temporary directory.
-pub fn default_state_dir() -> std::path::PathBuf {
+/// `~/.local/state/dnm`. Never the temporary directory: an authority whose store is lost at a
+/// reboot forgets which commands it ran.
+pub fn default_state_dir() -> Option<std::path::PathBuf> {
     if let Some(d) = std::env::var_os("DNM_STATE_DIR") {
-        return d.into();
+        return Some(d.into());
     }
     if let Some(d) = std::env::var_os("XDG_STATE_HOME") {
-        return std::path::PathBuf::from(d).join("dnm");
+        return Some(std::path::PathBuf::from(d).join("dnm"));
     }
-    if let Some(h) = std::env::var_os("HOME") {
-        return std::path::PathBuf::from(h).join(".local/state/dnm");
-    }
-    std::env::temp_dir().join("dnm-state")
+    std::env::var_os("HOME").map(|h| std::path::PathBuf::from(h).join(".local/state/dnm"))
 }
+
+/// The message for a durable store with no folder to live in.
+pub const NO_STATE_DIR: &str = "no folder for durable state: set --state-dir, $DNM_STATE_DIR, \
+     $XDG_STATE_HOME or $HOME (never the temporary directory: a store lost at a reboot forgets \
+     which commands ran)";
 
 /// Whether a system is commanded through its authority: it names one, or it has DNMs across
 /// a radio link. Its DNMs then start empty and take what the authority decided.

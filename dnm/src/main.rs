@@ -379,7 +379,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             let mut options = HostOptions::standard().context("locating the module host")?;
             options.record = record.options().map(|o| o.into_session(&n.system));
             if let Some(d) = state_dir {
-                options.state_dir = d;
+                options.state_dir = Some(d);
             }
             if let Some(r) = &options.record {
                 println!(

@@ -15,7 +15,7 @@
 //! use dnm_ground::{Station, StationOptions};
 //! use dnm_proto::station::Order;
 //! let station = Station::start(session, StationOptions::new("beetle", "ground-1", "ground-1.redb"))?;
-//! let entry = station.submit(Order::Switch { task: "auto".into(), at_unix_ns: None })?;
+//! let entry = station.submit(Order::Switch { task: "auto".into(), at_unix_ns: None, late_by_ms: None })?;
 //! let done = station.wait(entry.seq, std::time::Duration::from_secs(60));
 //! # Ok(()) }
 //! ```

@@ -95,6 +95,7 @@ fn command_round_trips(api: &Api) -> Vec<f64> {
         let e = api.submit(&Order::Switch {
             task: task.into(),
             at_unix_ns: None,
+            late_by_ms: None,
         });
         let done = api.entry(e.seq, 120);
         assert!(matches!(done.fate, Some(Fate::Applied { .. })), "{done:?}");

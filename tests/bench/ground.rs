@@ -67,6 +67,7 @@ fn run(name: &'static str, radio: &[&str], commands: usize) -> Run {
         let e = api.submit(&Order::Switch {
             task: task.into(),
             at_unix_ns: None,
+            late_by_ms: None,
         });
         let done = api.entry(e.seq, 120);
         let Some(Fate::Applied { revision, .. }) = done.fate else {

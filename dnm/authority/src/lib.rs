@@ -38,6 +38,7 @@ mod edit;
 mod safing;
 mod store;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, mpsc};
@@ -45,7 +46,9 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use dnm_netlist::Netlist;
-use dnm_proto::station::{Downlink, Fate, Order, RoverEvent, RoverState, Sent, Uplink};
+use dnm_proto::station::{
+    DEFAULT_LATE_BY_MS, Downlink, Fate, Order, RoverEvent, RoverState, Sent, Uplink,
+};
 use dnm_proto::{DnmBrief, RemoteCommand, Request, Response, keys};
 use zenoh::Wait;
 use zenoh::qos::{CongestionControl, Priority};
@@ -97,6 +100,10 @@ const MAX_LEAD: Duration = Duration::from_secs(1);
 
 /// Uplinks waiting for the intake thread at most; more are dropped (the station sends again).
 const UPLINK_QUEUE: usize = 64;
+/// Commands in one uplink, at most (a station sends 32).
+const MAX_UPLINK_COMMANDS: usize = 64;
+/// Time-tagged switches waiting, at most; more are refused.
+const MAX_TIMERS: usize = 256;
 /// Events and time-tagged commands in an answer to a station, at most.
 const STATE_EVENTS: usize = 16;
 
@@ -163,6 +170,8 @@ pub(crate) struct Shared {
     wake: (Mutex<bool>, Condvar),
     /// Wakes the beat thread (a safing is announced at once).
     beat: (Mutex<bool>, Condvar),
+    /// Time tags' instants on the monotonic clock.
+    tag_clock: Mutex<BTreeMap<(String, u64), Instant>>,
     stop: AtomicBool,
 }
 
@@ -291,6 +300,7 @@ impl Authority {
             heard: AtomicBool::new(false),
             wake: (Mutex::new(false), Condvar::new()),
             beat: (Mutex::new(false), Condvar::new()),
+            tag_clock: Mutex::new(BTreeMap::new()),
             stop: AtomicBool::new(false),
         });
         if let Ok(core) = shared.core.lock() {
@@ -404,6 +414,23 @@ fn take_uplink(s: &Shared, q: &Query) -> Downlink {
             "station name `{}` is not usable: 1 to 64 characters, no `/`, `*`, `$`, `?`, `#`",
             up.station
         ));
+    }
+    if up.commands.len() > MAX_UPLINK_COMMANDS {
+        return refuse(format!(
+            "{} commands in one uplink: send at most {MAX_UPLINK_COMMANDS} at a time",
+            up.commands.len()
+        ));
+    }
+    match s.store.admits(&up.station) {
+        Ok(true) => {}
+        Ok(false) => {
+            return refuse(format!(
+                "the rover keeps a record of at most {} stations; `{}` is not one of them",
+                store::MAX_STATIONS,
+                up.station
+            ));
+        }
+        Err(e) => return refuse(format!("the rover could not read its store: {e}")),
     }
     if let Ok(mut c) = s.contact.lock() {
         *c = Instant::now();
@@ -532,14 +559,22 @@ fn next_job(s: &Shared, core: &Core) -> Result<Option<Job>, AuthorityError> {
     let margin = tag_margin(s);
     let now = now_unix_ns();
     let cancels = s.store.pending_cancels()?;
-    let timer = s
-        .store
-        .timers()?
+    let timers = s.store.timers()?;
+    let due = tag_clock(s, &timers);
+    let timer = timers
         .into_iter()
         // A cancel already taken for it runs first (the station's earlier commands with it).
         .filter(|t| !cancels.contains(&(t.station.clone(), t.seq)))
         .min_by_key(|t| t.at_unix_ns);
-    if let Some(t) = timer.as_ref().filter(|t| t.at_unix_ns <= now + margin) {
+    // Due by the wall clock and by the monotonic one: a forward step of the wall clock does
+    // not fire a tag early.
+    let is_due = |t: &Timer, ahead: u64| {
+        t.at_unix_ns <= now + ahead
+            && due.get(&(t.station.clone(), t.seq)).is_none_or(|d| {
+                d.saturating_duration_since(Instant::now()).as_nanos() as u64 <= ahead
+            })
+    };
+    if let Some(t) = timer.as_ref().filter(|t| is_due(t, margin)) {
         return Ok(Some(Job::Timer(t.clone())));
     }
     let Some((station, sent)) = s.store.next_command()? else {
@@ -555,11 +590,28 @@ fn next_job(s: &Shared, core: &Core) -> Result<Option<Job>, AuthorityError> {
         .max(MIN_BUSY)
         .as_nanos() as u64;
     if !matches!(sent.order, Order::Cancel { .. })
-        && let Some(t) = timer.filter(|t| t.at_unix_ns <= now + margin + busy)
+        && let Some(t) = timer.filter(|t| is_due(t, margin + busy))
     {
         return Ok(Some(Job::Timer(t)));
     }
     Ok(Some(Job::Command(station, sent)))
+}
+
+/// Each time tag's instant on the monotonic clock, fixed when the authority first sees the tag
+/// (from the wall clock then): a later step of the wall clock moves the wall-clock instant, not
+/// this one, and a tag runs only once both have come. Tags no longer waiting are forgotten.
+fn tag_clock(s: &Shared, timers: &[Timer]) -> BTreeMap<(String, u64), Instant> {
+    let Ok(mut clock) = s.tag_clock.lock() else {
+        return BTreeMap::new();
+    };
+    let now = now_unix_ns();
+    clock.retain(|k, _| timers.iter().any(|t| (&t.station, t.seq) == (&k.0, k.1)));
+    for t in timers {
+        clock.entry((t.station.clone(), t.seq)).or_insert_with(|| {
+            Instant::now() + Duration::from_nanos(t.at_unix_ns.saturating_sub(now))
+        });
+    }
+    clock.clone()
 }
 
 /// Longest wait for the rover's DNMs to be in step before a transaction is tried anyway (and
@@ -650,6 +702,15 @@ fn work_once(s: &Shared, gate: &mut Option<(String, Instant)>) -> Result<bool, A
         }
         Job::Timer(t) if safing::stale(core, t.safings_seen).is_some() => {
             let reason = safing::stale(core, t.safings_seen).unwrap_or_default();
+            tracing::warn!(station = %t.station, seq = t.seq, "time-tagged switch refused: {reason}");
+            s.store.finish(Finish {
+                fates: vec![(&t.station, t.seq, &t.id, Fate::Refused { reason })],
+                timer_remove: Some((&t.station, t.seq)),
+                ..Finish::default()
+            })?;
+        }
+        Job::Timer(t) if too_late(t.at_unix_ns, t.late_by_ms).is_some() => {
+            let reason = too_late(t.at_unix_ns, t.late_by_ms).unwrap_or_default();
             tracing::warn!(station = %t.station, seq = t.seq, "time-tagged switch refused: {reason}");
             s.store.finish(Finish {
                 fates: vec![(&t.station, t.seq, &t.id, Fate::Refused { reason })],
@@ -752,7 +813,17 @@ fn run_command(
         return refuse(s, station, &sent, reason);
     }
     match &sent.order {
-        Order::Switch { task, at_unix_ns } => {
+        Order::Switch {
+            task,
+            at_unix_ns,
+            late_by_ms,
+        } => {
+            let late_by = late_by_ms.unwrap_or(DEFAULT_LATE_BY_MS);
+            if let Some(at) = *at_unix_ns
+                && let Some(why) = too_late(at, late_by)
+            {
+                return refuse(s, station, &sent, why);
+            }
             if !core.netlist.tasks.contains_key(task) {
                 let known: Vec<&str> = core.netlist.tasks.keys().map(String::as_str).collect();
                 return refuse(
@@ -763,6 +834,16 @@ fn run_command(
                 );
             }
             let lead = tag_margin(s);
+            if at_unix_ns.is_some_and(|at| at > now_unix_ns() + lead)
+                && s.store.timers()?.len() >= MAX_TIMERS
+            {
+                return refuse(
+                    s,
+                    station,
+                    &sent,
+                    format!("{MAX_TIMERS} time-tagged switches wait already: cancel some first"),
+                );
+            }
             if let Some(at) = at_unix_ns.filter(|at| *at > now_unix_ns() + lead) {
                 tracing::info!(
                     station,
@@ -786,6 +867,7 @@ fn run_command(
                         task: task.clone(),
                         at_unix_ns: at,
                         safings_seen: sent.safings_seen,
+                        late_by_ms: late_by,
                     }),
                     ..Finish::default()
                 });
@@ -861,6 +943,21 @@ fn run_command(
             refuse(s, station, &sent, format!("nothing to cancel: {why}"))
         }
     }
+}
+
+/// Why a time-tagged switch for `at` may no longer run, if it may not: it is more than
+/// `late_by_ms` past its time.
+fn too_late(at: u64, late_by_ms: u64) -> Option<String> {
+    let late = now_unix_ns().saturating_sub(at);
+    (late > late_by_ms.saturating_mul(1_000_000)).then(|| {
+        format!(
+            "not run: its time passed {:.1} s ago and it may run at most {:.1} s late (the \
+             rover was out of reach or its authority down); send it again with a new time, or \
+             a longer validity (`--late-by`)",
+            late as f64 / 1e9,
+            late_by_ms as f64 / 1e3
+        )
+    })
 }
 
 fn describe(f: &Fate) -> String {

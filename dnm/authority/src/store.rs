@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
+use redb::{Database, ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition};
 use serde::{Deserialize, Serialize};
 
 use dnm_proto::station::{Fate, Outcome, RoverEvent, Safing, Sent};
@@ -32,6 +32,15 @@ const MAX_ASKED: usize = 256;
 
 /// Decisions kept for DNMs that missed them.
 const DECISIONS_KEPT: usize = 64;
+/// Decisions kept in the decisions table (by transaction id); older ones are pruned.
+const DECISIONS_STORED: u64 = 1024;
+/// Fates kept per station: the fate of command `n` is pruned when `n + FATES_KEPT` is stored
+/// (a station has long known it).
+const FATES_KEPT: u64 = 4096;
+/// Stations the rover keeps a record of; a new one beyond is refused.
+pub(crate) const MAX_STATIONS: usize = 64;
+/// Bytes of one command (a netlist's text, mostly); a larger one is refused when taken.
+pub(crate) const MAX_COMMAND_BYTES: usize = 1 << 20;
 /// Events kept.
 const EVENTS_KEPT: usize = 64;
 
@@ -123,6 +132,13 @@ pub(crate) struct Timer {
     /// The station's [`Sent::safings_seen`].
     #[serde(default)]
     pub(crate) safings_seen: u64,
+    /// How late after `at_unix_ns` it may still run, ms.
+    #[serde(default = "default_late_by")]
+    pub(crate) late_by_ms: u64,
+}
+
+fn default_late_by() -> u64 {
+    dnm_proto::station::DEFAULT_LATE_BY_MS
 }
 
 /// What finishing a command changes, written in one transaction.
@@ -215,6 +231,7 @@ impl Store {
         };
         let mut gap = None;
         let mut taken_by_other = Vec::new();
+        let mut too_big = Vec::new();
         let tx = self.db.begin_write().map_err(db)?;
         {
             let mut inbox = tx.open_table(INBOX).map_err(db)?;
@@ -261,11 +278,20 @@ impl Store {
                 }
                 let bytes = serde_json::to_vec(c).map_err(db)?;
                 let k = key(station, c.seq);
+                received = c.seq;
+                if bytes.len() > MAX_COMMAND_BYTES {
+                    let reason = format!(
+                        "command of {} KiB: the rover takes commands of at most {} KiB",
+                        bytes.len() / 1024,
+                        MAX_COMMAND_BYTES / 1024
+                    );
+                    too_big.push((c.seq, c.id.clone(), reason));
+                    continue;
+                }
                 inbox.insert(k.as_str(), bytes.as_slice()).map_err(db)?;
                 arrival += 1;
                 arrivals.insert(arrival, k.as_str()).map_err(db)?;
                 arrival_of.insert(k.as_str(), arrival).map_err(db)?;
-                received = c.seq;
             }
             let mut meta = tx.open_table(META).map_err(db)?;
             let bytes = serde_json::to_vec(&received).map_err(db)?;
@@ -273,6 +299,19 @@ impl Store {
                 .map_err(db)?;
         }
         tx.commit().map_err(db)?;
+        for (seq, id, reason) in &too_big {
+            self.finish(Finish {
+                fates: vec![(
+                    station,
+                    *seq,
+                    id,
+                    Fate::Refused {
+                        reason: reason.clone(),
+                    },
+                )],
+                ..Finish::default()
+            })?;
+        }
         // The fates of what was sent and of what the station waits for, then news from
         // `pending_from` on for a station that does not say what it waits for.
         let mut asked: std::collections::BTreeSet<u64> = commands
@@ -334,6 +373,22 @@ impl Store {
             }
         }
         Ok(out)
+    }
+
+    /// Whether the rover keeps a record of `station`, or has room for one more.
+    pub(crate) fn admits(&self, station: &str) -> Result<bool, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let meta = rx.open_table(META).map_err(db)?;
+        let recv_key = format!("recv\0{station}");
+        if meta.get(recv_key.as_str()).map_err(db)?.is_some() {
+            return Ok(true);
+        }
+        let known = meta
+            .range("recv\0".."recv\u{1}")
+            .map_err(db)?
+            .take(MAX_STATIONS)
+            .count();
+        Ok(known < MAX_STATIONS)
     }
 
     /// The fate of one command, if it has one.
@@ -443,6 +498,9 @@ impl Store {
                 fates
                     .insert(key(station, *seq).as_str(), bytes.as_slice())
                     .map_err(db)?;
+                if let Some(old) = seq.checked_sub(FATES_KEPT) {
+                    fates.remove(key(station, old).as_str()).map_err(db)?;
+                }
             }
             let mut inbox = tx.open_table(INBOX).map_err(db)?;
             if let Some((station, seq)) = f.done {
@@ -471,6 +529,9 @@ impl Store {
                 let mut t = tx.open_table(DECISIONS).map_err(db)?;
                 let bytes = serde_json::to_vec(d).map_err(db)?;
                 t.insert(d.txn, bytes.as_slice()).map_err(db)?;
+                if ReadableTableMetadata::len(&t).map_err(db)? > DECISIONS_STORED {
+                    t.pop_first().map_err(db)?;
+                }
             }
             if let Some(state) = f.state {
                 let mut meta = tx.open_table(META).map_err(db)?;

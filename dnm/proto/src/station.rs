@@ -17,6 +17,10 @@ pub enum Order {
         task: String,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         at_unix_ns: Option<u64>,
+        /// With `at_unix_ns`: how late after its time the switch may still run, ms (default
+        /// [`DEFAULT_LATE_BY_MS`]); later, it is refused with the reason, never run.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        late_by_ms: Option<u64>,
     },
     /// Apply a netlist; `file` names it in errors.
     Apply { file: String, text: String },
@@ -25,6 +29,11 @@ pub enum Order {
     /// Cancel this station's time-tagged command `seq` before it runs.
     Cancel { seq: u64 },
 }
+
+/// How late after its time a time-tagged switch may still run unless it says otherwise: a
+/// switch meant for a moment is not run minutes after it (the authority was down, the command
+/// crossed a long outage).
+pub const DEFAULT_LATE_BY_MS: u64 = 60_000;
 
 /// One module changed in the netlist in force.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
