@@ -354,3 +354,59 @@ fn two_stations_commands_run_in_the_order_they_arrived() {
     by_time.sort();
     assert_eq!(by_time, ran, "run in the order they arrived");
 }
+
+/// libfaketime (Debian's `faketime`), which `.ci/run` installs: it sets a process's wall clock
+/// apart from the machine's.
+const FAKETIME: &str = "/usr/lib/x86_64-linux-gnu/faketime/libfaketime.so.1";
+
+#[test]
+fn a_dnm_whose_clock_is_two_minutes_off_refuses_transactions_by_name() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    assert!(
+        std::path::Path::new(FAKETIME).exists(),
+        "{FAKETIME} missing: apt-get install faketime (.ci/run does)"
+    );
+    let rig = Rig::new("fclock", "");
+    let _routers = rig.routers();
+    let _radio = rig.linksim(&["--delay", "20ms"]);
+    let (_station, api) = rig.station();
+    let _rover = rig.up(&["rover", "vision"], false);
+    // `drive`'s computer has a wall clock two minutes behind (its monotonic clock is right).
+    let drive = rig.up_env(
+        &["drive"],
+        false,
+        &[
+            ("LD_PRELOAD", FAKETIME),
+            ("FAKETIME", "-120s"),
+            ("FAKETIME_DONT_FAKE_MONOTONIC", "1"),
+            ("FAKETIME_DONT_RESET", "1"),
+        ],
+    );
+    let session = zenoh_client(rig.rover_port);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    let offset = eventually("drive measures its clock", || {
+        report(&session, &rig.system, "drive")?
+            .lease?
+            .clock_offset_ms
+    });
+    assert!((offset - 120_000.0).abs() < 5_000.0, "offset {offset} ms");
+
+    // Refused by name, with the offset; nothing held anywhere afterwards.
+    let e = api.submit(&switch("b"));
+    let e = api.entry(e.seq, 120);
+    let reason = refused_reason(&e);
+    assert!(reason.contains("DNM `drive`'s clock is 1"), "{reason}");
+    assert!(reason.contains("behind"), "{reason}");
+    for d in ROVER {
+        let r = report(&session, &rig.system, d).unwrap();
+        assert_eq!(r.holding, None, "{d} holds a transaction");
+        assert_eq!(r.active_task.as_deref(), Some("a"));
+    }
+    // Its clock set right (the computer restarted with NTP), later transactions go through.
+    drop(drive);
+    let _drive = rig.up(&["drive"], false);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    let e = api.submit(&switch("b"));
+    assert_eq!(api.entry(e.seq, 120).state, CommandState::Applied);
+    wait_in_step(&session, &rig.system, &ROVER, "b");
+}

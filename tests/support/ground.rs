@@ -25,6 +25,11 @@ pub struct Proc {
 impl Proc {
     /// `dnm ARGS`, output to `dir/NAME.log`.
     pub fn dnm(dir: &Path, name: &str, args: &[String]) -> Self {
+        Self::dnm_env(dir, name, args, &[])
+    }
+
+    /// [`Proc::dnm`] with more environment variables.
+    pub fn dnm_env(dir: &Path, name: &str, args: &[String], env: &[(&str, &str)]) -> Self {
         let log = dir.join(format!("{name}.log"));
         let out = std::fs::OpenOptions::new()
             .create(true)
@@ -45,6 +50,7 @@ impl Proc {
             .args(args)
             .env("DNM_MODULE_HOST", super::system::module_host())
             .env("RUST_LOG", "info,dnm_ground=debug,dnm_authority=debug")
+            .envs(env.iter().copied())
             .stdin(Stdio::null())
             .stdout(out.try_clone().unwrap())
             .stderr(out)
@@ -472,6 +478,11 @@ impl Rig {
     /// `dnm up` of some DNMs: rover side as peers of the rover's router, ground side as a
     /// client of the ground's router.
     pub fn up(&self, dnms: &[&str], ground_side: bool) -> Proc {
+        self.up_env(dnms, ground_side, &[])
+    }
+
+    /// [`Rig::up`] with more environment variables.
+    pub fn up_env(&self, dnms: &[&str], ground_side: bool, env: &[(&str, &str)]) -> Proc {
         let mut args = if ground_side {
             zenoh_args("client", self.ground_port)
         } else {
@@ -488,7 +499,7 @@ impl Rig {
             "--state-dir".into(),
             self.dir.join("state").display().to_string(),
         ]);
-        Proc::dnm(&self.dir, &dnms.join("-"), &args)
+        Proc::dnm_env(&self.dir, &dnms.join("-"), &args, env)
     }
 
     pub fn linksim(&self, extra: &[&str]) -> Proc {

@@ -542,3 +542,142 @@ impl Store {
         tx.commit().map_err(db)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use dnm_proto::station::Order;
+
+    fn store() -> (Store, std::path::PathBuf) {
+        let dir = std::env::temp_dir().join(format!(
+            "dnm-authority-store-{}-{:?}",
+            std::process::id(),
+            std::thread::current().id()
+        ));
+        let _ = std::fs::remove_dir_all(&dir);
+        let s = Store::open(&dir.join("a.redb")).unwrap();
+        (s, dir)
+    }
+
+    fn sent(seq: u64, id: &str) -> Sent {
+        Sent {
+            seq,
+            id: id.into(),
+            order: Order::Switch {
+                task: "a".into(),
+                at_unix_ns: None,
+                late_by_ms: None,
+            },
+            safings_seen: 0,
+        }
+    }
+
+    fn done(s: &Store, station: &str, seq: u64, id: &str) {
+        s.finish(Finish {
+            fates: vec![(station, seq, id, Fate::Refused { reason: "x".into() })],
+            done: Some((station, seq)),
+            ..Finish::default()
+        })
+        .unwrap();
+    }
+
+    /// Commands run in the order they reached the rover, not by station name, and a station
+    /// sending all the time does not hold another back.
+    #[test]
+    fn commands_run_in_arrival_order_across_stations() {
+        let (s, _dir) = store();
+        s.intake("zulu", &[sent(1, "z1")], 1, &[]).unwrap();
+        s.intake("alpha", &[sent(1, "a1")], 1, &[]).unwrap();
+        s.intake("zulu", &[sent(2, "z2")], 1, &[]).unwrap();
+        s.intake("alpha", &[sent(2, "a2")], 1, &[]).unwrap();
+        let mut order = Vec::new();
+        while let Some((station, c)) = s.next_command().unwrap() {
+            done(&s, &station, c.seq, &c.id);
+            order.push(c.id);
+        }
+        assert_eq!(order, ["z1", "a1", "z2", "a2"]);
+    }
+
+    /// A number another command took is refused by name, never skipped in silence.
+    #[test]
+    fn a_number_taken_by_another_command_is_refused() {
+        let (s, _dir) = store();
+        s.intake("g", &[sent(1, "first")], 1, &[]).unwrap();
+        let out = s.intake("g", &[sent(1, "other")], 1, &[]).unwrap();
+        let o = out
+            .iter()
+            .find(|o| o.id == "other")
+            .expect("an answer for it");
+        let Fate::Refused { reason } = &o.fate else {
+            panic!("{o:?}");
+        };
+        assert!(reason.contains("taken by command `first`"), "{reason}");
+        // The re-send of the first is answered as usual.
+        let out = s.intake("g", &[sent(1, "first")], 1, &[]).unwrap();
+        assert_eq!(out[0].fate, Fate::Acknowledged);
+    }
+
+    /// A store that lost its record of a station tells it where to send from when the station
+    /// waits for commands it never took (the station then sends them again).
+    #[test]
+    fn a_fresh_store_asks_for_the_commands_it_never_took() {
+        let (s, _dir) = store();
+        // The station knows 1..=3 final; 4 was acknowledged by the lost store; 5 is new.
+        let out = s.intake("g", &[sent(5, "g5")], 4, &[4]).unwrap();
+        assert!(
+            out.iter()
+                .any(|o| o.fate == Fate::OutOfOrder { expected: 4 }),
+            "{out:?}"
+        );
+        let out = s
+            .intake("g", &[sent(4, "g4"), sent(5, "g5")], 4, &[])
+            .unwrap();
+        assert!(out.iter().all(|o| o.fate == Fate::Acknowledged), "{out:?}");
+        // Without a gap in what it sends, a waiting command it never took is asked for too.
+        let (s, _dir2) = store();
+        let out = s.intake("h", &[], 3, &[3]).unwrap();
+        assert_eq!(out[0].fate, Fate::OutOfOrder { expected: 3 });
+    }
+
+    #[test]
+    fn oversized_commands_and_stations_beyond_the_bound_are_refused() {
+        let (s, _dir) = store();
+        let mut big = sent(1, "big");
+        big.order = Order::Apply {
+            file: "n.toml".into(),
+            text: "#".repeat(MAX_COMMAND_BYTES + 1),
+        };
+        s.intake("g", &[big], 1, &[]).unwrap();
+        assert!(matches!(
+            s.fate("g", 1).unwrap(),
+            Some(Fate::Refused { .. })
+        ));
+        assert!(s.next_command().unwrap().is_none());
+        for i in 0..MAX_STATIONS {
+            s.intake(&format!("s{i}"), &[], 1, &[]).unwrap();
+        }
+        assert!(s.admits("s0").unwrap());
+        assert!(!s.admits("one-too-many").unwrap());
+    }
+
+    #[test]
+    fn fates_are_pruned_a_bounded_way_back() {
+        let (s, _dir) = store();
+        for seq in 1..=3 {
+            s.finish(Finish {
+                fates: vec![("g", seq, "x", Fate::Cancelled { target: 0 })],
+                ..Finish::default()
+            })
+            .unwrap();
+        }
+        s.finish(Finish {
+            fates: vec![("g", FATES_KEPT + 2, "x", Fate::Cancelled { target: 0 })],
+            ..Finish::default()
+        })
+        .unwrap();
+        assert!(s.fate("g", 1).unwrap().is_some());
+        assert!(s.fate("g", 2).unwrap().is_none());
+        assert!(s.fate("g", 3).unwrap().is_some());
+    }
+}

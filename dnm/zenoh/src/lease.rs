@@ -198,3 +198,117 @@ pub(crate) fn lease_loop(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+    use dnm_proto::Safed;
+    use dnm_proto::station::Safing;
+
+    fn snapshot(task: &str, safed: Option<Safed>) -> Snapshot {
+        let report = serde_json::json!({
+            "system": "s", "dnm": "drive", "pid": 1, "revision": 3, "netlist_digest": "d",
+            "netlist_file": null, "active_task": task, "tasks": ["auto", "safe"],
+            "cpu_percent": 0.0, "memory": null, "modules": [], "switches": [],
+            "cleaned_dead_nodes": 0, "safed": safed,
+        });
+        let netlist = serde_json::json!({
+            "system": "s", "dnm": "drive", "revision": 3, "digest": "d", "file": null,
+            "active_task": task, "text": null,
+        });
+        Snapshot {
+            report: serde_json::from_value(report).unwrap(),
+            netlist: serde_json::from_value(netlist).unwrap(),
+        }
+    }
+
+    fn beat(ground_silent_ms: u64, safing: Option<Safing>) -> Beat {
+        Beat {
+            authority: "rover".into(),
+            at_unix_ns: now_unix_ns(),
+            revision: 3,
+            task: Some("auto".into()),
+            ground_silent_ms,
+            safing,
+        }
+    }
+
+    fn lease(after_ms: u64) -> Lease {
+        let mut l = Lease::default();
+        l.committed(Some((Duration::from_millis(after_ms), "safe".into())));
+        l
+    }
+
+    #[test]
+    fn a_dnm_that_hears_nothing_for_the_loss_time_makes_itself_safe() {
+        let mut l = lease(1000);
+        let snap = snapshot("auto", None);
+        l.heard("rover", beat(0, None));
+        assert_eq!(l.due("rover", Some(&snap)), None);
+        // A beat from another authority does not count.
+        l.last = l
+            .last
+            .take()
+            .map(|(_, b)| (Instant::now() - Duration::from_secs(2), b));
+        l.heard("impostor", beat(0, None));
+        let order = l.due("rover", Some(&snap)).expect("safe by its lease");
+        assert_eq!((order.task.as_str(), order.epoch), ("safe", None));
+        assert!(order.reason.contains("no word from the authority `rover`"));
+        // Once safe on its own, nothing more to do.
+        let safed = Safed {
+            epoch: None,
+            at_unix_ns: 1,
+            task: "safe".into(),
+            reason: order.reason,
+        };
+        assert_eq!(l.due("rover", Some(&snapshot("safe", Some(safed)))), None);
+    }
+
+    #[test]
+    fn the_authoritys_safing_is_followed_and_its_silence_on_the_ground_covered() {
+        let mut l = lease(1000);
+        let safing = Safing {
+            epoch: 2,
+            at_unix_ns: 1,
+            task: "safe".into(),
+            reason: "no ground station".into(),
+        };
+        l.heard("rover", beat(1500, Some(safing.clone())));
+        let order = l.due("rover", Some(&snapshot("auto", None))).unwrap();
+        assert_eq!(order.epoch, Some(2));
+        let followed = Safed {
+            epoch: Some(2),
+            at_unix_ns: 1,
+            task: "safe".into(),
+            reason: safing.reason,
+        };
+        assert_eq!(
+            l.due("rover", Some(&snapshot("safe", Some(followed)))),
+            None
+        );
+        // The authority heard no station for longer than the loss time and a grace, and has
+        // not made the rover safe: the DNM does.
+        l.heard("rover", beat(1000 + GRACE.as_millis() as u64, None));
+        let order = l.due("rover", Some(&snapshot("auto", None))).unwrap();
+        assert_eq!(order.epoch, None);
+        assert!(order.reason.contains("has not made the rover safe"));
+        // Without a loss-of-signal rule there is nothing to do.
+        l.committed(None);
+        assert_eq!(l.due("rover", Some(&snapshot("auto", None))), None);
+    }
+
+    #[test]
+    fn a_clock_far_from_the_authoritys_refuses_transactions() {
+        let mut l = lease(1000);
+        let mut b = beat(0, None);
+        b.at_unix_ns += 120_000_000_000;
+        l.heard("rover", b);
+        let why = l.clock_refusal("drive").unwrap();
+        assert!(why.contains("DNM `drive`'s clock is 120.0"), "{why}");
+        assert!(why.contains("behind"), "{why}");
+        let mut l = lease(1000);
+        l.heard("rover", beat(0, None));
+        assert_eq!(l.clock_refusal("drive"), None);
+    }
+}
