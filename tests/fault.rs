@@ -10,8 +10,9 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use dnm_ground::CommandState;
+use dnm_proto::station::RoverState;
 use dnm_proto::station::{Fate, Order};
-use support::ground::{ROVER, Rig, report, wait_in_step};
+use support::ground::{Api, ROVER, Rig, report, wait_in_step};
 use support::{eventually, free_port, zenoh_client};
 
 /// One of these tests at a time: each runs a whole rover on a small machine.
@@ -40,6 +41,32 @@ fn wait_task(session: &zenoh::Session, system: &str, dnms: &[&str], task: &str) 
     since.elapsed()
 }
 
+/// Switches the rover to `task` through the station and waits until every DNM is on it;
+/// returns the revision.
+fn command(session: &zenoh::Session, rig: &Rig, api: &Api, task: &str) -> u64 {
+    let e = api.submit(&switch(task));
+    assert_eq!(api.entry(e.seq, 60).state, CommandState::Applied, "{e:?}");
+    wait_in_step(session, &rig.system, &ROVER, task)
+}
+
+/// The station hears the rover again and shows it safe on `c`; a command given after that
+/// takes the rover out of it, for good (nothing of the safing comes back).
+fn leaves_safe_on_a_new_command(session: &zenoh::Session, rig: &Rig, api: &Api) -> RoverState {
+    let rover = eventually("the station sees the rover safe", || {
+        let l = api.link();
+        l.rover.filter(|r| l.up && r.safe)
+    });
+    assert_eq!(rover.task.as_deref(), Some("c"));
+    command(session, rig, api, "a");
+    std::thread::sleep(Duration::from_millis(1500));
+    for d in ROVER {
+        let r = report(session, &rig.system, d).unwrap();
+        assert_eq!(r.active_task.as_deref(), Some("a"), "{d} went back to safe");
+        assert_eq!(r.safed, None, "{d}");
+    }
+    rover
+}
+
 fn refused_reason(e: &dnm_ground::Entry) -> String {
     match &e.fate {
         Some(Fate::Refused { reason }) => reason.clone(),
@@ -59,9 +86,7 @@ fn the_station_and_a_rover_computer_die_together_and_the_others_go_safe() {
     let vision = rig.up(&["vision"], false);
     let session = zenoh_client(rig.rover_port);
     wait_in_step(&session, &rig.system, &ROVER, "a");
-    let e = api.submit(&switch("b"));
-    assert_eq!(api.entry(e.seq, 60).state, CommandState::Applied);
-    let revision = wait_in_step(&session, &rig.system, &ROVER, "b");
+    let revision = command(&session, &rig, &api, "b");
 
     // The station and the vision computer die together (a power cut on the ground, a crash on
     // the rover): the authority cannot reach `vision`, and safes the others without it.
@@ -85,18 +110,10 @@ fn the_station_and_a_rover_computer_die_together_and_the_others_go_safe() {
     let _vision = rig.up(&["vision"], false);
     wait_in_step(&session, &rig.system, &ROVER, "c");
     let (_station, api) = rig.station();
-    let rover = eventually("the station hears the rover again", || {
-        let l = api.link();
-        l.rover.filter(|r| l.up && r.safe)
-    });
-    assert_eq!(rover.task.as_deref(), Some("c"));
+    let rover = leaves_safe_on_a_new_command(&session, &rig, &api);
     let safing = rover.last_safing.unwrap();
     assert_eq!(safing.task, "c");
     assert!(safing.reason.contains("no ground station"), "{safing:?}");
-    // The rover leaves `safe` only on a command given after the station saw the safing.
-    let e = api.submit(&switch("a"));
-    assert_eq!(api.entry(e.seq, 60).state, CommandState::Applied);
-    wait_in_step(&session, &rig.system, &ROVER, "a");
 }
 
 #[test]
@@ -110,9 +127,7 @@ fn the_station_and_the_authority_die_together_and_the_rover_goes_safe_by_itself(
     let _others = rig.up(&["drive", "vision"], false);
     let session = zenoh_client(rig.rover_port);
     wait_in_step(&session, &rig.system, &ROVER, "a");
-    let e = api.submit(&switch("b"));
-    assert_eq!(api.entry(e.seq, 60).state, CommandState::Applied);
-    let revision = wait_in_step(&session, &rig.system, &ROVER, "b");
+    let revision = command(&session, &rig, &api, "b");
 
     // The station and the authority's computer die together: nobody is left to decide, and
     // each DNM makes itself safe by its lease on the authority.
@@ -143,11 +158,7 @@ fn the_station_and_the_authority_die_together_and_the_rover_goes_safe_by_itself(
     let _authority = rig.up(&["rover"], false);
     wait_in_step(&session, &rig.system, &ROVER, "c");
     let (_station, api) = rig.station();
-    let rover = eventually("the station hears the rover again", || {
-        let l = api.link();
-        l.rover.filter(|r| l.up && r.safe)
-    });
-    assert_eq!(rover.task.as_deref(), Some("c"));
+    let rover = leaves_safe_on_a_new_command(&session, &rig, &api);
     assert!(
         rover
             .events
@@ -156,9 +167,6 @@ fn the_station_and_the_authority_die_together_and_the_rover_goes_safe_by_itself(
         "{:?}",
         rover.events
     );
-    let e = api.submit(&switch("a"));
-    assert_eq!(api.entry(e.seq, 60).state, CommandState::Applied);
-    wait_in_step(&session, &rig.system, &ROVER, "a");
 }
 
 #[test]
@@ -224,14 +232,7 @@ fn safing_holds_nothing_taken_before_it_runs_after_it() {
         assert_eq!(r.active_task.as_deref(), Some("c"), "{d} left safe");
     }
     // The station shows why; a command given after it saw the safing runs.
-    eventually("the station sees the safing", || {
-        api.link()
-            .rover
-            .filter(|r| r.safe && r.last_safing.is_some())
-    });
-    let e = api.submit(&switch("a"));
-    assert_eq!(api.entry(e.seq, 60).state, CommandState::Applied);
-    wait_in_step(&session, &rig.system, &ROVER, "a");
+    leaves_safe_on_a_new_command(&session, &rig, &api);
 }
 
 /// The rover time of a time-tagged switch.
@@ -409,4 +410,49 @@ fn a_dnm_whose_clock_is_two_minutes_off_refuses_transactions_by_name() {
     let e = api.submit(&switch("b"));
     assert_eq!(api.entry(e.seq, 120).state, CommandState::Applied);
     wait_in_step(&session, &rig.system, &ROVER, "b");
+}
+
+#[test]
+fn a_dnm_an_apply_removes_stops_its_modules() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let rig = Rig::new("fremove", "");
+    let _routers = rig.routers();
+    let _radio = rig.linksim(&["--delay", "20ms"]);
+    let (_station, api) = rig.station();
+    let _rover = rig.up(&["rover", "drive"], false);
+    let _vision = rig.up(&["vision"], false);
+    let session = zenoh_client(rig.rover_port);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    // The same system without `vision` and its relay.
+    let text = support::ground::text(&rig.system, "", 2)
+        .replace("[[dnm]]\nname = \"vision\"\nparent = \"rover\"\n\n", "")
+        .replace(
+            "[[module]]\nname = \"relay\"\nkind = \"relay\"\ndnm = \"vision\"\n\n",
+            "",
+        )
+        .replace("\"src_a.out -> relay.in\", ", "")
+        .replace("\"src_b.out -> relay.in\", ", "")
+        .replace(", \"relay.out -> watch.in\"", "");
+    assert!(
+        !text.contains("vision") && !text.contains("relay."),
+        "{text}"
+    );
+    let e = api.submit(&Order::Apply {
+        file: "without-vision.toml".into(),
+        text,
+    });
+    assert_eq!(api.entry(e.seq, 120).state, CommandState::Applied, "{e:?}");
+    let r = eventually("vision's modules stopped", || {
+        report(&session, &rig.system, "vision").filter(|r| {
+            r.modules
+                .iter()
+                .all(|m| m.state == dnm::ModuleRunState::Stopped && m.pid.is_none())
+        })
+    });
+    assert!(
+        r.events.iter().any(|e| e.what == "retired"),
+        "{:?}",
+        r.events
+    );
+    wait_in_step(&session, &rig.system, &["rover", "drive"], "a");
 }

@@ -255,6 +255,16 @@ fn print_link(l: &LinkStatus) {
             r.task.as_deref().unwrap_or("-"),
             r.authority
         );
+        if let Some(sf) = r.last_safing.as_ref().filter(|_| r.safe) {
+            println!(
+                "rover SAFE on `{}` (safing {}, at {:.3}): {}; commands given before this \
+                 station saw it are refused",
+                sf.task,
+                sf.epoch,
+                sf.at_unix_ns as f64 / 1e9,
+                sf.reason
+            );
+        }
         for (station, seq, at) in &r.scheduled {
             println!("  scheduled: {station} #{seq} at {:.3}", *at as f64 / 1e9);
         }

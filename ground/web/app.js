@@ -481,6 +481,9 @@ function renderHierarchy() {
     ['pending', String(l.pending)],
     ['rover task', rover.task || '—'],
     ['revision', rover.revision == null ? '—' : String(rover.revision)],
+    ['safe', rover.safe && rover.last_safing
+      ? `since ${new Date(rover.last_safing.at_unix_ns / 1e6).toLocaleTimeString()}: ${rover.last_safing.reason} (commands given before the station saw it are refused)`
+      : 'no'],
   ].map(([k, v]) => `<dt>${k}</dt><dd>${esc(v)}</dd>`).join('');
   // What the station commanded (wall time), the switches the DNMs performed (each DNM's own
   // clock: grouped, not timed) and the last module events.

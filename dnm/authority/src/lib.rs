@@ -14,8 +14,12 @@
 //!   never hold up a transaction.
 //! - **Time-tagged switches** run at their rover time whether or not a station is in contact,
 //!   and can be cancelled until then.
-//! - **Loss of signal.** With `on_link_loss` in the netlist, the authority switches the rover
-//!   to that task when no station has been heard for that long, and records it.
+//! - **Safing** (`safing.rs`). With `on_link_loss` in the netlist, the authority makes the
+//!   rover safe when no station has been heard for that long: it records a safing and
+//!   announces it in its beat, which every DNM keeps a lease on; DNMs it cannot reach make
+//!   themselves safe, and it adopts a safing a DNM made on its own. Nothing taken before a
+//!   safing runs after it.
+//! - **Arrival order.** Stations' commands run in the order they reached the rover.
 //!
 //! Clocks: the instants are wall-clock times, so the DNMs of the rover must share a
 //! synchronised clock (NTP or PTP on the rover's network; one clock on one machine). The spread
@@ -688,29 +692,7 @@ fn work_once(s: &Shared, gate: &mut Option<(String, Instant)>) -> Result<bool, A
             core.state.link_lost = true;
             safing::make_safe(s, core, task, "link_loss", reason)?;
         }
-        Job::Timer(t) if !core.netlist.tasks.contains_key(&t.task) => {
-            let reason = format!(
-                "task `{}` is no longer defined (a netlist applied since removed it)",
-                t.task
-            );
-            tracing::warn!(station = %t.station, seq = t.seq, "time-tagged switch refused: {reason}");
-            s.store.finish(Finish {
-                fates: vec![(&t.station, t.seq, &t.id, Fate::Refused { reason })],
-                timer_remove: Some((&t.station, t.seq)),
-                ..Finish::default()
-            })?;
-        }
-        Job::Timer(t) if safing::stale(core, t.safings_seen).is_some() => {
-            let reason = safing::stale(core, t.safings_seen).unwrap_or_default();
-            tracing::warn!(station = %t.station, seq = t.seq, "time-tagged switch refused: {reason}");
-            s.store.finish(Finish {
-                fates: vec![(&t.station, t.seq, &t.id, Fate::Refused { reason })],
-                timer_remove: Some((&t.station, t.seq)),
-                ..Finish::default()
-            })?;
-        }
-        Job::Timer(t) if too_late(t.at_unix_ns, t.late_by_ms).is_some() => {
-            let reason = too_late(t.at_unix_ns, t.late_by_ms).unwrap_or_default();
+        Job::Timer(t) if let Some(reason) = timer_refusal(core, &t) => {
             tracing::warn!(station = %t.station, seq = t.seq, "time-tagged switch refused: {reason}");
             s.store.finish(Finish {
                 fates: vec![(&t.station, t.seq, &t.id, Fate::Refused { reason })],
@@ -945,6 +927,17 @@ fn run_command(
     }
 }
 
+/// Why a time-tagged switch whose time has come may not run, if it may not.
+fn timer_refusal(core: &Core, t: &Timer) -> Option<String> {
+    if !core.netlist.tasks.contains_key(&t.task) {
+        return Some(format!(
+            "task `{}` is no longer defined (a netlist applied since removed it)",
+            t.task
+        ));
+    }
+    safing::stale(core, t.safings_seen).or_else(|| too_late(t.at_unix_ns, t.late_by_ms))
+}
+
 /// Why a time-tagged switch for `at` may no longer run, if it may not: it is more than
 /// `late_by_ms` past its time.
 fn too_late(at: u64, late_by_ms: u64) -> Option<String> {
@@ -1107,6 +1100,26 @@ fn transact(
         core.netlist.clone(),
         core.digest.clone(),
     );
+    // DNMs the apply removes: told once the decision is in force, so they stop their modules.
+    let removed: Vec<String> = match &netlist {
+        Some(n) => core
+            .netlist
+            .dnms
+            .iter()
+            .filter(|d| n.dnm(&d.name).is_none())
+            .map(|d| d.name.clone())
+            .collect(),
+        None => Vec::new(),
+    };
+    let removal = Request::Adopt {
+        revision,
+        task: task.clone(),
+        file: netlist
+            .as_ref()
+            .map(|n| n.file.display().to_string())
+            .unwrap_or_default(),
+        text: netlist.as_ref().map(|n| n.text.clone()).unwrap_or_default(),
+    };
     core.state.decided(decision.clone());
     if let Some(n) = netlist {
         core.state.file = n.file.display().to_string();
@@ -1122,6 +1135,12 @@ fn transact(
     let storing = Instant::now();
     let stored = finish(core, &fate);
     s.timing.lock().map(|mut t| t.store(storing.elapsed())).ok();
+    if stored.is_ok() {
+        // The beat says what is decided before any DNM puts it in force: a DNM must not
+        // hear the safing this decision ends after it left it.
+        publish_rover(s, core);
+        safing::beat_now(s);
+    }
     if let Err(e) = stored {
         // Not decided after all: drop it everywhere.
         (core.state, core.netlist, core.digest) = before;
@@ -1156,6 +1175,9 @@ fn transact(
         if missing.is_empty() {
             break;
         }
+    }
+    if !removed.is_empty() {
+        log_answers(ask_all(s, &removed, &removal, id, Duration::from_secs(2)));
     }
     if at.is_none() {
         s.timing.lock().map(|mut t| t.busy(started.elapsed())).ok();

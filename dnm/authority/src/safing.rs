@@ -124,6 +124,11 @@ pub(crate) fn adopt_dnm_safing(s: &Shared, found: &[Option<DnmBrief>]) -> bool {
         // Made safe before what was decided since: that decision has it adopt, not this.
         return false;
     }
+    if core.state.safe && core.state.task.as_ref() == Some(&safed.task) {
+        // The rover is in a safing on that task already (the DNM lost the authority while it
+        // was made safe, say): the DNM follows it by the beat; nothing new to refuse.
+        return false;
+    }
     let reason = format!(
         "DNM `{dnm}` made itself safe on `{}`: {}",
         safed.task, safed.reason

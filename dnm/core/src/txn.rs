@@ -3,7 +3,9 @@
 //! missed (it restarted, or was cut off).
 //!
 //! A DNM never puts a transaction in force on its own: a held transaction waits for the
-//! decision however long that takes, while the DNM serves the revision and task in force.
+//! decision, while the DNM serves the revision and task in force, for at most
+//! [`crate::safe::HOLD_LIMIT`]; then it is given up (the authority has a DNM that missed a
+//! commit adopt the decided revision). Safing (`safe.rs`) drops whatever is held.
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -301,6 +303,39 @@ impl Dnm {
         Err(format!("transaction {} is no longer held here", d.id))
     }
 
+    /// The decided revision `revision` has no place for this DNM (an apply removed it): its
+    /// modules stop, and it runs nothing until a netlist that declares it is adopted.
+    fn retire(&mut self, revision: u64) -> u64 {
+        let running: Vec<String> = self
+            .modules
+            .iter()
+            .filter(|(_, s)| s.child.is_some())
+            .map(|(n, _)| n.clone())
+            .collect();
+        for name in &running {
+            self.stop_module(name);
+        }
+        if !running.is_empty() {
+            tracing::warn!(
+                dnm = %self.name,
+                revision,
+                "the decided netlist no longer declares this DNM: its modules stop"
+            );
+            self.event(
+                "_dnm",
+                "retired",
+                format!(
+                    "revision {revision} no longer declares DNM `{}`: {} modules stopped",
+                    self.name,
+                    running.len()
+                ),
+            );
+        }
+        self.last_attempt = self.last_attempt.max(revision);
+        self.publish();
+        revision
+    }
+
     /// Takes over `revision` in `task` as the authority decided it: only a switch when the
     /// revision is in force already, else an apply of `netlist` as that revision.
     pub(crate) fn adopt(
@@ -315,6 +350,9 @@ impl Dnm {
                 "DNM `{}` holds transaction {id}; decide it first",
                 self.name
             )));
+        }
+        if netlist.dnm(&self.name).is_none() {
+            return reply.send(Ok(self.retire(revision)));
         }
         let same = self
             .netlist

@@ -58,6 +58,9 @@ pub(crate) struct Lease {
     offsets: VecDeque<f64>,
     /// The last order sent and when.
     sent: Option<(SafeOrder, Instant)>,
+    /// The newest of the authority's safings this DNM put in force: a beat announcing it again
+    /// (sent before the decision that ended it, and late) is not followed twice.
+    followed: u64,
 }
 
 impl Lease {
@@ -125,7 +128,8 @@ impl Lease {
         match &self.last {
             Some((at, beat)) if at.elapsed() < *after => {
                 if let Some(s) = &beat.safing {
-                    let followed = safed.is_some_and(|x| x.epoch == Some(s.epoch)) && on(&s.task);
+                    let followed = s.epoch <= self.followed
+                        || safed.is_some_and(|x| x.epoch == Some(s.epoch)) && on(&s.task);
                     return (!followed).then(|| SafeOrder {
                         task: s.task.clone(),
                         epoch: Some(s.epoch),
@@ -174,6 +178,13 @@ pub(crate) fn lease_loop(
         let Ok(mut l) = lease.lock() else {
             return;
         };
+        if let Some(e) = snap
+            .as_ref()
+            .and_then(|s| s.report.safed.as_ref())
+            .and_then(|s| s.epoch)
+        {
+            l.followed = l.followed.max(e);
+        }
         let Some(order) = l.due(authority, snap.as_deref()) else {
             l.sent = None;
             continue;
@@ -287,6 +298,9 @@ mod tests {
             l.due("rover", Some(&snapshot("safe", Some(followed)))),
             None
         );
+        // The rover was commanded out of it; a late beat still announcing it is not followed.
+        l.followed = 2;
+        assert_eq!(l.due("rover", Some(&snapshot("auto", None))), None);
         // The authority heard no station for longer than the loss time and a grace, and has
         // not made the rover safe: the DNM does.
         l.heard("rover", beat(1000 + GRACE.as_millis() as u64, None));
