@@ -367,9 +367,9 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
     );
     let (status, body) = api.post_raw(br#"{"cmd":"switch"}"#);
     assert_eq!(status, 400, "{body}");
-    let reply = |payload: &[u8]| -> dnm_proto::station::Downlink {
+    let reply_as = |station: &str, payload: &[u8]| -> dnm_proto::station::Downlink {
         let replies = session
-            .get(format!("{}/authority", rig.system))
+            .get(dnm_proto::keys::authority_station(&rig.system, station))
             .payload(payload.to_vec())
             .timeout(Duration::from_secs(10))
             .wait()
@@ -377,6 +377,7 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
         let r = replies.recv().unwrap();
         serde_json::from_slice(&r.result().unwrap().payload().to_bytes()).unwrap()
     };
+    let reply = |payload: &[u8]| reply_as("late", payload);
     let d = reply(b"\xff garbage");
     assert!(d.error.unwrap().contains("unreadable uplink"));
     let d = reply(br#"{"station":"a/b","commands":[]}"#);
@@ -398,6 +399,14 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
     };
     let d = reply(&serde_json::to_vec(&gap).unwrap());
     assert_eq!(d.outcomes[0].fate, Fate::OutOfOrder { expected: 1 });
+    // A station speaks only for itself: the name in its uplink is the one in its key.
+    let d = reply_as("ground-1", &serde_json::to_vec(&gap).unwrap());
+    assert!(
+        d.error.as_deref().unwrap().contains("a station sends on"),
+        "{:?}",
+        d.error
+    );
+    assert!(d.outcomes.is_empty());
 
     // Nothing running changed: same revision, task, netlist, processes.
     assert_eq!(running(&session), before);

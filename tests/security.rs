@@ -524,13 +524,58 @@ fn through_the_authority_only_the_operators_station_commands() {
     assert_eq!(op.entry(e.seq, 60).state, CommandState::Applied);
     eventually("the router records the observer's uplink refused", || {
         refusals(&router.log).into_iter().find(|l| {
-            l.contains("CertCommonName(science)") && l.contains(&format!("{}/authority", s.system))
+            l.contains("CertCommonName(science)")
+                && l.contains(&format!("{}/authority/station/science", s.system))
         })
     });
     let o = obs.entry(o.seq, 0);
     assert!(
         matches!(o.state, CommandState::Queued | CommandState::Sent),
         "{o:?}"
+    );
+    assert_eq!(active_tasks(&s, &operator), ["idle", "idle"]);
+
+    // A station is its certificate: the operator's certificate does not speak as another
+    // station (its uplinks are refused by the router, and recorded there).
+    let (_impostor, imp) = {
+        let http = format!("127.0.0.1:{}", free_port());
+        let p = Proc::dnm(
+            &s.dir,
+            "station-impostor",
+            &[
+                "--zenoh-config".into(),
+                s.config("ground-1").display().to_string(),
+                "ground".into(),
+                "serve".into(),
+                "--system".into(),
+                s.system.clone(),
+                "--station".into(),
+                "ground-2".into(),
+                "--db".into(),
+                s.dir.join("impostor.redb").display().to_string(),
+                "--http".into(),
+                http.clone(),
+            ],
+        );
+        let api = Api(format!("http://{http}"));
+        eventually("the impostor's API", || api.up().then_some(()));
+        (p, api)
+    };
+    let i = imp.submit(&Order::Switch {
+        task: "feed".into(),
+        at_unix_ns: None,
+        late_by_ms: None,
+    });
+    eventually("the router records the impostor's uplink refused", || {
+        refusals(&router.log).into_iter().find(|l| {
+            l.contains("CertCommonName(ground-1)")
+                && l.contains(&format!("{}/authority/station/ground-2", s.system))
+        })
+    });
+    let i = imp.entry(i.seq, 0);
+    assert!(
+        matches!(i.state, CommandState::Queued | CommandState::Sent),
+        "{i:?}"
     );
     assert_eq!(active_tasks(&s, &operator), ["idle", "idle"]);
 

@@ -495,10 +495,12 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
     ];
     // Where a system is commanded through its authority, operators reach only the authority
     // (a DNM takes switches and applies from nowhere else); else also each DNM.
+    // A station's uplinks go on the key of its own name (below, per operator), so an operator
+    // speaks only as the station its certificate names.
     let commands = if dnm::commanded_by_authority(netlist) {
-        vec![keys::authority(sys)]
+        Vec::new()
     } else {
-        vec![keys::authority(sys), keys::cmd(sys, "*")]
+        vec![keys::cmd(sys, "*")]
     };
     let mut rules = vec![
         // What anyone admitted may be sent: state, telemetry, answers.
@@ -535,17 +537,10 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
                 format!("{sys}/dnm/**"),
                 format!("{sys}/module/**"),
                 format!("{sys}/port/**"),
-                keys::authority(sys),
+                keys::authority_beat(sys),
                 keys::watch_all(sys, keys::WatchRate::Hz10),
                 keys::watch_all(sys, keys::WatchRate::Hz1),
             ],
-        }),
-        json!({
-            "id": "command",
-            "flows": ["ingress"],
-            "permission": "allow",
-            "messages": ["query"],
-            "key_exprs": commands,
         }),
         // The system's computers are asked (their DNMs' queryables) and their liveliness is
         // watched; what each may answer for is its own (below).
@@ -567,6 +562,16 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
             "key_exprs": [all],
         }),
     ];
+    let direct = !commands.is_empty();
+    if direct {
+        rules.push(json!({
+            "id": "command",
+            "flows": ["ingress"],
+            "permission": "allow",
+            "messages": ["query"],
+            "key_exprs": commands,
+        }));
+    }
     // One subject per identity, so each link matches exactly one policy and a refusal logged
     // by Zenoh is final.
     let mut subjects = Vec::new();
@@ -575,7 +580,8 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
     for i in &inv.identities {
         let mut granted: Vec<String> = match i.role {
             Role::Observer => vec!["to-everyone", "read", "observe"],
-            Role::Operator => vec!["to-everyone", "read", "watch", "command"],
+            Role::Operator if direct => vec!["to-everyone", "read", "watch", "command"],
+            Role::Operator => vec!["to-everyone", "read", "watch"],
             Role::Rover => vec!["to-everyone", "read", "watch", "to-node"],
             Role::Router => vec!["forward"],
         }
@@ -605,7 +611,7 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
                 .collect();
             let authority = netlist.authority().is_some_and(|a| own.contains(&a));
             if authority {
-                answers.push(keys::authority(sys));
+                answers.push(keys::authority_stations(sys));
             }
             let id = format!("answer-{}", i.name);
             rules.push(json!({
@@ -650,6 +656,18 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
                 "permission": "allow",
                 "messages": ["put", "delete"],
                 "key_exprs": owned,
+            }));
+            granted.push(id);
+        }
+        if i.role == Role::Operator {
+            // Its station's uplinks, on the key of its own name.
+            let id = format!("station-{}", i.name);
+            rules.push(json!({
+                "id": id,
+                "flows": ["ingress"],
+                "permission": "allow",
+                "messages": ["query"],
+                "key_exprs": [keys::authority_station(sys, &i.name)],
             }));
             granted.push(id);
         }

@@ -523,7 +523,7 @@ fn express_loop(s: &Shared) {
 /// and the oldest whose fate is not known; then the answer taken in. Returns (answered, no
 /// route to the rover at all, commands were pending).
 fn uplink(s: &Shared) -> (bool, bool, bool) {
-    let key = keys::authority(&s.options.system);
+    let key = keys::authority_station(&s.options.system, &s.options.name);
     let (uplink, has_commands) = {
         let Ok(inner) = s.inner.lock() else {
             return (false, false, false);

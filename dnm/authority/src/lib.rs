@@ -315,7 +315,7 @@ impl Authority {
         // stations are heard from the first moment.
         let (tx, rx) = mpsc::sync_channel::<Query>(UPLINK_QUEUE);
         let queryable = session
-            .declare_queryable(keys::authority(&system))
+            .declare_queryable(keys::authority_stations(&system))
             .callback(move |q| {
                 if tx.try_send(q).is_err() {
                     tracing::warn!("uplink dropped: the authority is busy");
@@ -383,7 +383,7 @@ fn intake_loop(s: &Shared, rx: &mpsc::Receiver<Query>) {
         };
         let answer = take_uplink(s, &q);
         let bytes = serde_json::to_vec(&answer).unwrap_or_default();
-        if let Err(e) = q.reply(keys::authority(&s.system), bytes).wait() {
+        if let Err(e) = q.reply(q.key_expr().clone(), bytes).wait() {
             tracing::debug!("answering a station: {e}");
         }
     }
@@ -417,6 +417,22 @@ fn take_uplink(s: &Shared, q: &Query) -> Downlink {
         return refuse(format!(
             "station name `{}` is not usable: 1 to 64 characters, no `/`, `*`, `$`, `?`, `#`",
             up.station
+        ));
+    }
+    // A station speaks only for itself: its name is the key's (which the access control binds
+    // to its certificate), the outbox's epoch after a `.`.
+    let keyed = keys::station_of(&s.system, q.key_expr().as_str()).unwrap_or_default();
+    if up.station != keyed && !up.station.starts_with(&format!("{keyed}.")) {
+        tracing::warn!(
+            key = %q.key_expr(),
+            station = %up.station,
+            "uplink refused: a station speaks only for itself"
+        );
+        return refuse(format!(
+            "uplink of station `{}` on the key of station `{keyed}`: a station sends on \
+             {} only",
+            up.station,
+            keys::authority_station(&s.system, "<its own name>")
         ));
     }
     if up.commands.len() > MAX_UPLINK_COMMANDS {
@@ -1528,5 +1544,25 @@ fn log_answers(answers: Vec<(String, Result<Response, String>)>) {
             Ok(r) => tracing::warn!(dnm = %d, "{}", r.error.unwrap_or_default()),
             Err(e) => tracing::warn!(dnm = %d, "{e}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)]
+    use super::*;
+
+    /// A time tag runs at most its validity late, and says why it does not.
+    #[test]
+    fn a_time_tag_past_its_validity_is_refused_with_the_reason() {
+        let now = now_unix_ns();
+        assert_eq!(too_late(now + 1_000_000_000, 0), None);
+        assert_eq!(too_late(now - 1_000_000_000, 60_000), None);
+        let why = too_late(now - 90_000_000_000, 60_000).unwrap();
+        assert!(why.contains("passed 90.0 s ago"), "{why}");
+        assert!(why.contains("at most 60.0 s late"), "{why}");
+        // Absurd values neither wrap nor panic.
+        assert!(too_late(0, u64::MAX).is_none());
+        assert!(too_late(0, 0).is_some());
     }
 }

@@ -4,7 +4,7 @@
 //! | key                                   | Zenoh primitive      | what                                                     |
 //! |---------------------------------------|----------------------|----------------------------------------------------------|
 //! | `<system>/dnm/<dnm>`                  | queryable, liveliness | the DNM's report (JSON): revision, task, CPU, modules, peers; `?brief`, `?glance`: smaller forms |
-//! | `<system>/authority`                  | queryable            | ground stations' uplinks (JSON `station::Uplink`), answered by the authority |
+//! | `<system>/authority/station/<station>` | queryable           | station `<station>`'s uplinks (JSON `station::Uplink`), answered by the authority |
 //! | `<system>/authority/beat`             | pub/sub              | the authority's heartbeat (JSON `station::Beat`): the DNMs' lease, its clock, the safing in force |
 //! | `<system>/dnm/<dnm>/netlist`          | queryable            | the applied netlist (JSON: revision, digest, file, text) |
 //! | `<system>/dnm/<dnm>/cmd`              | queryable            | commands (JSON request in the query payload; JSON reply) |
@@ -48,10 +48,23 @@ pub fn cmd(system: &str, dnm: &str) -> String {
     format!("{system}/dnm/{dnm}/cmd")
 }
 
-/// `<system>/authority`: where ground stations send their commands (queries carrying a
-/// [`crate::station::Uplink`]); the rover's authority DNM answers.
-pub fn authority(system: &str) -> String {
-    format!("{system}/authority")
+/// `<system>/authority/station/<station>`: where ground station `station` sends its uplinks.
+/// The station's name is in the key, so the access control binds it to the station's
+/// certificate: an operator may query only the key of its own common name.
+pub fn authority_station(system: &str, station: &str) -> String {
+    format!("{system}/authority/station/{station}")
+}
+
+/// Every station's uplink key: `<system>/authority/station/*`.
+pub fn authority_stations(system: &str) -> String {
+    format!("{system}/authority/station/*")
+}
+
+/// The station an uplink key names, if it is one.
+pub fn station_of<'a>(system: &str, key: &'a str) -> Option<&'a str> {
+    key.strip_prefix(system)?
+        .strip_prefix("/authority/station/")
+        .filter(|s| !s.is_empty() && !s.contains('/'))
 }
 
 /// `<system>/authority/beat`: the authority's heartbeat ([`crate::station::Beat`]), the lease

@@ -1,6 +1,6 @@
 //! What a ground station and the rover's authority say to each other over the radio link.
 //!
-//! The station sends an [`Uplink`] as a query on [`crate::keys::authority`]: the commands the
+//! The station sends an [`Uplink`] as a query on [`crate::keys::authority_station`] (its own name's key): the commands the
 //! rover has not acknowledged yet, oldest first, each with the station's sequence number and a
 //! unique id. The authority stores each durably before it acknowledges it, runs them exactly
 //! once in the station's order, and answers with a [`Downlink`]: the fate of every command the
