@@ -229,6 +229,17 @@ impl Store {
             }
             None => 0,
         };
+        // A store restored from an older copy: what the station knows to be final (everything
+        // before `pending_from`) never runs again, so numbering goes on from there.
+        if pending_from > received + 1 {
+            tracing::warn!(
+                station,
+                received,
+                pending_from,
+                "this store is behind the station: taking its commands from the first it waits for"
+            );
+            received = pending_from - 1;
+        }
         let mut gap = None;
         let mut taken_by_other = Vec::new();
         let mut too_big = Vec::new();
@@ -239,6 +250,39 @@ impl Store {
             let mut arrival_of = tx.open_table(ARRIVAL_OF).map_err(db)?;
             let mut arrival = arrivals.last().map_err(db)?.map_or(0, |(k, _)| k.value());
             let fates = tx.open_table(FATES).map_err(db)?;
+            // What the station knows final (before `pending_from`) but this store still holds
+            // (it was restored from an older copy) ran in the history the store lost: it never
+            // runs again.
+            let stale: Vec<String> = inbox
+                .range(key(station, 0).as_str()..key(station, pending_from).as_str())
+                .map_err(db)?
+                .filter_map(|r| r.ok().map(|(k, _)| k.value().to_string()))
+                .collect();
+            let mut timers = tx.open_table(TIMERS).map_err(db)?;
+            let stale_timers: Vec<String> = timers
+                .range(key(station, 0).as_str()..key(station, pending_from).as_str())
+                .map_err(db)?
+                .filter_map(|r| r.ok().map(|(k, _)| k.value().to_string()))
+                .collect();
+            if !stale.is_empty() || !stale_timers.is_empty() {
+                tracing::warn!(
+                    station,
+                    commands = stale.len(),
+                    time_tags = stale_timers.len(),
+                    "dropping commands the station knows to be final (this store is older)"
+                );
+            }
+            for k in &stale {
+                inbox.remove(k.as_str()).map_err(db)?;
+                if let Some(a) = arrival_of.remove(k.as_str()).map_err(db)? {
+                    let a = a.value();
+                    arrivals.remove(a).map_err(db)?;
+                }
+            }
+            for k in &stale_timers {
+                timers.remove(k.as_str()).map_err(db)?;
+            }
+            drop(timers);
             let mut sorted: Vec<&Sent> = commands.iter().collect();
             sorted.sort_by_key(|c| c.seq);
             for c in sorted {
@@ -638,6 +682,25 @@ mod tests {
         let (s, _dir2) = store();
         let out = s.intake("h", &[], 3, &[3]).unwrap();
         assert_eq!(out[0].fate, Fate::OutOfOrder { expected: 3 });
+    }
+
+    /// A store restored from an older copy goes on from the first command the station waits
+    /// for: nothing the station knows final runs again, nothing after it is lost.
+    #[test]
+    fn a_restored_store_goes_on_from_what_the_station_waits_for() {
+        let (s, _dir) = store();
+        s.intake("g", &[sent(1, "g1"), sent(2, "g2"), sent(3, "g3")], 1, &[])
+            .unwrap();
+        // The copy was taken here; after it, 1..=6 ran (the station knows them final) and the
+        // store was put back. 7 is new.
+        let out = s.intake("g", &[sent(7, "g7")], 7, &[]).unwrap();
+        assert_eq!(out[0].fate, Fate::Acknowledged, "{out:?}");
+        let mut ids = Vec::new();
+        while let Some((station, c)) = s.next_command().unwrap() {
+            done(&s, &station, c.seq, &c.id);
+            ids.push(c.id);
+        }
+        assert_eq!(ids, ["g7"], "nothing the station knows final runs again");
     }
 
     #[test]
