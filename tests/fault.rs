@@ -113,7 +113,11 @@ fn the_station_and_a_rover_computer_die_together_and_the_others_go_safe() {
     let rover = leaves_safe_on_a_new_command(&session, &rig, &api);
     let safing = rover.last_safing.unwrap();
     assert_eq!(safing.task, "c");
-    assert!(safing.reason.contains("no ground station"), "{safing:?}");
+    // Whichever the authority noticed first: the station gone, or `vision`.
+    assert!(
+        safing.reason.contains("no ground station") || safing.reason.contains("DNM `vision`"),
+        "{safing:?}"
+    );
 }
 
 #[test]
@@ -158,12 +162,13 @@ fn the_station_and_the_authority_die_together_and_the_rover_goes_safe_by_itself(
     let _authority = rig.up(&["rover"], false);
     wait_in_step(&session, &rig.system, &ROVER, "c");
     let (_station, api) = rig.station();
+    // It adopted the DNMs' own safing, or (having heard no station since before it died)
+    // made the rover safe itself at once.
     let rover = leaves_safe_on_a_new_command(&session, &rig, &api);
     assert!(
-        rover
-            .events
-            .iter()
-            .any(|e| e.what == "safed" && e.detail.contains("made itself safe")),
+        rover.events.iter().any(|e| {
+            (e.what == "safed" && e.detail.contains("made itself safe")) || e.what == "link_loss"
+        }),
         "{:?}",
         rover.events
     );
@@ -455,4 +460,93 @@ fn a_dnm_an_apply_removes_stops_its_modules() {
         r.events
     );
     wait_in_step(&session, &rig.system, &["rover", "drive"], "a");
+}
+
+#[test]
+fn a_dnm_an_aborted_apply_added_takes_the_next_apply() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let rig = Rig::new("fadd", "");
+    let _routers = rig.routers();
+    let _radio = rig.linksim(&["--delay", "20ms"]);
+    let (_station, api) = rig.station();
+    let _rover = rig.up(&["rover", "vision"], false);
+    let drive = rig.up(&["drive"], false);
+    let session = zenoh_client(rig.rover_port);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    // The system with a fourth computer, `arm`, and a module on it; the computer is up (it
+    // waits for the authority) before the apply that adds it.
+    let text = support::ground::text(&rig.system, "", 2).replace(
+        "[[module]]\nname = \"src_a\"",
+        "[[dnm]]\nname = \"arm\"\nparent = \"rover\"\n\n[[module]]\nname = \"src_c\"\nkind = \"ticker\"\ndnm = \"arm\"\nrate_hz = 20\n\n[[module]]\nname = \"src_a\"",
+    );
+    assert!(text.contains("name = \"arm\""), "{text}");
+    let with_arm = rig.dir.join("with-arm.toml");
+    std::fs::write(&with_arm, &text).unwrap();
+    let _arm = rig.up_from(&with_arm, &["arm"], false, &[]);
+    eventually("arm up", || report(&session, &rig.system, "arm"));
+
+    // `drive` hangs through the apply: it is aborted everywhere, `arm` included.
+    // SAFETY: kill(2) on our own child.
+    unsafe { libc::kill(drive.pid() as i32, libc::SIGSTOP) };
+    let e = api.submit(&Order::Apply {
+        file: "with-arm.toml".into(),
+        text: text.clone(),
+    });
+    let e = api.entry(e.seq, 120);
+    let reason = refused_reason(&e);
+    assert!(reason.contains("drive"), "{reason}");
+    // SAFETY: as above.
+    unsafe { libc::kill(drive.pid() as i32, libc::SIGCONT) };
+    eventually("arm holds nothing", || {
+        report(&session, &rig.system, "arm").filter(|r| r.holding.is_none())
+    });
+
+    // The next apply takes `arm` in like any DNM.
+    let e = api.submit(&Order::Apply {
+        file: "with-arm.toml".into(),
+        text,
+    });
+    let e = api.entry(e.seq, 120);
+    assert_eq!(e.state, CommandState::Applied, "{:?}", e.fate);
+    wait_in_step(
+        &session,
+        &rig.system,
+        &["rover", "drive", "vision", "arm"],
+        "a",
+    );
+    let arm = report(&session, &rig.system, "arm").unwrap();
+    assert_eq!(arm.modules.len(), 1);
+    assert_eq!(arm.modules[0].name, "src_c");
+}
+
+#[test]
+fn a_rover_computer_that_stops_answering_makes_the_rover_safe_with_the_station_in_contact() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let rig = Rig::new("fhang", LOSS);
+    let _routers = rig.routers();
+    let _radio = rig.linksim(&["--delay", "20ms"]);
+    let (_station, api) = rig.station();
+    let _rover = rig.up(&["rover", "drive"], false);
+    let vision = rig.up(&["vision"], false);
+    let session = zenoh_client(rig.rover_port);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    command(&session, &rig, &api, "b");
+
+    // `vision` hangs (alive, cut off): it makes itself safe by its lease, and the others must
+    // not go on without it.
+    // SAFETY: kill(2) on our own child.
+    unsafe { libc::kill(vision.pid() as i32, libc::SIGSTOP) };
+    wait_task(&session, &rig.system, &["rover", "drive"], "c");
+    let rover = eventually("the station sees why", || {
+        api.link().rover.filter(|r| r.safe)
+    });
+    let safing = rover.last_safing.unwrap();
+    assert!(
+        safing.reason.contains("DNM `vision` has not answered"),
+        "{safing:?}"
+    );
+    // SAFETY: as above.
+    unsafe { libc::kill(vision.pid() as i32, libc::SIGCONT) };
+    wait_in_step(&session, &rig.system, &ROVER, "c");
+    leaves_safe_on_a_new_command(&session, &rig, &api);
 }

@@ -141,10 +141,12 @@ pub struct Entry {
     pub sends: u32,
     pub acknowledged_unix_ns: Option<u64>,
     pub done_unix_ns: Option<u64>,
-    /// The rover's safings this station had seen when the command was given: one given before
-    /// the station saw the rover's newest safing is refused by the rover.
+    /// The rover's safings this station had seen when the command was given (the newest's
+    /// epoch): one given before the station saw the rover's newest safing is refused by the
+    /// rover. `None`: the station had not heard the rover at all yet; it is sent with what the
+    /// station knows when it first sends it.
     #[serde(default)]
-    pub safings_seen: u64,
+    pub safings_seen: Option<u64>,
 }
 
 /// The radio link as the station sees it.
@@ -322,12 +324,7 @@ impl Station {
             .lock()
             .map_err(|_| StationError::Store("lock poisoned".into()))?;
         let seq = inner.next_seq;
-        let safings_seen = inner
-            .link
-            .rover
-            .as_ref()
-            .and_then(|r| r.last_safing.as_ref())
-            .map_or(0, |l| l.epoch);
+        let safings_seen = inner.link.rover.as_ref().map(safings_of);
         let entry = Entry {
             seq,
             id: format!("{}-{seq}-{:x}", self.shared.options.name, now_unix_ns()),
@@ -538,7 +535,9 @@ fn uplink(s: &Shared) -> (bool, bool, bool) {
                 seq: e.seq,
                 id: e.id.clone(),
                 order: e.order.clone(),
-                safings_seen: e.safings_seen,
+                safings_seen: e
+                    .safings_seen
+                    .unwrap_or_else(|| inner.link.rover.as_ref().map_or(0, safings_of)),
             })
             .take_while(|c| {
                 let first = bytes == 0;
@@ -650,6 +649,11 @@ fn uplink(s: &Shared) -> (bool, bool, bool) {
 }
 
 /// How far a command has come.
+/// The epoch of the newest safing a rover state shows (0: none).
+fn safings_of(r: &RoverState) -> u64 {
+    r.last_safing.as_ref().map_or(0, |l| l.epoch)
+}
+
 fn rank(state: CommandState) -> u8 {
     match state {
         CommandState::Queued => 0,

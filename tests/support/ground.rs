@@ -483,13 +483,24 @@ impl Rig {
 
     /// [`Rig::up`] with more environment variables.
     pub fn up_env(&self, dnms: &[&str], ground_side: bool, env: &[(&str, &str)]) -> Proc {
+        self.up_from(&self.netlist, dnms, ground_side, env)
+    }
+
+    /// `dnm up NETLIST` of some DNMs (a computer that joins with a netlist of its own).
+    pub fn up_from(
+        &self,
+        netlist: &Path,
+        dnms: &[&str],
+        ground_side: bool,
+        env: &[(&str, &str)],
+    ) -> Proc {
         let mut args = if ground_side {
             zenoh_args("client", self.ground_port)
         } else {
             zenoh_args("peer", self.rover_port)
         };
         args.push("up".into());
-        args.push(self.netlist.display().to_string());
+        args.push(netlist.display().to_string());
         for d in dnms {
             args.push("--dnm".into());
             args.push(d.to_string());

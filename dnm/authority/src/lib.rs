@@ -174,6 +174,8 @@ pub(crate) struct Shared {
     wake: (Mutex<bool>, Condvar),
     /// Wakes the beat thread (a safing is announced at once).
     beat: (Mutex<bool>, Condvar),
+    /// When each DNM of the rover last answered the reconciler.
+    dnms_heard: Mutex<BTreeMap<String, Instant>>,
     /// Time tags' instants on the monotonic clock.
     tag_clock: Mutex<BTreeMap<(String, u64), Instant>>,
     stop: AtomicBool,
@@ -286,6 +288,7 @@ impl Authority {
             AuthorityError::Netlist(format!("the decided netlist no longer validates: {e}"))
         })?;
         let digest = format!("{:016x}", current.digest());
+        let contact = last_contact(&store);
         let shared = Arc::new(Shared {
             timing: Mutex::new(Timing::default()),
             system: system.clone(),
@@ -300,11 +303,14 @@ impl Authority {
                 digest,
             }),
             rover: Mutex::new(RoverState::default()),
-            contact: Mutex::new(Instant::now()),
+            // A restarted authority counts the ground's silence from the last uplink it took,
+            // not from its start: an authority that restarts does not put off loss of signal.
+            contact: Mutex::new(contact),
             heard: AtomicBool::new(false),
             wake: (Mutex::new(false), Condvar::new()),
             beat: (Mutex::new(false), Condvar::new()),
             tag_clock: Mutex::new(BTreeMap::new()),
+            dnms_heard: Mutex::new(BTreeMap::new()),
             stop: AtomicBool::new(false),
         });
         if let Ok(core) = shared.core.lock() {
@@ -687,18 +693,6 @@ fn work_once(s: &Shared, gate: &mut Option<(String, Instant)>) -> Result<bool, A
             core.state.event(e);
             s.store.save_state(&core.state)?;
         }
-        Job::LinkLoss { task, silent }
-            if core.state.safe && core.state.task.as_ref() == Some(&task) =>
-        {
-            // Safe already (a DNM's safing adopted, say): the loss is recorded, nothing more.
-            tracing::warn!(
-                "no ground station heard for {:.1} s; the rover is safe already",
-                silent.as_secs_f64()
-            );
-            s.heard.store(false, Ordering::Relaxed);
-            core.state.link_lost = true;
-            s.store.save_state(&core.state)?;
-        }
         Job::LinkLoss { task, silent } => {
             let reason = format!(
                 "no ground station heard for {:.1} s: switching to `{task}`",
@@ -783,6 +777,14 @@ fn out_of_step(s: &Shared, snap: &Snapshot) -> Option<String> {
                 return Some(format!(
                     "DNM `{d}` is on revision {} task {:?}, holding {:?}",
                     r.revision, r.active_task, r.holding
+                ));
+            }
+            // An apply undone (or a module replaced) a moment ago: its processes are still
+            // going, and a new apply would be refused until they are gone.
+            Some(r) if r.modules_stopping > 0 => {
+                return Some(format!(
+                    "DNM `{d}` still stops {} module processes",
+                    r.modules_stopping
                 ));
             }
             Some(_) => {}
@@ -1314,6 +1316,21 @@ fn reports_of(s: &Shared, dnms: &[String], timeout: Duration) -> Vec<Option<DnmB
         .collect()
 }
 
+/// The moment of the last uplink the store took, on this process's monotonic clock (now if
+/// none, or if it is in the future).
+fn last_contact(store: &Store) -> Instant {
+    let now = Instant::now();
+    store
+        .last_contact_unix_ns()
+        .ok()
+        .flatten()
+        .and_then(|at| {
+            let ago = Duration::from_nanos(now_unix_ns().checked_sub(at)?);
+            now.checked_sub(ago)
+        })
+        .unwrap_or(now)
+}
+
 /// The newest netlist in force on the reachable DNMs (that still validates here) and its task.
 fn running(
     session: &zenoh::Session,
@@ -1421,9 +1438,12 @@ fn reconcile(s: &Shared, side: Side) {
         return;
     }
     let found = reports_of(s, &names, side.report_timeout(s));
-    // A DNM that made itself safe since the last decision: the whole rover is made safe
-    // before anything else (and before any DNM is made to adopt the task it left).
-    if safing::adopt_dnm_safing(s, &found) {
+    // A DNM of the rover that made itself safe since the last decision, or that has not
+    // answered for the loss-of-signal time: the whole rover is made safe before anything else
+    // (and before any DNM is made to adopt the task it left). DNMs across the radio follow.
+    if side == Side::Rover
+        && (safing::adopt_dnm_safing(s, &found) || safing::safe_on_silent_dnm(s, &names, &found))
+    {
         return;
     }
     // Taken after the reports: a report is never newer than the decisions it is judged by.

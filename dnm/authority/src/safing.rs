@@ -38,7 +38,9 @@ pub(crate) fn make_safe(
 ) -> Result<Safing, AuthorityError> {
     let now = now_unix_ns();
     let safing = Safing {
-        epoch: core.state.safings() + 1,
+        // Only ever grows, whatever happened to the store: one more than the last, and at
+        // least the safing's rover time in milliseconds.
+        epoch: (core.state.safings() + 1).max(now / 1_000_000),
         at_unix_ns: now,
         task: task.clone(),
         reason: reason.clone(),
@@ -109,21 +111,19 @@ pub(crate) fn stale(core: &Core, seen: u64) -> Option<String> {
 /// Adopts a safing a DNM made on its own since the last decision (it lost the authority, or
 /// the authority had lost the ground and could not say so). Returns whether it did.
 pub(crate) fn adopt_dnm_safing(s: &Shared, found: &[Option<DnmBrief>]) -> bool {
-    let Some((dnm, safed)) = found.iter().flatten().find_map(|b| {
-        b.safed
-            .as_ref()
-            .filter(|x| x.epoch.is_none())
-            .map(|x| (b.dnm.clone(), x.clone()))
-    }) else {
-        return false;
-    };
     let Ok(mut core) = s.core.lock() else {
         return false;
     };
-    if safed.at_unix_ns <= core.state.changed_at_unix_ns {
-        // Made safe before what was decided since: that decision has it adopt, not this.
+    // The DNM's time of its safing on the authority's clock (its measured offset added):
+    // made safe before what was decided since, that decision has it adopt, not this.
+    let since = core.state.changed_at_unix_ns as i128;
+    let Some((dnm, safed)) = found.iter().flatten().find_map(|b| {
+        let x = b.safed.as_ref().filter(|x| x.epoch.is_none())?;
+        let at = x.at_unix_ns as i128 + (b.clock_offset_ms.unwrap_or(0.0) * 1e6) as i128;
+        (at > since).then(|| (b.dnm.clone(), x.clone()))
+    }) else {
         return false;
-    }
+    };
     if core.state.safe && core.state.task.as_ref() == Some(&safed.task) {
         // The rover is in a safing on that task already (the DNM lost the authority while it
         // was made safe, say): the DNM follows it by the beat; nothing new to refuse.
@@ -137,6 +137,55 @@ pub(crate) fn adopt_dnm_safing(s: &Shared, found: &[Option<DnmBrief>]) -> bool {
         Ok(_) => true,
         Err(e) => {
             tracing::error!("adopting the safing of DNM `{dnm}`: {e}");
+            false
+        }
+    }
+}
+
+/// Makes the rover safe when a DNM of the rover has not answered for the loss-of-signal time:
+/// down or cut off, it has made itself safe by its lease by then, and the others must not go
+/// on without it. `found` are the answers of `names` in this pass. Returns whether it did.
+pub(crate) fn safe_on_silent_dnm(s: &Shared, names: &[String], found: &[Option<DnmBrief>]) -> bool {
+    let Ok(mut heard) = s.dnms_heard.lock() else {
+        return false;
+    };
+    let now = std::time::Instant::now();
+    heard.retain(|d, _| names.contains(d));
+    for (d, b) in names.iter().zip(found) {
+        if b.is_some() {
+            heard.insert(d.clone(), now);
+        } else {
+            heard.entry(d.clone()).or_insert(now);
+        }
+    }
+    let Ok(mut core) = s.core.lock() else {
+        return false;
+    };
+    let Some(rule) = core.netlist.on_link_loss.clone() else {
+        return false;
+    };
+    let after = Duration::from_millis(rule.after_ms);
+    let Some((dnm, silent)) = heard
+        .iter()
+        .map(|(d, t)| (d.clone(), now.duration_since(*t)))
+        .find(|(_, t)| *t >= after)
+    else {
+        return false;
+    };
+    drop(heard);
+    if core.state.safe && core.state.task.as_ref() == Some(&rule.task) {
+        return false;
+    }
+    let reason = format!(
+        "DNM `{dnm}` has not answered for {:.1} s (down or cut off, it is safe by its lease): \
+         switching to `{}`",
+        silent.as_secs_f64(),
+        rule.task
+    );
+    match make_safe(s, &mut core, rule.task, "dnm_lost", reason) {
+        Ok(_) => true,
+        Err(e) => {
+            tracing::error!("making the rover safe without DNM `{dnm}`: {e}");
             false
         }
     }

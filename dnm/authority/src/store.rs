@@ -231,7 +231,7 @@ impl Store {
         };
         // A store restored from an older copy: what the station knows to be final (everything
         // before `pending_from`) never runs again, so numbering goes on from there.
-        if pending_from > received + 1 {
+        if pending_from.saturating_sub(1) > received {
             tracing::warn!(
                 station,
                 received,
@@ -242,14 +242,13 @@ impl Store {
         }
         let mut gap = None;
         let mut taken_by_other = Vec::new();
-        let mut too_big = Vec::new();
         let tx = self.db.begin_write().map_err(db)?;
         {
             let mut inbox = tx.open_table(INBOX).map_err(db)?;
             let mut arrivals = tx.open_table(ARRIVALS).map_err(db)?;
             let mut arrival_of = tx.open_table(ARRIVAL_OF).map_err(db)?;
             let mut arrival = arrivals.last().map_err(db)?.map_or(0, |(k, _)| k.value());
-            let fates = tx.open_table(FATES).map_err(db)?;
+            let mut fates = tx.open_table(FATES).map_err(db)?;
             // What the station knows final (before `pending_from`) but this store still holds
             // (it was restored from an older copy) ran in the history the store lost: it never
             // runs again.
@@ -316,8 +315,8 @@ impl Store {
                     }
                     continue;
                 }
-                if c.seq != received + 1 {
-                    gap = Some((c.seq, c.id.clone(), received + 1));
+                if Some(c.seq) != received.checked_add(1) {
+                    gap = Some((c.seq, c.id.clone(), received.saturating_add(1)));
                     break;
                 }
                 let bytes = serde_json::to_vec(c).map_err(db)?;
@@ -329,7 +328,9 @@ impl Store {
                         bytes.len() / 1024,
                         MAX_COMMAND_BYTES / 1024
                     );
-                    too_big.push((c.seq, c.id.clone(), reason));
+                    let fate =
+                        serde_json::to_vec(&(&c.id, Fate::Refused { reason })).map_err(db)?;
+                    fates.insert(k.as_str(), fate.as_slice()).map_err(db)?;
                     continue;
                 }
                 inbox.insert(k.as_str(), bytes.as_slice()).map_err(db)?;
@@ -341,21 +342,13 @@ impl Store {
             let bytes = serde_json::to_vec(&received).map_err(db)?;
             meta.insert(recv_key.as_str(), bytes.as_slice())
                 .map_err(db)?;
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos() as u64);
+            let bytes = serde_json::to_vec(&now).map_err(db)?;
+            meta.insert("contact", bytes.as_slice()).map_err(db)?;
         }
         tx.commit().map_err(db)?;
-        for (seq, id, reason) in &too_big {
-            self.finish(Finish {
-                fates: vec![(
-                    station,
-                    *seq,
-                    id,
-                    Fate::Refused {
-                        reason: reason.clone(),
-                    },
-                )],
-                ..Finish::default()
-            })?;
-        }
         // The fates of what was sent and of what the station waits for, then news from
         // `pending_from` on for a station that does not say what it waits for.
         let mut asked: std::collections::BTreeSet<u64> = commands
@@ -383,7 +376,7 @@ impl Store {
                 seq,
                 id: String::new(),
                 fate: Fate::OutOfOrder {
-                    expected: received + 1,
+                    expected: received.saturating_add(1),
                 },
             }),
             (None, None) => {}
@@ -417,6 +410,11 @@ impl Store {
             }
         }
         Ok(out)
+    }
+
+    /// When the last uplink was taken (wall clock, ns), if ever.
+    pub(crate) fn last_contact_unix_ns(&self) -> Result<Option<u64>, AuthorityError> {
+        self.meta("contact")
     }
 
     /// Whether the rover keeps a record of `station`, or has room for one more.

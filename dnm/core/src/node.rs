@@ -156,6 +156,8 @@ pub struct Dnm {
     pub(crate) decided: Decided,
     /// On the safe task by the authority's safing or its own lease, until the next decision.
     pub(crate) safed: Option<dnm_proto::Safed>,
+    /// A transaction's prepare waiting for module processes to stop.
+    pub(crate) deferred_prepare: Option<(crate::command::Txn, Reply<Result<(), String>>)>,
     /// At real-time priority until a decision is in force.
     pub(crate) hurried: bool,
     pub(crate) warned_realtime: bool,
@@ -267,6 +269,7 @@ impl Dnm {
             scheduled: None,
             decided: Decided::new(),
             safed: None,
+            deferred_prepare: None,
             hurried: false,
             warned_realtime: false,
             commands,
@@ -420,6 +423,7 @@ impl Dnm {
             last_attempt: self.last_attempt,
             holding: self.holding(),
             scheduled_at_unix_ns: self.scheduled_at(),
+            modules_stopping: self.stopping.len() as u32,
             safed: self.safed.clone(),
             lease: None,
             cpu_percent: self.cpu.percent,
@@ -541,6 +545,7 @@ impl Dnm {
                 }
             }
             self.give_up_stale_hold();
+            self.retry_deferred_prepare();
             if self.quiet() {
                 continue;
             }

@@ -83,11 +83,16 @@ impl Dnm {
         if let Some(h) = self.held_switch.take() {
             self.remember_decided(h.id, Err(why.to_string()));
         }
-        if let Some(id) = self.apply.as_ref().and_then(|p| p.txn)
-            && let Some(p) = self.apply.take()
-        {
-            self.remember_decided(id, Err(why.to_string()));
+        // A prepared transaction, or an adoption under way: neither may put its task in force
+        // after the safing.
+        if let Some(p) = self.apply.take() {
+            if let Some(id) = p.txn {
+                self.remember_decided(id, Err(why.to_string()));
+            }
             self.abort_apply(p, why.to_string());
+        }
+        if let Some((_, reply)) = self.deferred_prepare.take() {
+            reply.send(Err(why.to_string()));
         }
         if let Some(s) = self.scheduled.take() {
             self.remember_decided(s.decision.id, Err(why.to_string()));

@@ -119,10 +119,22 @@ impl Dnm {
             )));
         }
         if self.waits_for_stopping(&netlist) {
-            return reply.send(Err(format!(
-                "modules of DNM `{}` are still stopping; send the transaction again",
-                self.name
-            )));
+            // A process of a module it starts again is still stopping (an apply undone a
+            // moment ago): prepared once it is gone, within the authority's prepare timeout.
+            if self.deferred_prepare.is_some() {
+                return reply.send(Err(format!(
+                    "modules of DNM `{}` are still stopping; send the transaction again",
+                    self.name
+                )));
+            }
+            self.deferred_prepare = Some((
+                Txn {
+                    netlist: Some(netlist),
+                    ..txn
+                },
+                reply,
+            ));
+            return;
         }
         match self.prepare_apply(*netlist, None, Some(txn.revision)) {
             Ok(mut p) => {
@@ -136,9 +148,26 @@ impl Dnm {
         }
     }
 
+    /// Prepares a transaction that waited for module processes to stop, once they have.
+    pub(crate) fn retry_deferred_prepare(&mut self) {
+        let ready = self.deferred_prepare.as_ref().is_some_and(|(t, _)| {
+            t.netlist
+                .as_ref()
+                .is_none_or(|n| !self.waits_for_stopping(n))
+        });
+        if ready && let Some((txn, reply)) = self.deferred_prepare.take() {
+            self.prepare_txn(txn, reply);
+        }
+    }
+
     pub(crate) fn decide_txn(&mut self, d: Decision, reply: Reply<DecideResult>) {
         if let Some(r) = self.decided(d.id) {
             return reply.send(r);
+        }
+        if let Some((_, waiting)) = self.deferred_prepare.take_if(|(t, _)| t.id == d.id) {
+            // Decided before it could be prepared: it can only have been dropped.
+            waiting.send(Err(format!("transaction {} dropped", d.id)));
+            return reply.send(Ok(None));
         }
         if let Some(s) = self.scheduled.as_mut().filter(|s| s.decision.id == d.id) {
             s.replies.push(reply);
@@ -312,7 +341,9 @@ impl Dnm {
             .filter(|(_, s)| s.child.is_some())
             .map(|(n, _)| n.clone())
             .collect();
-        for name in &running {
+        // Every module, those waiting to be restarted too.
+        let all: Vec<String> = self.modules.keys().cloned().collect();
+        for name in &all {
             self.stop_module(name);
         }
         if !running.is_empty() {

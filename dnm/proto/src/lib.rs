@@ -215,6 +215,9 @@ pub struct DnmReport {
     /// When the scheduled decision takes effect, wall-clock ns since the Unix epoch.
     #[serde(default)]
     pub scheduled_at_unix_ns: Option<u64>,
+    /// Module processes still stopping (removed, replaced, or of an apply undone).
+    #[serde(default)]
+    pub modules_stopping: u32,
     /// On its loss-of-signal task by the authority's safing or its own lease, if it is.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub safed: Option<Safed>,
@@ -323,6 +326,9 @@ pub struct DnmBrief {
     pub holding: Option<u64>,
     /// Modules not running (starting, failed, hung, stopped).
     pub modules_down: u32,
+    /// Module processes still stopping (a new apply waits for them).
+    #[serde(default)]
+    pub modules_stopping: u32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub safed: Option<Safed>,
     /// The authority's wall clock minus this DNM's, ms.
@@ -346,6 +352,7 @@ impl DnmBrief {
                 .iter()
                 .filter(|m| m.state != ModuleRunState::Running)
                 .count() as u32,
+            modules_stopping: r.modules_stopping,
             safed: r.safed.clone(),
             clock_offset_ms: r.lease.as_ref().and_then(|l| l.clock_offset_ms),
         }

@@ -38,6 +38,9 @@ const CHECK_EVERY: Duration = Duration::from_millis(100);
 /// An order not yet seen in force is sent again after this long.
 const RESEND_AFTER: Duration = Duration::from_secs(1);
 
+/// Beats that arrive closer together than this, though sent further apart, were held up.
+const BURST: Duration = Duration::from_millis(50);
+
 /// Clock offsets kept (the largest is the best estimate: a beat's delay only lowers it).
 const OFFSETS: usize = 8;
 
@@ -75,12 +78,23 @@ impl Lease {
         if beat.authority != authority {
             return;
         }
-        let offset_ms = (beat.at_unix_ns as f64 - now_unix_ns() as f64) / 1e6;
-        self.offsets.push_back(offset_ms);
-        if self.offsets.len() > OFFSETS {
-            self.offsets.pop_front();
+        let now = Instant::now();
+        // Beats held up on the way (this process was stopped, the network stalled) arrive
+        // together long after they were sent: only the first of such a burst is taken as a
+        // clock sample, and the offset is the largest of the last few (a late sample only
+        // lowers it), so a backlog never passes for a clock that is off.
+        let burst = self.last.as_ref().is_some_and(|(t, b)| {
+            now.duration_since(*t) < BURST
+                && beat.at_unix_ns > b.at_unix_ns + BURST.as_nanos() as u64
+        });
+        if !burst {
+            let offset_ms = (beat.at_unix_ns as f64 - now_unix_ns() as f64) / 1e6;
+            self.offsets.push_back(offset_ms);
+            if self.offsets.len() > OFFSETS {
+                self.offsets.pop_front();
+            }
         }
-        self.last = Some((Instant::now(), beat));
+        self.last = Some((now, beat));
     }
 
     /// The authority's clock minus this DNM's, ms.
@@ -189,10 +203,9 @@ pub(crate) fn lease_loop(
             l.sent = None;
             continue;
         };
-        if l.sent
-            .as_ref()
-            .is_some_and(|(o, t)| *o == order && t.elapsed() < RESEND_AFTER)
-        {
+        if l.sent.as_ref().is_some_and(|(o, t)| {
+            (&o.task, o.epoch) == (&order.task, order.epoch) && t.elapsed() < RESEND_AFTER
+        }) {
             continue;
         }
         l.sent = Some((order.clone(), Instant::now()));
@@ -310,6 +323,22 @@ mod tests {
         // Without a loss-of-signal rule there is nothing to do.
         l.committed(None);
         assert_eq!(l.due("rover", Some(&snapshot("auto", None))), None);
+    }
+
+    /// Beats held up for a while (the DNM's process was stopped) arrive in a burst: they do
+    /// not pass for a clock that is off.
+    #[test]
+    fn a_backlog_of_beats_is_not_a_clock_offset() {
+        let mut l = lease(1000);
+        let now = now_unix_ns();
+        for i in 0..20u64 {
+            let mut b = beat(0, None);
+            b.at_unix_ns = now - 30_000_000_000 + i * 200_000_000;
+            l.heard("rover", b);
+        }
+        std::thread::sleep(BURST * 2);
+        l.heard("rover", beat(0, None));
+        assert_eq!(l.clock_refusal("drive"), None, "{:?}", l.offsets);
     }
 
     #[test]
