@@ -469,14 +469,15 @@ fn through_the_authority_only_the_operators_station_commands() {
     eventually("both DNMs adopt the authority's netlist", || {
         (active_tasks(&s, &operator) == ["feed", "feed"]).then_some(())
     });
-    let station = |name: &str| -> (Proc, Api) {
+    // A station named `name` with the certificate of `identity`.
+    let station_as = |identity: &str, name: &str| -> (Proc, Api) {
         let http = format!("127.0.0.1:{}", free_port());
         let p = Proc::dnm(
             &s.dir,
             &format!("station-{name}"),
             &[
                 "--zenoh-config".into(),
-                s.config(name).display().to_string(),
+                s.config(identity).display().to_string(),
                 "ground".into(),
                 "serve".into(),
                 "--system".into(),
@@ -493,6 +494,7 @@ fn through_the_authority_only_the_operators_station_commands() {
         eventually("the station's API", || api.up().then_some(()));
         (p, api)
     };
+    let station = |name: &str| station_as(name, name);
 
     // The operator's station commands the rover through the authority.
     let (_op_station, op) = station("ground-1");
@@ -537,30 +539,7 @@ fn through_the_authority_only_the_operators_station_commands() {
 
     // A station is its certificate: the operator's certificate does not speak as another
     // station (its uplinks are refused by the router, and recorded there).
-    let (_impostor, imp) = {
-        let http = format!("127.0.0.1:{}", free_port());
-        let p = Proc::dnm(
-            &s.dir,
-            "station-impostor",
-            &[
-                "--zenoh-config".into(),
-                s.config("ground-1").display().to_string(),
-                "ground".into(),
-                "serve".into(),
-                "--system".into(),
-                s.system.clone(),
-                "--station".into(),
-                "ground-2".into(),
-                "--db".into(),
-                s.dir.join("impostor.redb").display().to_string(),
-                "--http".into(),
-                http.clone(),
-            ],
-        );
-        let api = Api(format!("http://{http}"));
-        eventually("the impostor's API", || api.up().then_some(()));
-        (p, api)
-    };
+    let (_impostor, imp) = station_as("ground-1", "ground-2");
     let i = imp.submit(&Order::Switch {
         task: "feed".into(),
         at_unix_ns: None,
