@@ -550,3 +550,22 @@ fn a_rover_computer_that_stops_answering_makes_the_rover_safe_with_the_station_i
     wait_in_step(&session, &rig.system, &ROVER, "c");
     leaves_safe_on_a_new_command(&session, &rig, &api);
 }
+
+#[test]
+fn the_authority_does_not_start_without_a_lasting_folder_for_its_store() {
+    let rig = Rig::new("fnostate", "");
+    // No --state-dir, no $DNM_STATE_DIR, $XDG_STATE_HOME or $HOME: it would be the temporary
+    // directory, lost at a reboot.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_dnm"))
+        .env_clear()
+        .env("PATH", std::env::var_os("PATH").unwrap_or_default())
+        .env("DNM_MODULE_HOST", support::system::module_host())
+        .args(["--no-multicast", "up"])
+        .arg(&rig.netlist)
+        .args(["--dnm", "rover", "--no-record"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("no folder for durable state"), "{err}");
+}

@@ -434,3 +434,21 @@ pub fn wait_for_signal() {
         std::thread::sleep(Duration::from_millis(200));
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    /// A time tag far beyond any time the rover keeps is refused, never wrapped to an early one.
+    #[test]
+    fn absurd_time_tags_are_refused_not_wrapped() {
+        let e = parse_at("+100000000h", 0.0).unwrap_err();
+        assert!(e.to_string().contains("beyond any time"), "{e}");
+        assert!(parse_at("99999999999999", 0.0).is_err());
+        assert!(parse_at("-5", 0.0).is_err());
+        let soon = parse_at("+30s", 0.0).unwrap();
+        let now = dnm_ground::now_unix_ns();
+        assert!(soon > now && soon < now + 31_000_000_000);
+    }
+}
