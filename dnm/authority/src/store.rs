@@ -39,6 +39,9 @@ const DECISIONS_STORED: u64 = 1024;
 const FATES_KEPT: u64 = 4096;
 /// Stations the rover keeps a record of; a new one beyond is refused.
 pub(crate) const MAX_STATIONS: usize = 64;
+/// Commands of one station taken and not yet run, at most; more are refused when taken (a
+/// station must not fill the rover's disk while its worker waits for a DNM).
+pub(crate) const MAX_PENDING: usize = 256;
 /// Bytes of one command (a netlist's text, mostly); a larger one is refused when taken.
 pub(crate) const MAX_COMMAND_BYTES: usize = 1 << 20;
 /// Events kept.
@@ -282,6 +285,11 @@ impl Store {
                 timers.remove(k.as_str()).map_err(db)?;
             }
             drop(timers);
+            let mut pending = inbox
+                .range(key(station, 0).as_str()..key(station, u64::MAX).as_str())
+                .map_err(db)?
+                .take(MAX_PENDING)
+                .count();
             let mut sorted: Vec<&Sent> = commands.iter().collect();
             sorted.sort_by_key(|c| c.seq);
             for c in sorted {
@@ -322,18 +330,28 @@ impl Store {
                 let bytes = serde_json::to_vec(c).map_err(db)?;
                 let k = key(station, c.seq);
                 received = c.seq;
-                if bytes.len() > MAX_COMMAND_BYTES {
-                    let reason = format!(
+                let refusal = if bytes.len() > MAX_COMMAND_BYTES {
+                    Some(format!(
                         "command of {} KiB: the rover takes commands of at most {} KiB",
                         bytes.len() / 1024,
                         MAX_COMMAND_BYTES / 1024
-                    );
+                    ))
+                } else if pending >= MAX_PENDING {
+                    Some(format!(
+                        "the rover holds {MAX_PENDING} commands of station `{station}` not yet \
+                         run: send it again once they have run"
+                    ))
+                } else {
+                    None
+                };
+                if let Some(reason) = refusal {
                     let fate =
                         serde_json::to_vec(&(&c.id, Fate::Refused { reason })).map_err(db)?;
                     fates.insert(k.as_str(), fate.as_slice()).map_err(db)?;
                     continue;
                 }
                 inbox.insert(k.as_str(), bytes.as_slice()).map_err(db)?;
+                pending += 1;
                 arrival += 1;
                 arrivals.insert(arrival, k.as_str()).map_err(db)?;
                 arrival_of.insert(k.as_str(), arrival).map_err(db)?;
@@ -720,6 +738,20 @@ mod tests {
         }
         assert!(s.admits("s0").unwrap());
         assert!(!s.admits("one-too-many").unwrap());
+        // A station's commands not yet run are bounded too.
+        let many: Vec<Sent> = (2..=MAX_PENDING as u64 + 2)
+            .map(|i| sent(i, &format!("m{i}")))
+            .collect();
+        s.intake("g", &many, 1, &[]).unwrap();
+        let last = MAX_PENDING as u64 + 2;
+        assert!(matches!(
+            s.fate("g", last).unwrap(),
+            Some(Fate::Refused { .. })
+        ));
+        assert!(
+            s.fate("g", last - 1).unwrap().is_none(),
+            "taken, not refused"
+        );
     }
 
     #[test]
