@@ -594,81 +594,8 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
             .map(String::as_str)
             .filter(|d| declared.contains(d))
             .collect();
-        if i.role == Role::Rover && !own.is_empty() {
-            // A computer answers for its own DNMs only (their state, netlist, commands,
-            // modules and ports) and keeps their liveliness; the authority's host also answers
-            // the stations and sends the DNMs their transactions.
-            let mut answers: Vec<String> = own
-                .iter()
-                .flat_map(|d| {
-                    [
-                        keys::dnm(sys, d),
-                        format!("{}/**", keys::dnm(sys, d)),
-                        format!("{sys}/module/{d}/**"),
-                        format!("{sys}/port/{d}/**"),
-                    ]
-                })
-                .collect();
-            let authority = netlist.authority().is_some_and(|a| own.contains(&a));
-            if authority {
-                answers.push(keys::authority_stations(sys));
-            }
-            let id = format!("answer-{}", i.name);
-            rules.push(json!({
-                "id": id,
-                "flows": ["ingress"],
-                "permission": "allow",
-                "messages": ["declare_queryable", "reply", "liveliness_token"],
-                "key_exprs": answers,
-            }));
-            granted.push(id);
-            if authority {
-                // Its beat: the lease every DNM of the rover keeps on it.
-                let id = format!("beat-{}", i.name);
-                rules.push(json!({
-                    "id": id,
-                    "flows": ["ingress"],
-                    "permission": "allow",
-                    "messages": ["put"],
-                    "key_exprs": [keys::authority_beat(sys)],
-                }));
-                granted.push(id);
-                let id = format!("transact-{}", i.name);
-                rules.push(json!({
-                    "id": id,
-                    "flows": ["ingress"],
-                    "permission": "allow",
-                    "messages": ["query"],
-                    "key_exprs": [keys::cmd(sys, "*")],
-                }));
-                granted.push(id);
-            }
-            // It publishes the ports of the modules on its own DNMs (routed or watched), and
-            // nothing else.
-            let id = format!("publish-{}", i.name);
-            let owned: Vec<String> = own
-                .iter()
-                .flat_map(|d| [format!("{sys}/port/{d}/**"), format!("{sys}/watch/{d}/**")])
-                .collect();
-            rules.push(json!({
-                "id": id,
-                "flows": ["ingress"],
-                "permission": "allow",
-                "messages": ["put", "delete"],
-                "key_exprs": owned,
-            }));
-            granted.push(id);
-        }
-        if i.role == Role::Operator {
-            // Its station's uplinks, on the key of its own name.
-            let id = format!("station-{}", i.name);
-            rules.push(json!({
-                "id": id,
-                "flows": ["ingress"],
-                "permission": "allow",
-                "messages": ["query"],
-                "key_exprs": [keys::authority_station(sys, &i.name)],
-            }));
+        for (id, rule) in identity_rules(netlist, i, &own) {
+            rules.push(rule);
             granted.push(id);
         }
         let subject = format!("id-{}", i.name);
@@ -686,6 +613,79 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
         "subjects": subjects,
         "policies": policies,
     })
+}
+
+/// A rule letting one identity send `messages` on `key_exprs`, by its id.
+fn ingress_rule(id: String, messages: &[&str], key_exprs: Vec<String>) -> (String, Value) {
+    let rule = json!({
+        "id": id,
+        "flows": ["ingress"],
+        "permission": "allow",
+        "messages": messages,
+        "key_exprs": key_exprs,
+    });
+    (id, rule)
+}
+
+/// The rules of one identity of its own: a computer answers for its own DNMs only (their
+/// state, netlist, commands, modules and ports), keeps their liveliness and publishes their
+/// ports, nothing else; the authority's host also answers the stations, beats and sends the
+/// DNMs their transactions; an operator's station sends its uplinks on its own name's key.
+fn identity_rules(netlist: &Netlist, i: &Identity, own: &[&str]) -> Vec<(String, Value)> {
+    let sys = &netlist.system;
+    let mut out = Vec::new();
+    if i.role == Role::Operator {
+        out.push(ingress_rule(
+            format!("station-{}", i.name),
+            &["query"],
+            vec![keys::authority_station(sys, &i.name)],
+        ));
+    }
+    if i.role != Role::Rover || own.is_empty() {
+        return out;
+    }
+    let mut answers: Vec<String> = own
+        .iter()
+        .flat_map(|d| {
+            [
+                keys::dnm(sys, d),
+                format!("{}/**", keys::dnm(sys, d)),
+                format!("{sys}/module/{d}/**"),
+                format!("{sys}/port/{d}/**"),
+            ]
+        })
+        .collect();
+    let authority = netlist.authority().is_some_and(|a| own.contains(&a));
+    if authority {
+        answers.push(keys::authority_stations(sys));
+    }
+    out.push(ingress_rule(
+        format!("answer-{}", i.name),
+        &["declare_queryable", "reply", "liveliness_token"],
+        answers,
+    ));
+    if authority {
+        out.push(ingress_rule(
+            format!("beat-{}", i.name),
+            &["put"],
+            vec![keys::authority_beat(sys)],
+        ));
+        out.push(ingress_rule(
+            format!("transact-{}", i.name),
+            &["query"],
+            vec![keys::cmd(sys, "*")],
+        ));
+    }
+    let owned = own
+        .iter()
+        .flat_map(|d| [format!("{sys}/port/{d}/**"), format!("{sys}/watch/{d}/**")])
+        .collect();
+    out.push(ingress_rule(
+        format!("publish-{}", i.name),
+        &["put", "delete"],
+        owned,
+    ));
+    out
 }
 
 #[cfg(test)]

@@ -992,25 +992,8 @@ fn transact(
     cmd: Option<(String, u64, String)>,
     timer_remove: Option<(String, u64)>,
 ) -> Fate {
-    let finish = |core: &Core, fate: &Fate| {
-        let fates = cmd
-            .iter()
-            .map(|(st, seq, id)| (st.as_str(), *seq, id.as_str(), fate.clone()))
-            .collect();
-        let r = s.store.finish(Finish {
-            fates,
-            done: cmd.as_ref().map(|(st, seq, _)| (st.as_str(), *seq)),
-            timer_add: None,
-            timer_remove: timer_remove.as_ref().map(|(st, seq)| (st.as_str(), *seq)),
-            timers_remove: Vec::new(),
-            state: Some(&core.state),
-            decision: core.state.decisions.last(),
-        });
-        if let Err(e) = &r {
-            tracing::error!("storing a decision: {e}");
-        }
-        r
-    };
+    let origin = Origin { cmd, timer_remove };
+    let finish = |core: &Core, fate: &Fate| origin.record(s, core, fate);
     let target = netlist.as_ref().unwrap_or(&core.netlist);
     let participants: Vec<String> = target
         .dnms
@@ -1018,30 +1001,13 @@ fn transact(
         .filter(|d| !d.radio)
         .map(|d| d.name.clone())
         .collect();
-    // The task in force after it: named, else the active one if it is still defined, else
-    // the netlist's initial task.
-    let task = task
-        .filter(|t| target.tasks.contains_key(t))
-        .or_else(|| {
-            core.state
-                .task
-                .clone()
-                .filter(|t| target.tasks.contains_key(t))
-        })
-        .or_else(|| target.initial_task().map(str::to_string));
+    let task = task_after(core, target, task);
     let (file, text) = match &netlist {
         Some(n) => (Some(n.file.display().to_string()), Some(n.text.clone())),
         None => (None, None),
     };
     // Numbers first, durably: a restarted authority never hands them out again.
-    let id = core.state.next_txn;
-    core.state.next_txn += 1;
-    let revision = if netlist.is_some() {
-        core.state.burned = core.state.burned.max(core.state.revision) + 1;
-        core.state.burned
-    } else {
-        core.state.revision
-    };
+    let (id, revision) = next_numbers(core, netlist.is_some());
     if let Err(e) = s.store.save_state(&core.state) {
         return Fate::Refused {
             reason: format!("the rover could not store the transaction: {e}"),
@@ -1063,18 +1029,7 @@ fn transact(
             .map(|mut t| t.round_trip(started.elapsed()))
             .ok();
     }
-    let refusals: Vec<String> = votes
-        .iter()
-        .filter_map(|(d, r)| match r {
-            Ok(r) if r.ok => None,
-            Ok(r) => Some(
-                r.error
-                    .clone()
-                    .unwrap_or_else(|| format!("DNM `{d}` refused")),
-            ),
-            Err(e) => Some(format!("DNM `{d}`: {e}")),
-        })
-        .collect();
+    let refusals = refusals(&votes);
     if !refusals.is_empty() {
         let decision = DecisionRecord {
             txn: id,
@@ -1118,26 +1073,9 @@ fn transact(
         core.netlist.clone(),
         core.digest.clone(),
     );
-    // DNMs the apply removes: told once the decision is in force, so they stop their modules.
-    let removed: Vec<String> = match &netlist {
-        Some(n) => core
-            .netlist
-            .dnms
-            .iter()
-            .filter(|d| n.dnm(&d.name).is_none())
-            .map(|d| d.name.clone())
-            .collect(),
-        None => Vec::new(),
-    };
-    let removal = Request::Adopt {
-        revision,
-        task: task.clone(),
-        file: netlist
-            .as_ref()
-            .map(|n| n.file.display().to_string())
-            .unwrap_or_default(),
-        text: netlist.as_ref().map(|n| n.text.clone()).unwrap_or_default(),
-    };
+    let removal = netlist
+        .as_ref()
+        .map(|n| removal(&core.netlist, n, revision, task.clone()));
     core.state.decided(decision.clone());
     if let Some(n) = netlist {
         core.state.file = n.file.display().to_string();
@@ -1177,25 +1115,9 @@ fn transact(
             reason: format!("the rover could not store the decision: {e}"),
         };
     }
-    // Every DNM acknowledges after the instant; those that do not are caught by the
-    // reconciler (the decision is stored).
-    let request = decide(&decision);
-    let mut missing = participants.clone();
-    for _ in 0..3 {
-        let wait =
-            Duration::from_nanos(at_unix_ns.saturating_sub(now_unix_ns())) + Duration::from_secs(2);
-        let acks = ask_all(s, &missing, &request, id, wait);
-        missing = acks
-            .into_iter()
-            .filter(|(_, r)| !r.as_ref().is_ok_and(|r| r.ok))
-            .map(|(d, _)| d)
-            .collect();
-        if missing.is_empty() {
-            break;
-        }
-    }
-    if !removed.is_empty() {
-        log_answers(ask_all(s, &removed, &removal, id, Duration::from_secs(2)));
+    let missing = put_in_force(s, &participants, &decision);
+    if let Some((removed, request)) = removal.filter(|(r, _)| !r.is_empty()) {
+        log_answers(ask_all(s, &removed, &request, id, Duration::from_secs(2)));
     }
     if at.is_none() {
         s.timing.lock().map(|mut t| t.busy(started.elapsed())).ok();
@@ -1209,6 +1131,128 @@ fn transact(
         "decided"
     );
     fate
+}
+
+/// The command (or time tag) a transaction runs for: its fate is stored with the decision.
+struct Origin {
+    /// (station, seq, id).
+    cmd: Option<(String, u64, String)>,
+    /// The time tag it takes out, if it is one.
+    timer_remove: Option<(String, u64)>,
+}
+
+impl Origin {
+    /// Stores `fate` with the state and its newest decision, in one write.
+    fn record(&self, s: &Shared, core: &Core, fate: &Fate) -> Result<(), AuthorityError> {
+        let fates = self
+            .cmd
+            .iter()
+            .map(|(st, seq, id)| (st.as_str(), *seq, id.as_str(), fate.clone()))
+            .collect();
+        let r = s.store.finish(Finish {
+            fates,
+            done: self.cmd.as_ref().map(|(st, seq, _)| (st.as_str(), *seq)),
+            timer_add: None,
+            timer_remove: self
+                .timer_remove
+                .as_ref()
+                .map(|(st, seq)| (st.as_str(), *seq)),
+            timers_remove: Vec::new(),
+            state: Some(&core.state),
+            decision: core.state.decisions.last(),
+        });
+        if let Err(e) = &r {
+            tracing::error!("storing a decision: {e}");
+        }
+        r
+    }
+}
+
+/// The task in force after a transaction on `target`: the one named, else the active one if
+/// it is still defined, else the netlist's initial task.
+fn task_after(core: &Core, target: &Netlist, task: Option<String>) -> Option<String> {
+    task.filter(|t| target.tasks.contains_key(t))
+        .or_else(|| {
+            core.state
+                .task
+                .clone()
+                .filter(|t| target.tasks.contains_key(t))
+        })
+        .or_else(|| target.initial_task().map(str::to_string))
+}
+
+/// The next transaction id and the revision it puts in force (a new one for an apply, never
+/// used before; the one in force for a switch).
+fn next_numbers(core: &mut Core, apply: bool) -> (u64, u64) {
+    let id = core.state.next_txn;
+    core.state.next_txn += 1;
+    let revision = if apply {
+        core.state.burned = core.state.burned.max(core.state.revision) + 1;
+        core.state.burned
+    } else {
+        core.state.revision
+    };
+    (id, revision)
+}
+
+/// Why the DNMs refused a prepare, one line each (empty: every DNM is ready).
+fn refusals(votes: &[(String, Result<Response, String>)]) -> Vec<String> {
+    votes
+        .iter()
+        .filter_map(|(d, r)| match r {
+            Ok(r) if r.ok => None,
+            Ok(r) => Some(
+                r.error
+                    .clone()
+                    .unwrap_or_else(|| format!("DNM `{d}` refused")),
+            ),
+            Err(e) => Some(format!("DNM `{d}`: {e}")),
+        })
+        .collect()
+}
+
+/// The DNMs an apply of `to` removes from `from`, and what they are told once the decision is
+/// in force (so they stop their modules).
+fn removal(
+    from: &Netlist,
+    to: &Netlist,
+    revision: u64,
+    task: Option<String>,
+) -> (Vec<String>, Request) {
+    let removed = from
+        .dnms
+        .iter()
+        .filter(|d| to.dnm(&d.name).is_none())
+        .map(|d| d.name.clone())
+        .collect();
+    let request = Request::Adopt {
+        revision,
+        task,
+        file: to.file.display().to_string(),
+        text: to.text.clone(),
+    };
+    (removed, request)
+}
+
+/// Sends the stored decision until every DNM acknowledges it (after the instant), three times
+/// at most; returns those that did not (the reconciler catches them: the decision is stored).
+fn put_in_force(s: &Shared, participants: &[String], decision: &DecisionRecord) -> Vec<String> {
+    let request = decide(decision);
+    let mut missing = participants.to_vec();
+    for _ in 0..3 {
+        let wait = Duration::from_nanos(decision.at_unix_ns.saturating_sub(now_unix_ns()))
+            + Duration::from_secs(2);
+        let acks = ask_all(s, &missing, &request, decision.txn, wait);
+        missing = acks
+            .into_iter()
+            .filter(|(_, r)| !r.as_ref().is_ok_and(|r| r.ok))
+            .map(|(d, _)| d)
+            .collect();
+        if missing.is_empty() {
+            break;
+        }
+    }
+    missing
 }
 
 fn decide(d: &DecisionRecord) -> Request {

@@ -159,6 +159,210 @@ pub(crate) struct Finish<'a> {
     pub(crate) decision: Option<&'a DecisionRecord>,
 }
 
+/// What one intake took: the last number taken, the first command out of order (its number,
+/// id and the number expected) and numbers another command took.
+struct Taken {
+    received: u64,
+    gap: Option<(u64, String, u64)>,
+    taken_by_other: Vec<Outcome>,
+}
+
+/// The keys of `station`'s rows below number `seq` in a table keyed `station \0 seq`.
+fn keys_below(
+    t: &redb::Table<'_, &str, &[u8]>,
+    station: &str,
+    seq: u64,
+) -> Result<Vec<String>, AuthorityError> {
+    Ok(
+        t.range(key(station, 0).as_str()..key(station, seq).as_str())
+            .map_err(db)?
+            .filter_map(|r| r.ok().map(|(k, _)| k.value().to_string()))
+            .collect(),
+    )
+}
+
+/// What the station knows final (before `pending_from`) but this store still holds (it was
+/// restored from an older copy) ran in the history the store lost: it never runs again.
+fn drop_known_final(
+    tx: &redb::WriteTransaction,
+    station: &str,
+    pending_from: u64,
+) -> Result<(), AuthorityError> {
+    let mut inbox = tx.open_table(INBOX).map_err(db)?;
+    let mut timers = tx.open_table(TIMERS).map_err(db)?;
+    let stale = keys_below(&inbox, station, pending_from)?;
+    let stale_timers = keys_below(&timers, station, pending_from)?;
+    if stale.is_empty() && stale_timers.is_empty() {
+        return Ok(());
+    }
+    tracing::warn!(
+        station,
+        commands = stale.len(),
+        time_tags = stale_timers.len(),
+        "dropping commands the station knows to be final (this store is older)"
+    );
+    let mut arrivals = tx.open_table(ARRIVALS).map_err(db)?;
+    let mut arrival_of = tx.open_table(ARRIVAL_OF).map_err(db)?;
+    for k in &stale {
+        inbox.remove(k.as_str()).map_err(db)?;
+        if let Some(a) = arrival_of.remove(k.as_str()).map_err(db)? {
+            let a = a.value();
+            arrivals.remove(a).map_err(db)?;
+        }
+    }
+    for k in &stale_timers {
+        timers.remove(k.as_str()).map_err(db)?;
+    }
+    Ok(())
+}
+
+/// One station's commands being taken, in one write transaction.
+struct Taking<'t> {
+    station: &'t str,
+    inbox: redb::Table<'t, &'static str, &'static [u8]>,
+    arrivals: redb::Table<'t, u64, &'static str>,
+    arrival_of: redb::Table<'t, &'static str, u64>,
+    fates: redb::Table<'t, &'static str, &'static [u8]>,
+    /// The newest arrival number handed out.
+    arrival: u64,
+    /// The station's commands in the inbox (up to [`MAX_PENDING`]).
+    pending: usize,
+    taken: Taken,
+}
+
+impl<'t> Taking<'t> {
+    fn open(
+        tx: &'t redb::WriteTransaction,
+        station: &'t str,
+        received: u64,
+    ) -> Result<Self, AuthorityError> {
+        let inbox = tx.open_table(INBOX).map_err(db)?;
+        let arrivals = tx.open_table(ARRIVALS).map_err(db)?;
+        let arrival = arrivals.last().map_err(db)?.map_or(0, |(k, _)| k.value());
+        let pending = inbox
+            .range(key(station, 0).as_str()..key(station, u64::MAX).as_str())
+            .map_err(db)?
+            .take(MAX_PENDING)
+            .count();
+        Ok(Self {
+            station,
+            inbox,
+            arrivals,
+            arrival_of: tx.open_table(ARRIVAL_OF).map_err(db)?,
+            fates: tx.open_table(FATES).map_err(db)?,
+            arrival,
+            pending,
+            taken: Taken {
+                received,
+                gap: None,
+                taken_by_other: Vec::new(),
+            },
+        })
+    }
+
+    /// Takes the commands in their order, up to the first that does not follow.
+    fn take_all(&mut self, commands: &[Sent]) -> Result<(), AuthorityError> {
+        let mut sorted: Vec<&Sent> = commands.iter().collect();
+        sorted.sort_by_key(|c| c.seq);
+        for c in sorted {
+            if c.seq <= self.taken.received {
+                self.check_taken(c)?;
+                continue;
+            }
+            if Some(c.seq) != self.taken.received.checked_add(1) {
+                let expected = self.taken.received.saturating_add(1);
+                self.taken.gap = Some((c.seq, c.id.clone(), expected));
+                break;
+            }
+            self.take(c)?;
+        }
+        Ok(())
+    }
+
+    /// A number already taken: by this very command (a re-send), or by another one, which is
+    /// refused explicitly (never skipped).
+    fn check_taken(&mut self, c: &Sent) -> Result<(), AuthorityError> {
+        let k = key(self.station, c.seq);
+        let stored = match self.fates.get(k.as_str()).map_err(db)? {
+            Some(v) => serde_json::from_slice::<(String, Fate)>(v.value())
+                .ok()
+                .map(|(id, _)| id),
+            None => self
+                .inbox
+                .get(k.as_str())
+                .map_err(db)?
+                .and_then(|v| serde_json::from_slice::<Sent>(v.value()).ok())
+                .map(|s| s.id),
+        };
+        if let Some(other) = stored.filter(|id| *id != c.id) {
+            self.taken.taken_by_other.push(Outcome {
+                seq: c.seq,
+                id: c.id.clone(),
+                fate: Fate::Refused {
+                    reason: format!(
+                        "station `{}`'s number {} is taken by command `{other}`: two stations \
+                         share a name, or the outbox was replaced; give each station its own name",
+                        self.station, c.seq
+                    ),
+                },
+            });
+        }
+        Ok(())
+    }
+
+    /// The next command: into the inbox in arrival order, or refused at once beyond a bound.
+    fn take(&mut self, c: &Sent) -> Result<(), AuthorityError> {
+        let bytes = serde_json::to_vec(c).map_err(db)?;
+        let k = key(self.station, c.seq);
+        self.taken.received = c.seq;
+        let refusal = if bytes.len() > MAX_COMMAND_BYTES {
+            Some(format!(
+                "command of {} KiB: the rover takes commands of at most {} KiB",
+                bytes.len() / 1024,
+                MAX_COMMAND_BYTES / 1024
+            ))
+        } else if self.pending >= MAX_PENDING {
+            Some(format!(
+                "the rover holds {MAX_PENDING} commands of station `{}` not yet run: send it \
+                 again once they have run",
+                self.station
+            ))
+        } else {
+            None
+        };
+        if let Some(reason) = refusal {
+            let fate = serde_json::to_vec(&(&c.id, Fate::Refused { reason })).map_err(db)?;
+            self.fates.insert(k.as_str(), fate.as_slice()).map_err(db)?;
+            return Ok(());
+        }
+        self.inbox
+            .insert(k.as_str(), bytes.as_slice())
+            .map_err(db)?;
+        self.pending += 1;
+        self.arrival += 1;
+        self.arrivals.insert(self.arrival, k.as_str()).map_err(db)?;
+        self.arrival_of
+            .insert(k.as_str(), self.arrival)
+            .map_err(db)?;
+        Ok(())
+    }
+
+    /// Records how far the station's commands were taken, and when a station was last heard.
+    fn close(self, tx: &redb::WriteTransaction) -> Result<Taken, AuthorityError> {
+        let Self { station, taken, .. } = self;
+        let mut meta = tx.open_table(META).map_err(db)?;
+        let bytes = serde_json::to_vec(&taken.received).map_err(db)?;
+        meta.insert(format!("recv\0{station}").as_str(), bytes.as_slice())
+            .map_err(db)?;
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        let bytes = serde_json::to_vec(&now).map_err(db)?;
+        meta.insert("contact", bytes.as_slice()).map_err(db)?;
+        Ok(taken)
+    }
+}
+
 #[derive(Debug)]
 pub(crate) struct Store {
     db: Database,
@@ -215,8 +419,22 @@ impl Store {
         pending_from: u64,
         waiting: &[u64],
     ) -> Result<Vec<Outcome>, AuthorityError> {
+        let received = self.received_of(station, pending_from)?;
+        let tx = self.db.begin_write().map_err(db)?;
+        let taken = {
+            drop_known_final(&tx, station, pending_from)?;
+            let mut t = Taking::open(&tx, station, received)?;
+            t.take_all(commands)?;
+            t.close(&tx)?
+        };
+        tx.commit().map_err(db)?;
+        self.answer(station, commands, pending_from, waiting, taken)
+    }
+
+    /// The last command of `station` taken, as far as this store and the station know.
+    fn received_of(&self, station: &str, pending_from: u64) -> Result<u64, AuthorityError> {
         let recv_key = format!("recv\0{station}");
-        let mut received: u64 = match self.meta(&recv_key)? {
+        let received: u64 = match self.meta(&recv_key)? {
             Some(r) => r,
             // A station this rover has no record of (its database was replaced) that has
             // finished commands already: those are final at the station, so numbering goes on
@@ -241,134 +459,23 @@ impl Store {
                 pending_from,
                 "this store is behind the station: taking its commands from the first it waits for"
             );
-            received = pending_from - 1;
+            return Ok(pending_from - 1);
         }
-        let mut gap = None;
-        let mut taken_by_other = Vec::new();
-        let tx = self.db.begin_write().map_err(db)?;
-        {
-            let mut inbox = tx.open_table(INBOX).map_err(db)?;
-            let mut arrivals = tx.open_table(ARRIVALS).map_err(db)?;
-            let mut arrival_of = tx.open_table(ARRIVAL_OF).map_err(db)?;
-            let mut arrival = arrivals.last().map_err(db)?.map_or(0, |(k, _)| k.value());
-            let mut fates = tx.open_table(FATES).map_err(db)?;
-            // What the station knows final (before `pending_from`) but this store still holds
-            // (it was restored from an older copy) ran in the history the store lost: it never
-            // runs again.
-            let stale: Vec<String> = inbox
-                .range(key(station, 0).as_str()..key(station, pending_from).as_str())
-                .map_err(db)?
-                .filter_map(|r| r.ok().map(|(k, _)| k.value().to_string()))
-                .collect();
-            let mut timers = tx.open_table(TIMERS).map_err(db)?;
-            let stale_timers: Vec<String> = timers
-                .range(key(station, 0).as_str()..key(station, pending_from).as_str())
-                .map_err(db)?
-                .filter_map(|r| r.ok().map(|(k, _)| k.value().to_string()))
-                .collect();
-            if !stale.is_empty() || !stale_timers.is_empty() {
-                tracing::warn!(
-                    station,
-                    commands = stale.len(),
-                    time_tags = stale_timers.len(),
-                    "dropping commands the station knows to be final (this store is older)"
-                );
-            }
-            for k in &stale {
-                inbox.remove(k.as_str()).map_err(db)?;
-                if let Some(a) = arrival_of.remove(k.as_str()).map_err(db)? {
-                    let a = a.value();
-                    arrivals.remove(a).map_err(db)?;
-                }
-            }
-            for k in &stale_timers {
-                timers.remove(k.as_str()).map_err(db)?;
-            }
-            drop(timers);
-            let mut pending = inbox
-                .range(key(station, 0).as_str()..key(station, u64::MAX).as_str())
-                .map_err(db)?
-                .take(MAX_PENDING)
-                .count();
-            let mut sorted: Vec<&Sent> = commands.iter().collect();
-            sorted.sort_by_key(|c| c.seq);
-            for c in sorted {
-                if c.seq <= received {
-                    // A number already taken: by this very command (a re-send), or by another
-                    // one, which is refused explicitly (never skipped).
-                    let k = key(station, c.seq);
-                    let stored = match fates.get(k.as_str()).map_err(db)? {
-                        Some(v) => serde_json::from_slice::<(String, Fate)>(v.value())
-                            .ok()
-                            .map(|(id, _)| id),
-                        None => inbox
-                            .get(k.as_str())
-                            .map_err(db)?
-                            .and_then(|v| serde_json::from_slice::<Sent>(v.value()).ok())
-                            .map(|s| s.id),
-                    };
-                    if let Some(other) = stored.filter(|id| *id != c.id) {
-                        taken_by_other.push(Outcome {
-                            seq: c.seq,
-                            id: c.id.clone(),
-                            fate: Fate::Refused {
-                                reason: format!(
-                                    "station `{station}`'s number {} is taken by command `{other}`: \
-                                     two stations share a name, or the outbox was replaced; give \
-                                     each station its own name",
-                                    c.seq
-                                ),
-                            },
-                        });
-                    }
-                    continue;
-                }
-                if Some(c.seq) != received.checked_add(1) {
-                    gap = Some((c.seq, c.id.clone(), received.saturating_add(1)));
-                    break;
-                }
-                let bytes = serde_json::to_vec(c).map_err(db)?;
-                let k = key(station, c.seq);
-                received = c.seq;
-                let refusal = if bytes.len() > MAX_COMMAND_BYTES {
-                    Some(format!(
-                        "command of {} KiB: the rover takes commands of at most {} KiB",
-                        bytes.len() / 1024,
-                        MAX_COMMAND_BYTES / 1024
-                    ))
-                } else if pending >= MAX_PENDING {
-                    Some(format!(
-                        "the rover holds {MAX_PENDING} commands of station `{station}` not yet \
-                         run: send it again once they have run"
-                    ))
-                } else {
-                    None
-                };
-                if let Some(reason) = refusal {
-                    let fate =
-                        serde_json::to_vec(&(&c.id, Fate::Refused { reason })).map_err(db)?;
-                    fates.insert(k.as_str(), fate.as_slice()).map_err(db)?;
-                    continue;
-                }
-                inbox.insert(k.as_str(), bytes.as_slice()).map_err(db)?;
-                pending += 1;
-                arrival += 1;
-                arrivals.insert(arrival, k.as_str()).map_err(db)?;
-                arrival_of.insert(k.as_str(), arrival).map_err(db)?;
-            }
-            let mut meta = tx.open_table(META).map_err(db)?;
-            let bytes = serde_json::to_vec(&received).map_err(db)?;
-            meta.insert(recv_key.as_str(), bytes.as_slice())
-                .map_err(db)?;
-            let now = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_nanos() as u64);
-            let bytes = serde_json::to_vec(&now).map_err(db)?;
-            meta.insert("contact", bytes.as_slice()).map_err(db)?;
-        }
-        tx.commit().map_err(db)?;
-        // The fates of what was sent and of what the station waits for, then news from
-        // `pending_from` on for a station that does not say what it waits for.
+        Ok(received)
+    }
+
+    /// The fates of what was sent and of what the station waits for, then news from
+    /// `pending_from` on for a station that does not say what it waits for; and where to send
+    /// from, when the rover misses some.
+    fn answer(
+        &self,
+        station: &str,
+        commands: &[Sent],
+        pending_from: u64,
+        waiting: &[u64],
+        taken: Taken,
+    ) -> Result<Vec<Outcome>, AuthorityError> {
+        let received = taken.received;
         let mut asked: std::collections::BTreeSet<u64> = commands
             .iter()
             .map(|c| c.seq)
@@ -380,11 +487,11 @@ impl Store {
         }
         let mut out = self.fates_of(station, asked.iter().copied().take(MAX_ASKED))?;
         out.retain(|o| commands.iter().any(|c| c.seq == o.seq) || o.fate != Fate::Acknowledged);
-        out.extend(taken_by_other);
+        out.extend(taken.taken_by_other);
         // Commands the station waits for that this rover never took (its store was lost or
         // replaced): the station sends again from the first it has not taken.
         let unknown = waiting.iter().copied().filter(|w| *w > received).min();
-        match (gap, unknown) {
+        match (taken.gap, unknown) {
             (Some((seq, id, expected)), _) => out.push(Outcome {
                 seq,
                 id,

@@ -989,8 +989,48 @@ fn command_loop(
     jobs_tx: &SyncSender<CommandJob>,
     jobs: &Receiver<CommandJob>,
 ) {
-    let finish = |query: Query, response: &Response| {
-        let key = keys::cmd(system, dnm);
+    let c = Commands {
+        system,
+        dnm,
+        shared,
+        commander,
+        parse,
+        jobs_tx,
+    };
+    loop {
+        match jobs.recv_timeout(Duration::from_millis(100)) {
+            Ok(CommandJob::Answer(query, response)) => c.finish(query, &response),
+            Ok(CommandJob::Query(query)) => c.take(query),
+            Err(mpsc::RecvTimeoutError::Timeout) if !shared.stop.load(Ordering::Relaxed) => {}
+            Err(_) => return,
+        }
+    }
+}
+
+/// What the command thread works with; one method per phase of a command and per request.
+struct Commands<'a> {
+    system: &'a str,
+    dnm: &'a str,
+    shared: &'a Shared,
+    commander: &'a Commander,
+    parse: &'a ParseNetlist,
+    jobs_tx: &'a SyncSender<CommandJob>,
+}
+
+/// A query's bytes as a command, or why they are none.
+fn read_command(query: &Query) -> Result<RemoteCommand, String> {
+    const EXAMPLE: &str = r#"{"client":"me","id":"42","cmd":"switch","task":"auto"}"#;
+    match query.payload().map(|p| p.to_bytes()) {
+        Some(b) => serde_json::from_slice(&b)
+            .map_err(|e| format!("bad command: {e}; send JSON such as {EXAMPLE}")),
+        None => Err(format!("empty command; send JSON such as {EXAMPLE}")),
+    }
+}
+
+impl Commands<'_> {
+    /// Answers a command's query (and frees its place).
+    fn finish(&self, query: Query, response: &Response) {
+        let key = keys::cmd(self.system, self.dnm);
         let bytes = serde_json::to_vec(response).unwrap_or_default();
         let sent = if response.ok {
             query
@@ -1006,317 +1046,308 @@ fn command_loop(
         if let Err(e) = sent {
             tracing::debug!("zenoh reply: {e}");
         }
-        shared.commands_in_flight.fetch_sub(1, Ordering::Relaxed);
-        shared.answered.fetch_add(1, Ordering::Relaxed);
-    };
-    // Hands a command to the DNM; if it cannot take it, its query is answered here.
-    let hand = |command: Command, slot: Arc<Mutex<Option<Query>>>| {
-        if let Err(e) = commander.send(command)
+        self.shared
+            .commands_in_flight
+            .fetch_sub(1, Ordering::Relaxed);
+        self.shared.answered.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// Hands a command to the DNM; if it cannot take it, its query is answered here.
+    fn hand(&self, command: Command, slot: Arc<Mutex<Option<Query>>>) {
+        if let Err(e) = self.commander.send(command)
             && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
         {
-            finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
+            self.finish(q, &Response::error(format!("DNM `{}`: {e}", self.dnm)));
         }
-    };
-    loop {
-        let job = match jobs.recv_timeout(Duration::from_millis(100)) {
-            Ok(job) => job,
-            Err(mpsc::RecvTimeoutError::Timeout) if !shared.stop.load(Ordering::Relaxed) => {
-                continue;
+    }
+
+    /// Why a command must not come from its sender, if it must not: in a system commanded
+    /// through its authority, transactions, switches and applies come from it alone.
+    fn refusal(&self, cmd: &RemoteCommand) -> Option<String> {
+        let system = self.system;
+        let authority = self.shared.authority.get()?;
+        let from_authority = cmd.client.as_deref() == Some(&format!("authority-{authority}"));
+        if from_authority {
+            return None;
+        }
+        match cmd.request {
+            Request::Prepare { .. } | Request::Decide { .. } | Request::Adopt { .. } => {
+                Some(format!(
+                    "transactions of system `{system}` come from its authority, DNM `{authority}`"
+                ))
             }
-            Err(_) => return,
+            Request::Switch { .. } | Request::Apply { .. } => Some(format!(
+                "system `{system}` is commanded through its authority, DNM `{authority}`: \
+                 send switches and applies through a ground station (`dnm ground switch TASK`), \
+                 which has every DNM take them together"
+            )),
+            _ => None,
+        }
+    }
+
+    /// One command: read, checked against its sender, then handed on.
+    fn take(&self, query: Query) {
+        let cmd = match read_command(&query) {
+            Ok(c) => c,
+            Err(e) => return self.finish(query, &Response::error(e)),
         };
-        let query = match job {
-            CommandJob::Answer(query, response) => {
-                finish(query, &response);
-                continue;
-            }
-            CommandJob::Query(q) => q,
-        };
-        let cmd: RemoteCommand = match query
-            .payload()
-            .map(|p| p.to_bytes())
-            .as_deref()
-            .map(serde_json::from_slice)
-        {
-            Some(Ok(c)) => c,
-            Some(Err(e)) => {
-                finish(
-                    query,
-                    &Response::error(format!(
-                        "bad command: {e}; send JSON such as {{\"client\":\"me\",\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}}"
-                    )),
-                );
-                continue;
-            }
-            None => {
-                finish(
-                    query,
-                    &Response::error(
-                        "empty command; send JSON such as {\"client\":\"me\",\"id\":\"42\",\"cmd\":\"switch\",\"task\":\"auto\"}",
-                    ),
-                );
-                continue;
-            }
-        };
-        let transaction = matches!(
-            cmd.request,
-            Request::Prepare { .. } | Request::Decide { .. } | Request::Adopt { .. }
-        );
-        if let Some(authority) = shared.authority.get() {
-            let from_authority = cmd.client.as_deref() == Some(&format!("authority-{authority}"));
-            if transaction && !from_authority {
-                finish(
-                    query,
-                    &Response::error(format!(
-                        "transactions of system `{system}` come from its authority, DNM `{authority}`"
-                    )),
-                );
-                continue;
-            }
-            if matches!(cmd.request, Request::Switch { .. } | Request::Apply { .. })
-                && !from_authority
-            {
-                finish(
-                    query,
-                    &Response::error(format!(
-                        "system `{system}` is commanded through its authority, DNM `{authority}`: \
-                         send switches and applies through a ground station (`dnm ground switch TASK`), \
-                         which has every DNM take them together"
-                    )),
-                );
-                continue;
-            }
+        if let Some(why) = self.refusal(&cmd) {
+            return self.finish(query, &Response::error(why));
         }
         let key = cmd.id.map(|id| CommandKey {
             client: cmd.client.unwrap_or_default(),
             id,
         });
-        let snapshot = shared.snapshot();
-        let dnm_name = dnm.to_string();
         match cmd.request {
-            Request::Status => {
-                let r = match snapshot {
-                    Some(s) => Response {
-                        ok: true,
-                        dnms: vec![s.report.clone()],
-                        ..Response::default()
-                    },
-                    None => Response::error(format!("DNM `{dnm}` is starting")),
-                };
-                finish(query, &r);
-            }
-            Request::Netlist => {
-                let r = match snapshot {
-                    Some(s) => Response {
-                        ok: true,
-                        revision: Some(s.netlist.revision),
-                        netlist: s.netlist.text.clone(),
-                        ..Response::default()
-                    },
-                    None => Response::error(format!("DNM `{dnm}` is starting")),
-                };
-                finish(query, &r);
-            }
-            Request::Switch { task } => {
-                let tx = jobs_tx.clone();
-                let (reply, slot) = answer_slot(
-                    tx,
-                    query,
-                    move |r: Result<dnm_proto::SwitchRecord, String>| match r {
-                        Ok(s) => Response {
-                            ok: true,
-                            revision: Some(s.revision),
-                            switches: vec![s],
-                            ..Response::default()
-                        },
-                        Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-                    },
-                );
-                hand(Command::Switch { task, key, reply }, slot);
-            }
-            Request::Apply { file, text } => {
-                let applies = shared.applies_in_flight.clone();
-                if !admit(&applies, APPLIES_IN_FLIGHT, &shared.refused) {
-                    finish(
-                        query,
-                        &Response::error(format!(
-                            "DNM `{dnm}` is busy with {APPLIES_IN_FLIGHT} applies; send it again later (same id)"
-                        )),
-                    );
-                    continue;
-                }
-                let release = {
-                    let applies = applies.clone();
-                    move || {
-                        applies.fetch_sub(1, Ordering::AcqRel);
-                    }
-                };
-                let netlist = match parse(Path::new(&file), &text) {
-                    Err(e) => {
-                        release();
-                        finish(
-                            query,
-                            &Response::error(format!("netlist refused, nothing changed:\n{e}")),
-                        );
-                        continue;
-                    }
-                    Ok(n) if n.system != system => {
-                        release();
-                        finish(
-                            query,
-                            &Response::error(format!(
-                                "netlist is for system `{}`, this is `{system}`; nothing changed",
-                                n.system
-                            )),
-                        );
-                        continue;
-                    }
-                    Ok(n) => n,
-                };
-                let tx = jobs_tx.clone();
-                let (reply, slot) = answer_slot(tx, query, move |r: Result<u64, String>| {
-                    release();
-                    match r {
-                        Ok(revision) => Response {
-                            ok: true,
-                            revision: Some(revision),
-                            ..Response::default()
-                        },
-                        Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-                    }
-                });
-                if let Err(e) = commander.send(Command::Apply {
-                    netlist: Box::new(netlist),
-                    key,
-                    reply,
-                }) {
-                    // The command (with its reply) came back unsent: free its apply slot here.
-                    applies.fetch_sub(1, Ordering::AcqRel);
-                    if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
-                        finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-                    }
-                }
-            }
+            Request::Status | Request::Netlist => self.state(query, &cmd.request),
+            Request::Switch { task } => self.switch(query, task, key),
+            Request::Apply { file, text } => self.apply(query, &file, &text, key),
             Request::Prepare {
                 txn,
                 revision,
                 task,
                 file,
                 text,
-            } => {
-                // A DNM whose clock is off would put the decision in force at the wrong moment.
-                let clock = shared.lease.lock().ok().and_then(|l| l.clock_refusal(dnm));
-                if let Some(why) = clock {
-                    tracing::warn!(dnm, txn, "transaction refused: {why}");
-                    finish(query, &Response::error(why));
-                    continue;
-                }
-                let netlist = match text.map(|t| {
-                    let file = file.unwrap_or_else(|| "netlist.toml".into());
-                    parse_here(parse, system, &file, &t)
-                }) {
-                    None => None,
-                    Some(Ok(n)) => Some(Box::new(n)),
-                    Some(Err(e)) => {
-                        finish(query, &Response::error(e));
-                        continue;
-                    }
-                };
-                let tx = jobs_tx.clone();
-                let (reply, slot) = answer_slot(tx, query, move |r: Result<(), String>| match r {
-                    Ok(()) => Response {
-                        ok: true,
-                        revision: Some(revision),
-                        ..Response::default()
-                    },
-                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-                });
-                let txn = Txn {
-                    id: txn,
-                    revision,
-                    task,
-                    netlist,
-                };
-                hand(Command::Prepare { txn, reply }, slot);
-            }
+            } => self.prepare(query, txn, revision, task, file, text),
             Request::Decide {
                 txn,
                 commit,
                 at_unix_ns,
                 revision,
                 task,
-            } => {
-                // A decision is sent shortly before its instant; one far ahead would keep the
-                // DNM waiting (and its supervision quiet) for nothing.
-                let now = std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map_or(0, |d| d.as_nanos() as u64);
-                if commit && at_unix_ns > now + MAX_DECISION_AHEAD.as_nanos() as u64 {
-                    finish(
-                        query,
-                        &Response::error(format!(
-                            "decision {txn} is for {:.0} s from now; at most {} s ahead is taken \
-                             (are the clocks synchronised?)",
-                            (at_unix_ns - now) as f64 / 1e9,
-                            MAX_DECISION_AHEAD.as_secs()
-                        )),
-                    );
-                    continue;
-                }
-                let tx = jobs_tx.clone();
-                let (reply, slot) = answer_slot(
-                    tx,
-                    query,
-                    move |r: Result<Option<dnm_proto::SwitchRecord>, String>| match r {
-                        Ok(s) => Response {
-                            ok: true,
-                            revision: Some(revision),
-                            switches: s.into_iter().collect(),
-                            ..Response::default()
-                        },
-                        Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-                    },
-                );
-                let decision = Decision {
+            } => self.decide(
+                query,
+                Decision {
                     id: txn,
                     commit,
                     at_unix_ns,
                     revision,
                     task,
-                };
-                hand(Command::Decide { decision, reply }, slot);
-            }
+                },
+            ),
             Request::Adopt {
                 revision,
                 task,
                 file,
                 text,
-            } => {
-                let netlist = match parse_here(parse, system, &file, &text) {
-                    Ok(n) => n,
-                    Err(e) => {
-                        finish(query, &Response::error(e));
-                        continue;
-                    }
-                };
-                let tx = jobs_tx.clone();
-                let (reply, slot) = answer_slot(tx, query, move |r: Result<u64, String>| match r {
+            } => self.adopt(query, revision, task, &file, &text),
+        }
+    }
+
+    /// The DNM's report or its netlist, from the latest snapshot.
+    fn state(&self, query: Query, request: &Request) {
+        let r = match (self.shared.snapshot(), request) {
+            (None, _) => Response::error(format!("DNM `{}` is starting", self.dnm)),
+            (Some(s), Request::Status) => Response {
+                ok: true,
+                dnms: vec![s.report.clone()],
+                ..Response::default()
+            },
+            (Some(s), _) => Response {
+                ok: true,
+                revision: Some(s.netlist.revision),
+                netlist: s.netlist.text.clone(),
+                ..Response::default()
+            },
+        };
+        self.finish(query, &r);
+    }
+
+    fn switch(&self, query: Query, task: String, key: Option<CommandKey>) {
+        let dnm = self.dnm.to_string();
+        let (reply, slot) = answer_slot(
+            self.jobs_tx.clone(),
+            query,
+            move |r: Result<dnm_proto::SwitchRecord, String>| match r {
+                Ok(s) => Response {
+                    ok: true,
+                    revision: Some(s.revision),
+                    switches: vec![s],
+                    ..Response::default()
+                },
+                Err(e) => Response::error(format!("DNM `{dnm}`: {e}")),
+            },
+        );
+        self.hand(Command::Switch { task, key, reply }, slot);
+    }
+
+    fn apply(&self, query: Query, file: &str, text: &str, key: Option<CommandKey>) {
+        let (system, dnm) = (self.system, self.dnm);
+        let applies = self.shared.applies_in_flight.clone();
+        if !admit(&applies, APPLIES_IN_FLIGHT, &self.shared.refused) {
+            return self.finish(
+                query,
+                &Response::error(format!(
+                    "DNM `{dnm}` is busy with {APPLIES_IN_FLIGHT} applies; send it again later (same id)"
+                )),
+            );
+        }
+        let release = {
+            let applies = applies.clone();
+            move || {
+                applies.fetch_sub(1, Ordering::AcqRel);
+            }
+        };
+        let netlist = match (self.parse)(Path::new(file), text) {
+            Err(e) => {
+                release();
+                return self.finish(
+                    query,
+                    &Response::error(format!("netlist refused, nothing changed:\n{e}")),
+                );
+            }
+            Ok(n) if n.system != system => {
+                release();
+                return self.finish(
+                    query,
+                    &Response::error(format!(
+                        "netlist is for system `{}`, this is `{system}`; nothing changed",
+                        n.system
+                    )),
+                );
+            }
+            Ok(n) => n,
+        };
+        let dnm_name = dnm.to_string();
+        let (reply, slot) = answer_slot(
+            self.jobs_tx.clone(),
+            query,
+            move |r: Result<u64, String>| {
+                release();
+                match r {
                     Ok(revision) => Response {
                         ok: true,
                         revision: Some(revision),
                         ..Response::default()
                     },
                     Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-                });
-                let adopt = Command::Adopt {
-                    revision,
-                    task,
-                    netlist: Box::new(netlist),
-                    reply,
-                };
-                hand(adopt, slot);
+                }
+            },
+        );
+        if let Err(e) = self.commander.send(Command::Apply {
+            netlist: Box::new(netlist),
+            key,
+            reply,
+        }) {
+            // The command (with its reply) came back unsent: free its apply slot here.
+            applies.fetch_sub(1, Ordering::AcqRel);
+            if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
+                self.finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
             }
         }
+    }
+
+    fn prepare(
+        &self,
+        query: Query,
+        txn: u64,
+        revision: u64,
+        task: Option<String>,
+        file: Option<String>,
+        text: Option<String>,
+    ) {
+        let dnm = self.dnm;
+        // A DNM whose clock is off would put the decision in force at the wrong moment.
+        let clock = self
+            .shared
+            .lease
+            .lock()
+            .ok()
+            .and_then(|l| l.clock_refusal(dnm));
+        if let Some(why) = clock {
+            tracing::warn!(dnm, txn, "transaction refused: {why}");
+            return self.finish(query, &Response::error(why));
+        }
+        let netlist = match text.map(|t| {
+            let file = file.unwrap_or_else(|| "netlist.toml".into());
+            parse_here(self.parse, self.system, &file, &t)
+        }) {
+            None => None,
+            Some(Ok(n)) => Some(Box::new(n)),
+            Some(Err(e)) => return self.finish(query, &Response::error(e)),
+        };
+        let dnm_name = dnm.to_string();
+        let (reply, slot) = answer_slot(
+            self.jobs_tx.clone(),
+            query,
+            move |r: Result<(), String>| match r {
+                Ok(()) => Response {
+                    ok: true,
+                    revision: Some(revision),
+                    ..Response::default()
+                },
+                Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
+            },
+        );
+        let txn = Txn {
+            id: txn,
+            revision,
+            task,
+            netlist,
+        };
+        self.hand(Command::Prepare { txn, reply }, slot);
+    }
+
+    fn decide(&self, query: Query, decision: Decision) {
+        // A decision is sent shortly before its instant; one far ahead would keep the DNM
+        // waiting (and its supervision quiet) for nothing.
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        if decision.commit && decision.at_unix_ns > now + MAX_DECISION_AHEAD.as_nanos() as u64 {
+            return self.finish(
+                query,
+                &Response::error(format!(
+                    "decision {} is for {:.0} s from now; at most {} s ahead is taken \
+                     (are the clocks synchronised?)",
+                    decision.id,
+                    (decision.at_unix_ns - now) as f64 / 1e9,
+                    MAX_DECISION_AHEAD.as_secs()
+                )),
+            );
+        }
+        let (dnm, revision) = (self.dnm.to_string(), decision.revision);
+        let (reply, slot) = answer_slot(
+            self.jobs_tx.clone(),
+            query,
+            move |r: Result<Option<dnm_proto::SwitchRecord>, String>| match r {
+                Ok(s) => Response {
+                    ok: true,
+                    revision: Some(revision),
+                    switches: s.into_iter().collect(),
+                    ..Response::default()
+                },
+                Err(e) => Response::error(format!("DNM `{dnm}`: {e}")),
+            },
+        );
+        self.hand(Command::Decide { decision, reply }, slot);
+    }
+
+    fn adopt(&self, query: Query, revision: u64, task: Option<String>, file: &str, text: &str) {
+        let netlist = match parse_here(self.parse, self.system, file, text) {
+            Ok(n) => n,
+            Err(e) => return self.finish(query, &Response::error(e)),
+        };
+        let dnm = self.dnm.to_string();
+        let (reply, slot) = answer_slot(
+            self.jobs_tx.clone(),
+            query,
+            move |r: Result<u64, String>| match r {
+                Ok(revision) => Response {
+                    ok: true,
+                    revision: Some(revision),
+                    ..Response::default()
+                },
+                Err(e) => Response::error(format!("DNM `{dnm}`: {e}")),
+            },
+        );
+        let adopt = Command::Adopt {
+            revision,
+            task,
+            netlist: Box::new(netlist),
+            reply,
+        };
+        self.hand(adopt, slot);
     }
 }
 
