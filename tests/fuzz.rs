@@ -420,8 +420,9 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         };
         must_not_panic("netlist", n, &input, |b| {
             let t = String::from_utf8_lossy(b);
-            let _ = dnm::parse_remote_netlist_text(file, &t);
-            let _ = dnm::parse_recorded_netlist_text(file, &t);
+            // The door every netlist from the network comes through.
+            let _ = dnm::remote_door("fuzz").accept(&file.to_string_lossy(), &t);
+            let _ = dnm::parse_recorded_netlist(file, &t);
         });
     }
     for n in 0..3000 * rounds() {
@@ -475,7 +476,7 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
         .expect("the system recorded");
     let mcap = std::fs::read(&recording).unwrap();
     assert!(
-        dnm_record::stats::stats(&mcap, &dnm::parse_recorded_netlist_text).is_ok(),
+        dnm_record::stats::stats(&mcap, &dnm::parse_recorded_netlist).is_ok(),
         "the unmutated recording reads"
     );
     let csv = dir.join("csv");
@@ -486,7 +487,7 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
     for n in 0..300 * rounds() {
         let input = mutate(&mut rng, &mcap, &[]);
         must_not_panic("mcap", n, &input, |b| {
-            let _ = dnm_record::stats::stats(b, &dnm::parse_recorded_netlist_text);
+            let _ = dnm_record::stats::stats(b, &dnm::parse_recorded_netlist);
             let _ = dnm_record::stats::export_csv(b, &[], &csv);
             let file = session.join(format!("rec-x.{n}.mcap"));
             std::fs::write(&file, b).unwrap();

@@ -763,7 +763,7 @@ fn a_process_can_host_dnms_again_after_stopping_them() {
         let mut options = dnm::HostOptions::standard().unwrap();
         options.dnm.module_host = module_host();
         let host =
-            dnm::admin::Host::start(netlist, &["main".into()], options, zenoh.clone()).unwrap();
+            dnm::host::Host::start(netlist, &["main".into()], options, zenoh.clone()).unwrap();
         support::eventually(&format!("round {round}: every module running"), || {
             dnm::admin::request(&name, &Request::Status)
                 .ok()

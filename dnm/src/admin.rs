@@ -1,6 +1,6 @@
 //! Operating a running system: a Unix socket per system on this machine that takes one JSON
-//! request per line and answers one JSON response per line, and the host that runs a
-//! machine's DNMs behind it.
+//! request per line and answers one JSON response per line, in front of the machine's DNMs
+//! ([`crate::host`]).
 //!
 //! ```text
 //! $ echo '{"cmd":"status"}' | socat - UNIX-CONNECT:/tmp/dnm-run-0/beetle/rover+drive+vision+ground.sock
@@ -10,16 +10,12 @@ use std::io::{BufRead, BufReader, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::mpsc::{self, SyncSender};
-use std::thread::JoinHandle;
+
 use std::time::Duration;
 
-use dnm_core::{Command, Commander, Dnm, Reply};
-use dnm_netlist::Netlist;
+use dnm_core::{Command, Commander, Reply};
 
 pub use dnm_proto::{Request, Response, merge};
-
-use crate::HostOptions;
 
 /// Failure to reach a running system.
 #[derive(Debug, thiserror::Error)]
@@ -159,317 +155,16 @@ fn request_one(system: &str, path: &Path, req: &Request) -> Result<Response, Adm
     })
 }
 
-struct DnmHandle {
-    commander: Commander,
-    thread: JoinHandle<()>,
-}
-
-/// Runs the given DNMs of a netlist in this process, one thread each, each in its own
-/// shared-memory namespace, with the system's admin socket. Returns when all DNMs stopped
-/// (SIGINT/SIGTERM).
-pub fn run_host(
-    netlist: Netlist,
-    dnms: &[String],
-    options: HostOptions,
-    zenoh: zenoh::Config,
-) -> anyhow::Result<()> {
-    Host::start(netlist, dnms, options, zenoh)?.wait();
-    Ok(())
-}
-
-/// A machine's DNMs running in this process (see [`run_host`]), for programs that drive them
-/// from the same process, such as `dnm demo`.
-pub struct Host {
-    authority: Option<dnm_authority::Authority>,
-    session: zenoh::Session,
-    system: String,
-    handles: Vec<DnmHandle>,
-    socket: PathBuf,
-}
-
-impl std::fmt::Debug for Host {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Host")
-            .field("system", &self.system)
-            .field("socket", &self.socket)
-            .finish_non_exhaustive()
-    }
-}
-
-impl Host {
-    /// The process's Zenoh session (the DNMs' own): queries and commands sent on it reach the
-    /// hosted DNMs and every other DNM of the system.
-    pub fn session(&self) -> &zenoh::Session {
-        &self.session
-    }
-
-    pub fn system(&self) -> &str {
-        &self.system
-    }
-
-    /// Waits until the DNMs stop (SIGINT/SIGTERM or [`Host::stop`]).
-    pub fn wait(self) {
-        if let Some(a) = self.authority {
-            // Until the DNMs stop; the authority stops with them.
-            let handles = self.handles;
-            for h in handles {
-                let _ = h.thread.join();
-            }
-            a.stop();
-            let _ = std::fs::remove_file(&self.socket);
-            return;
-        }
-        for h in self.handles {
-            let _ = h.thread.join();
-        }
-        let _ = std::fs::remove_file(&self.socket);
-    }
-
-    /// Stops every DNM of the process (their modules first) and waits for them.
-    pub fn stop(self) {
-        dnm_core::request_stop();
-        self.wait();
-    }
-
-    /// Starts DNMs `dnms` of `netlist` in this process, one thread each, with the admin socket.
-    pub fn start(
-        netlist: Netlist,
-        dnms: &[String],
-        options: HostOptions,
-        zenoh: zenoh::Config,
-    ) -> anyhow::Result<Host> {
-        start(netlist, dnms, options, zenoh)
-    }
-}
-
-fn start(
-    netlist: Netlist,
-    dnms: &[String],
-    options: HostOptions,
-    zenoh: zenoh::Config,
-) -> anyhow::Result<Host> {
-    use anyhow::Context;
-    use zenoh::Wait;
-    if !dnm_core::clear_stop_if_idle() {
-        anyhow::bail!(
-            "DNMs of this process are still stopping; wait for them before starting again"
-        );
-    }
-    let session = zenoh::open(zenoh)
-        .wait()
-        .map_err(|e| anyhow::anyhow!("opening the Zenoh session: {e}"))?;
-    tracing::info!(zid = %session.zid(), "on Zenoh");
-    // Joining a running system: continue from the netlist, revision and task in force there.
-    // A system with an authority needs none of it: its DNMs start empty and the authority has
-    // them adopt what it decided.
-    let follow = crate::commanded_by_authority(&netlist);
-    let mut netlist = netlist;
-    let mut joined = None;
-    if follow {
-        tracing::info!(authority = ?netlist.authority(), "the DNMs take what the authority decides");
-    } else if let Some(state) = dnm_zenoh::newest_netlist(&session, &netlist.system, JOIN_TIMEOUT)
-        && let Some((newer, revision, task)) = adopt(&state, &netlist.file, dnms)
-    {
-        tracing::info!(revision, task = ?task, "joining the running system");
-        netlist = newer;
-        joined = Some((revision, task));
-    }
-    let mut handles = Vec::new();
-    for name in dnms {
-        let (ready_tx, ready_rx) = mpsc::sync_channel::<Result<Commander, String>>(1);
-        let netlist = netlist.clone();
-        let options = options.clone();
-        let dnm_name = name.clone();
-        let session = session.clone();
-        let joined = joined.clone();
-        let thread = std::thread::Builder::new()
-            .name(format!("dnm-{name}"))
-            .spawn(move || {
-                let joined = joined.as_ref().map(|(r, t)| (*r, t.as_deref()));
-                run_dnm(
-                    &netlist, &dnm_name, options, session, joined, follow, &ready_tx,
-                )
-            })
-            .context("spawning DNM thread")?;
-        let commander = match ready_rx.recv() {
-            Ok(Ok(c)) => c,
-            Ok(Err(e)) => {
-                // The DNMs already started end their loops (their bridges hold commanders too).
-                dnm_core::request_stop();
-                for h in handles {
-                    let h: DnmHandle = h;
-                    drop(h.commander);
-                    let _ = h.thread.join();
-                }
-                let _ = thread.join();
-                anyhow::bail!("DNM `{name}` did not start: {e}");
-            }
-            Err(_) => {
-                dnm_core::request_stop();
-                anyhow::bail!("DNM `{name}` stopped while starting")
-            }
-        };
-        handles.push(DnmHandle { commander, thread });
-    }
-
-    let path = socket_path(&netlist.system, dnms);
-    if let Some(dir) = path.parent() {
-        private_dir(dir).context("the admin socket folder")?;
-    }
-    if UnixStream::connect(&path).is_ok() {
-        anyhow::bail!(
-            "DNMs {} of system `{}` are already running on this machine ({})",
-            dnms.join(", "),
-            netlist.system,
-            path.display()
-        );
-    }
-    let _ = std::fs::remove_file(&path);
-    let listener =
-        UnixListener::bind(&path).with_context(|| format!("binding {}", path.display()))?;
-    tracing::info!(socket = %path.display(), "admin socket ready");
-
-    let authority = match netlist
-        .authority()
-        .filter(|a| follow && dnms.iter().any(|d| d == a))
-    {
-        None => None,
-        Some(_) => {
-            let Some(dir) = options.state_dir.as_ref() else {
-                dnm_core::request_stop();
-                for h in handles {
-                    drop(h.commander);
-                    let _ = h.thread.join();
-                }
-                anyhow::bail!("the authority did not start: {}", crate::NO_STATE_DIR);
-            };
-            let db = dir.join(format!("{}-authority.redb", netlist.system));
-            let parse: dnm_authority::ParseNetlist = Arc::new(crate::parse_remote_netlist_text);
-            let a = dnm_authority::Authority::start(
-                session.clone(),
-                &netlist,
-                parse,
-                dnm_authority::AuthorityOptions::new(db),
-            );
-            match a {
-                Ok(a) => Some(a),
-                Err(e) => {
-                    dnm_core::request_stop();
-                    for h in handles {
-                        drop(h.commander);
-                        let _ = h.thread.join();
-                    }
-                    anyhow::bail!("the authority did not start: {e}");
-                }
-            }
-        }
-    };
-    let commanders: Vec<Commander> = handles.iter().map(|h| h.commander.clone()).collect();
-    let system = netlist.system.clone();
-    let follows = follow
-        .then(|| netlist.authority().map(str::to_string))
-        .flatten();
-    std::thread::Builder::new()
-        .name("dnm-admin".into())
-        .spawn(move || serve(&listener, &system, follows.as_deref(), &commanders))
-        .context("spawning admin thread")?;
-    Ok(Host {
-        authority,
-        session,
-        system: netlist.system.clone(),
-        handles,
-        socket: path,
-    })
-}
-
-fn run_dnm(
-    netlist: &Netlist,
-    name: &str,
-    options: HostOptions,
-    session: zenoh::Session,
-    joined: Option<(u64, Option<&str>)>,
-    follow: bool,
-    ready: &SyncSender<Result<Commander, String>>,
-) {
-    let started = (|| {
-        let mut dnm = Dnm::new(&netlist.system, name, options.dnm)?;
-        let parse: dnm_zenoh::ParseNetlist = Arc::new(crate::parse_remote_netlist_text);
-        let bridge = dnm_zenoh::Bridge::new(
-            session,
-            &netlist.system,
-            name,
-            dnm.prefix(),
-            dnm.commander()?,
-            parse,
-        )
-        .map_err(dnm_core::DnmError::Refused)?;
-        let bridge = match netlist.authority().filter(|_| follow) {
-            Some(a) => bridge
-                .follow_authority(a)
-                .map_err(dnm_core::DnmError::Refused)?,
-            None => bridge,
-        };
-        dnm.add_plugin(Box::new(bridge));
-        if let Some(r) = options.record {
-            let recorder = crate::record::Recorder::start(name, dnm.prefix(), r)
-                .map_err(dnm_core::DnmError::Refused)?;
-            dnm.add_plugin(Box::new(recorder));
-        }
-        // A DNM joining a running system continues from the netlist and task in force there.
-        if let Some((revision, task)) = joined {
-            dnm.continue_from(revision.saturating_sub(1), task);
-        }
-        if !follow {
-            dnm.apply(netlist)?;
-        }
-        let commander = dnm.commander()?;
-        Ok::<_, dnm_core::DnmError>((dnm, commander))
-    })();
-    let mut dnm = match started {
-        Ok((dnm, commander)) => {
-            let _ = ready.send(Ok(commander));
-            dnm
-        }
-        Err(e) => {
-            let _ = ready.send(Err(e.to_string()));
-            return;
-        }
-    };
-    if let Err(e) = dnm.run() {
-        tracing::error!(dnm = name, "DNM loop failed: {e}");
-    }
-    dnm.shutdown();
-}
-
-/// How long a starting DNM asks the running ones for the netlist in force.
-const JOIN_TIMEOUT: Duration = Duration::from_secs(1);
-
-/// The netlist, revision and task joining DNMs take over, if the running system's netlist is
-/// valid here and still has all of them.
-fn adopt(
-    state: &dnm_proto::NetlistState,
-    local_file: &Path,
-    dnms: &[String],
-) -> Option<(Netlist, u64, Option<String>)> {
-    let text = state.text.as_ref()?;
-    // It came over the network: external kinds only from this computer's module folder.
-    match crate::parse_remote_netlist_text(local_file, text) {
-        Ok(n) if dnms.iter().all(|d| n.dnm(d).is_some()) => {
-            Some((n, state.revision, state.active_task.clone()))
-        }
-        Ok(_) => None,
-        Err(e) => {
-            tracing::warn!("the running system's netlist does not validate here: {e}");
-            None
-        }
-    }
-}
-
 /// Connections the admin socket serves at once; more are refused as busy.
 const ADMIN_CONNECTIONS: usize = 16;
 
 /// Serves each connection on its own thread, so a long apply never holds up a switch.
-fn serve(listener: &UnixListener, system: &str, authority: Option<&str>, dnms: &[Commander]) {
+pub(crate) fn serve(
+    listener: &UnixListener,
+    system: &str,
+    authority: Option<&str>,
+    dnms: &[Commander],
+) {
     let busy = Arc::new(std::sync::atomic::AtomicUsize::new(0));
     for stream in listener.incoming() {
         let Ok(stream) = stream else { continue };
@@ -607,18 +302,10 @@ fn dispatch(req: Request, system: &str, dnms: &[Commander]) -> Response {
             }
         }
         Request::Apply { file, text } => {
-            let new = match crate::parse_netlist(Path::new(&file), &text) {
+            let new = match crate::local_door(system).accept(&file, &text) {
                 Ok(n) => n,
-                Err(e) => {
-                    return Response::error(format!("netlist refused, nothing changed:\n{e}"));
-                }
+                Err(e) => return Response::error(e.to_string()),
             };
-            if new.system != system {
-                return Response::error(format!(
-                    "netlist is for system `{}`, this is `{}`; nothing changed",
-                    new.system, system
-                ));
-            }
             if let Some(missing) = dnms.iter().find(|d| new.dnm(d.dnm()).is_none()) {
                 return Response::error(format!(
                     "netlist drops DNM `{}`, which runs here; nothing changed",

@@ -194,7 +194,7 @@ pub fn run(cmd: CertsCmd) -> anyhow::Result<ExitCode> {
             let text = std::fs::read_to_string(&netlist)
                 .with_context(|| format!("reading {}", netlist.display()))?;
             let netlist =
-                dnm::parse_recorded_netlist_text(&netlist, &text).map_err(anyhow::Error::msg)?;
+                dnm::parse_recorded_netlist(&netlist, &text).map_err(anyhow::Error::msg)?;
             let text = zenoh_config(
                 &dir,
                 &name,

@@ -11,7 +11,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use bytemuck::Pod;
-use dnm::admin::{Host, Request, Response};
+use dnm::admin::{Request, Response};
+use dnm::host::Host;
 use dnm::{HostOptions, SwitchRecord};
 use dnm_netlist::Netlist;
 use dnm_rover::msgs::{BatteryState, Odometry, Progress, Range, WatchdogState, WorldState};

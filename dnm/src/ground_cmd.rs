@@ -374,7 +374,7 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             let text = std::fs::read_to_string(&netlist)
                 .with_context(|| format!("reading {}", netlist.display()))?;
             // Refused here already if it does not validate on this machine.
-            dnm::parse_netlist_text(&netlist, &text).map_err(anyhow::Error::msg)?;
+            dnm::parse_netlist(&netlist, &text)?;
             let order = Order::Apply {
                 file: netlist.display().to_string(),
                 text,

@@ -1,4 +1,4 @@
-//! The `dnm` command's library: runs a machine's DNMs ([`admin::Host`]: each DNM on its own
+//! The `dnm` command's library: runs a machine's DNMs ([`host::Host`]: each DNM on its own
 //! thread, with its Zenoh bridge, its recorder and the machine's admin socket), reads netlists
 //! against the built-in kinds, and the Beetle-One demo. The layers it puts together live in
 //! their own crates: [`dnm_core`] (the DNM), [`dnm_zenoh`] (DNMs on Zenoh), [`dnm_record`]
@@ -8,7 +8,7 @@
 //! # fn main() -> anyhow::Result<()> {
 //! let netlist = dnm::load_netlist("configs/pipeline.toml".as_ref())?;
 //! let options = dnm::HostOptions::standard()?;
-//! let host = dnm::admin::Host::start(netlist, &["main".into()], options, zenoh::Config::default())?;
+//! let host = dnm::host::Host::start(netlist, &["main".into()], options, zenoh::Config::default())?;
 //! let status = dnm::admin::request("pipeline", &dnm::proto::Request::Status)?;
 //! host.stop();
 //! # Ok(()) }
@@ -25,21 +25,13 @@ pub use dnm_router::{ZenohOptions, init_logging};
 pub use dnm_zenoh::remote;
 
 pub mod admin;
+pub mod host;
+
+pub use host::HostOptions;
 
 use std::path::Path;
 
-use dnm_netlist::{KindSpec, Netlist, NetlistError};
-
-/// How a host runs its DNMs: the DNMs' own options and what they record.
-#[derive(Debug, Clone)]
-pub struct HostOptions {
-    pub dnm: DnmOptions,
-    /// Record every output port to MCAP; `None`: no recording.
-    pub record: Option<record::RecordOptions>,
-    /// Where durable state lives (the authority's database); `None`: nowhere lasting is
-    /// known, and a host that needs one refuses to start.
-    pub state_dir: Option<std::path::PathBuf>,
-}
+use dnm_netlist::{DescribeError, KindSpec, Netlist, NetlistError};
 
 /// Where durable state goes by default: `$DNM_STATE_DIR`, else `$XDG_STATE_HOME/dnm`, else
 /// `~/.local/state/dnm`. Never the temporary directory: an authority whose store is lost at a
@@ -65,17 +57,6 @@ pub fn commanded_by_authority(netlist: &Netlist) -> bool {
     netlist.authority_dnm.is_some() || netlist.dnms.iter().any(|d| d.radio)
 }
 
-impl HostOptions {
-    /// [`DnmOptions::standard`], no recording.
-    pub fn standard() -> std::io::Result<Self> {
-        Ok(Self {
-            dnm: DnmOptions::standard()?,
-            record: None,
-            state_dir: default_state_dir(),
-        })
-    }
-}
-
 /// How long a module executable may take to describe itself.
 const DESCRIBE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
 /// How much it may print doing so.
@@ -83,15 +64,14 @@ const DESCRIBE_MAX_BYTES: u64 = 1 << 20;
 
 /// Asks a module executable for its kind (`EXEC describe`), within [`DESCRIBE_TIMEOUT`] and
 /// [`DESCRIBE_MAX_BYTES`] of output.
-pub fn describe_exec(path: &Path) -> Result<KindSpec, String> {
+pub fn describe_exec(path: &Path) -> Result<KindSpec, DescribeError> {
     use std::io::Read;
     let mut child = std::process::Command::new(path)
         .arg("describe")
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::null())
-        .spawn()
-        .map_err(|e| e.to_string())?;
+        .spawn()?;
     let mut stdout = child.stdout.take().ok_or("no output")?;
     let reader = std::thread::spawn(move || {
         let mut out = Vec::new();
@@ -102,32 +82,24 @@ pub fn describe_exec(path: &Path) -> Result<KindSpec, String> {
     });
     let deadline = std::time::Instant::now() + DESCRIBE_TIMEOUT;
     let status = loop {
-        if let Some(s) = child.try_wait().map_err(|e| e.to_string())? {
+        if let Some(s) = child.try_wait()? {
             break s;
         }
         if std::time::Instant::now() >= deadline {
             let _ = child.kill();
             let _ = child.wait();
-            return Err(format!(
-                "`describe` did not finish within {} s",
-                DESCRIBE_TIMEOUT.as_secs()
-            ));
+            return Err(DescribeError::Timeout(DESCRIBE_TIMEOUT.as_secs()));
         }
         std::thread::sleep(std::time::Duration::from_millis(10));
     };
-    let out = reader
-        .join()
-        .map_err(|_| "reading `describe`".to_string())?
-        .map_err(|e| e.to_string())?;
+    let out = reader.join().map_err(|_| "reading `describe`")??;
     if out.len() as u64 > DESCRIBE_MAX_BYTES {
-        return Err(format!(
-            "`describe` printed more than {DESCRIBE_MAX_BYTES} bytes"
-        ));
+        return Err(DescribeError::TooMuchOutput(DESCRIBE_MAX_BYTES));
     }
     if !status.success() {
-        return Err(format!("`describe` exited with {status}"));
+        return Err(DescribeError::Failed(status));
     }
-    serde_json::from_slice(&out).map_err(|e| format!("`describe` printed no kind: {e}"))
+    serde_json::from_slice(&out).map_err(DescribeError::NoKind)
 }
 
 /// The folder of module executables installed on this computer (`$DNM_MODULE_DIR`): the only
@@ -139,7 +111,7 @@ pub fn module_dir() -> Option<std::path::PathBuf> {
 /// Validates a netlist that came over the network (an operator's apply, the authority's
 /// decisions): its external kinds are looked up by file name in [`module_dir`] and nothing
 /// outside it is ever run or described.
-pub fn parse_remote_netlist_text(path: &Path, text: &str) -> Result<Netlist, String> {
+pub fn parse_remote_netlist(path: &Path, text: &str) -> Result<Netlist, NetlistError> {
     let dir = module_dir();
     let name = path
         .file_name()
@@ -149,37 +121,50 @@ pub fn parse_remote_netlist_text(path: &Path, text: &str) -> Result<Netlist, Str
         .as_ref()
         .map_or_else(|| Path::new("/nonexistent").join(&name), |d| d.join(&name));
     let installed = dir.as_ref().and_then(|d| d.canonicalize().ok());
-    let mut describe = |exec: &Path| -> Result<KindSpec, String> {
+    let mut describe = |exec: &Path| -> Result<KindSpec, DescribeError> {
         let Some(root) = &installed else {
-            return Err(format!(
+            return Err(DescribeError::NotRun(format!(
                 "`{}` is not run: a netlist from the network may only use kinds installed on this \
                  computer; set DNM_MODULE_DIR to the folder of installed module executables",
                 exec.display()
-            ));
+            )));
         };
         match exec.canonicalize() {
             Ok(p) if p.starts_with(root) && p.is_file() => describe_exec(&p),
-            _ => Err(format!(
+            _ => Err(DescribeError::NotRun(format!(
                 "`{}` is not an installed module: a netlist from the network may only name \
                  executables in {} (DNM_MODULE_DIR), by file name",
                 exec.display(),
                 root.display()
-            )),
+            ))),
         }
     };
-    Netlist::parse(&file, text, &catalog(), &mut describe).map_err(|e| e.to_string())
+    Netlist::parse(&file, text, &catalog(), &mut describe)
+}
+
+/// The door of `system` for netlists that come over the network: validated by
+/// [`parse_remote_netlist`], for this system only. A DNM's bridge, its joining and the authority
+/// take netlists through it, and through nothing else.
+pub fn remote_door(system: &str) -> dnm_netlist::NetlistDoor {
+    dnm_netlist::NetlistDoor::new(system, std::sync::Arc::new(parse_remote_netlist))
+}
+
+/// The door of `system` for netlists given on this machine (the admin socket, whose user may
+/// run any executable here anyway): validated by [`parse_netlist`], for this system only.
+pub fn local_door(system: &str) -> dnm_netlist::NetlistDoor {
+    dnm_netlist::NetlistDoor::new(system, std::sync::Arc::new(parse_netlist))
 }
 
 /// Validates a netlist stored in a recording without running anything: its external kinds
 /// stay unknown.
-pub fn parse_recorded_netlist_text(path: &Path, text: &str) -> Result<Netlist, String> {
-    let mut refuse = |exec: &Path| -> Result<KindSpec, String> {
-        Err(format!(
+pub fn parse_recorded_netlist(path: &Path, text: &str) -> Result<Netlist, NetlistError> {
+    let mut refuse = |exec: &Path| -> Result<KindSpec, DescribeError> {
+        Err(DescribeError::NotRun(format!(
             "`{}` is not run for a recording: analyse it where the module is installed",
             exec.display()
-        ))
+        )))
     };
-    Netlist::parse(path, text, &catalog(), &mut refuse).map_err(|e| e.to_string())
+    Netlist::parse(path, text, &catalog(), &mut refuse)
 }
 
 /// Every built-in kind: the standard ones and Beetle-One's. `dnm-module-host` runs them.
@@ -206,9 +191,16 @@ pub fn parse_netlist(path: &Path, text: &str) -> Result<Netlist, NetlistError> {
     Netlist::parse(path, text, &catalog(), &mut describe_exec)
 }
 
-/// [`parse_netlist`] with the error as text, as the Zenoh bridge and the recordings take it.
-pub fn parse_netlist_text(path: &Path, text: &str) -> Result<Netlist, String> {
-    parse_netlist(path, text).map_err(|e| e.to_string())
+/// Why a placement could not be written into a netlist's text.
+#[derive(Debug, thiserror::Error)]
+pub enum PlacedTextError {
+    #[error("parsing the netlist: {0}")]
+    Parse(#[from] toml::de::Error),
+    /// The text is not the shape a netlist has (`what` says where).
+    #[error("the netlist {what}")]
+    Shape { what: &'static str },
+    #[error("writing the placed netlist: {0}")]
+    Write(#[from] toml::ser::Error),
 }
 
 /// `text` (a netlist) with each module on the DNM `assignment` gives it and `new_dnms`
@@ -218,16 +210,16 @@ pub fn placed_text(
     assignment: &std::collections::BTreeMap<String, String>,
     new_dnms: &[(String, Option<String>)],
     unpin: bool,
-) -> Result<String, String> {
-    let mut doc: toml::Table = text
-        .parse()
-        .map_err(|e| format!("parsing the netlist: {e}"))?;
+) -> Result<String, PlacedTextError> {
+    let mut doc: toml::Table = text.parse()?;
     if !new_dnms.is_empty() {
         let dnms = doc
             .entry("dnm")
             .or_insert_with(|| toml::Value::Array(Vec::new()))
             .as_array_mut()
-            .ok_or("`dnm` is not an array")?;
+            .ok_or(PlacedTextError::Shape {
+                what: "has a `dnm` that is not an array",
+            })?;
         for (name, parent) in new_dnms {
             let mut t = toml::Table::new();
             t.insert("name".into(), name.clone().into());
@@ -237,10 +229,12 @@ pub fn placed_text(
             dnms.push(t.into());
         }
     }
-    let modules = doc
-        .get_mut("module")
-        .and_then(|m| m.as_array_mut())
-        .ok_or("the netlist has no modules")?;
+    let modules =
+        doc.get_mut("module")
+            .and_then(|m| m.as_array_mut())
+            .ok_or(PlacedTextError::Shape {
+                what: "has no modules",
+            })?;
     for m in modules.iter_mut().filter_map(|m| m.as_table_mut()) {
         let name = m.get("name").and_then(|n| n.as_str()).unwrap_or_default();
         if let Some(d) = assignment.get(name) {
@@ -250,7 +244,7 @@ pub fn placed_text(
             m.remove("pinned");
         }
     }
-    toml::to_string(&doc).map_err(|e| e.to_string())
+    Ok(toml::to_string(&doc)?)
 }
 
 #[cfg(test)]
@@ -271,11 +265,12 @@ mod describe_tests {
     fn a_module_that_hangs_or_floods_when_asked_to_describe_itself_is_refused() {
         let hang = script("hang", "sleep 60");
         let e = describe_exec(&hang).unwrap_err();
-        assert!(e.contains("did not finish"), "{e}");
+        assert!(matches!(e, DescribeError::Timeout(_)), "{e}");
+        assert!(e.to_string().contains("did not finish"), "{e}");
         let flood = script("flood", "yes");
         let e = describe_exec(&flood).unwrap_err();
         assert!(
-            e.contains("did not finish") || e.contains("more than"),
+            matches!(e, DescribeError::Timeout(_) | DescribeError::TooMuchOutput(_)),
             "{e}"
         );
     }
@@ -283,9 +278,12 @@ mod describe_tests {
     #[test]
     fn a_remote_netlist_names_only_installed_executables_and_a_recording_none() {
         let text = "[system]\nname = \"s\"\n[[module]]\nname = \"x\"\nkind = \"evil\"\n[kind.evil]\nexec = \"/bin/sh\"\n";
-        let e = parse_remote_netlist_text(Path::new("evil.toml"), text).unwrap_err();
-        assert!(e.contains("/bin/sh"), "{e}");
-        let e = parse_recorded_netlist_text(Path::new("evil.toml"), text).unwrap_err();
-        assert!(e.contains("not run for a recording"), "{e}");
+        let e = parse_remote_netlist(Path::new("evil.toml"), text).unwrap_err();
+        assert!(e.to_string().contains("/bin/sh"), "{e}");
+        // Through the door every network path takes.
+        let e = remote_door("s").accept("evil.toml", text).unwrap_err();
+        assert!(e.to_string().contains("/bin/sh"), "{e}");
+        let e = parse_recorded_netlist(Path::new("evil.toml"), text).unwrap_err();
+        assert!(e.to_string().contains("not run for a recording"), "{e}");
     }
 }

@@ -364,42 +364,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             dnms,
             record,
             state_dir,
-        } => {
-            let n = dnm::load_netlist(&netlist).map_err(|e| anyhow::anyhow!("{e}"))?;
-            let dnms = if dnms.is_empty() {
-                n.dnms.iter().map(|d| d.name.clone()).collect()
-            } else {
-                for d in &dnms {
-                    if n.dnm(d).is_none() {
-                        bail!("netlist {} declares no DNM `{d}`", netlist.display());
-                    }
-                }
-                dnms
-            };
-            let mut options = HostOptions::standard().context("locating the module host")?;
-            options.record = record.options().map(|o| o.into_session(&n.system));
-            if let Some(d) = state_dir {
-                options.state_dir = Some(d);
-            }
-            if let Some(r) = &options.record {
-                println!(
-                    "recording every port to {}/{}-<dnm>.mcap (the session's manifest: {}/{})",
-                    r.dir.display(),
-                    r.stem,
-                    r.dir.display(),
-                    dnm::session::MANIFEST
-                );
-            }
-            println!(
-                "system `{}`: DNMs {} up, task {}; Ctrl-C to stop",
-                n.system,
-                dnms.join(", "),
-                n.initial_task().unwrap_or("(none)")
-            );
-            let zenoh = z.options().config()?;
-            dnm::admin::run_host(n, &dnms, options, zenoh)?;
-            Ok(ExitCode::SUCCESS)
-        }
+        } => up(z, &netlist, dnms, &record, state_dir),
         Cmd::Status { system, json } => {
             let r = send(z, &system, &Request::Status)?;
             answer(&r, json, print_status)
@@ -469,61 +434,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             csv,
             out,
             json,
-        } => {
-            let files = recording_files(&file)?;
-            if files.len() > 1 && !csv.is_empty() {
-                bail!(
-                    "{}: CSV export takes one file of the session (each file has its own rows): {}",
-                    file.display(),
-                    files
-                        .iter()
-                        .map(|f| f.display().to_string())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                );
-            }
-            let mut all = Vec::new();
-            for f in &files {
-                let bytes = std::fs::read(f).with_context(|| format!("reading {}", f.display()))?;
-                let s =
-                    dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text).map_err(|e| {
-                        anyhow::anyhow!("{}: not a readable MCAP file: {e}", f.display())
-                    })?;
-                if !csv.is_empty() {
-                    let written =
-                        dnm::stats::export_csv(&bytes, &csv, &out).map_err(anyhow::Error::msg)?;
-                    for t in &csv {
-                        if !written.contains(t) {
-                            bail!(
-                                "{}: no channel `{t}`; channels: {}",
-                                f.display(),
-                                s.channels
-                                    .iter()
-                                    .map(|c| c.topic.as_str())
-                                    .collect::<Vec<_>>()
-                                    .join(", ")
-                            );
-                        }
-                    }
-                }
-                if !json {
-                    print_stats(f, &s);
-                }
-                all.push((f.display().to_string(), s));
-            }
-            if json {
-                if all.len() == 1 && file.is_file() {
-                    println!("{}", serde_json::to_string_pretty(&all[0].1)?);
-                } else {
-                    let v: Vec<_> = all
-                        .iter()
-                        .map(|(f, s)| serde_json::json!({"file": f, "stats": s}))
-                        .collect();
-                    println!("{}", serde_json::to_string_pretty(&v)?);
-                }
-            }
-            Ok(ExitCode::SUCCESS)
-        }
+        } => stats(&file, &csv, &out, json),
         Cmd::Recordings { dir, write, json } => recordings(dir, write, json),
         Cmd::Replay {
             file,
@@ -536,75 +447,186 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             set,
             tolerance,
             json,
-        } => {
-            if let Some(module) = check {
-                return check_module(&file, &module, &set, tolerance, json);
-            }
-            let pace = if fast {
-                dnm::replay::Pace::Fast
-            } else if step {
-                dnm::replay::Pace::Step
-            } else {
-                dnm::replay::Pace::Rate(rate)
-            };
-            let r = dnm::replay::replay(
-                &file,
-                system.as_deref(),
-                &only,
-                pace,
-                &dnm::parse_recorded_netlist_text,
-            )
-            .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
-            if json {
-                println!("{}", serde_json::to_string_pretty(&r)?);
-            } else {
-                println!(
-                    "replayed {} messages from {} file(s) on {} in {:.1} s",
-                    r.messages,
-                    r.files.len(),
-                    r.channels.join(", "),
-                    r.seconds
-                );
-                for s in &r.skipped {
-                    println!("not replayed: {s}");
-                }
-                if r.unreadable > 0 {
-                    println!(
-                        "{} messages could not be read back and were left out",
-                        r.unreadable
-                    );
-                }
-            }
-            Ok(ExitCode::SUCCESS)
-        }
+        } => match check {
+            Some(module) => check_module(&file, &module, &set, tolerance, json),
+            None => replay(&file, system.as_deref(), &only, (rate, fast, step), json),
+        },
         Cmd::Router => {
             dnm_router::run_router(&z.options())?;
             Ok(ExitCode::SUCCESS)
         }
-        Cmd::Kinds { json } => {
-            let specs = dnm::registry().specs();
-            if json {
-                println!("{}", serde_json::to_string_pretty(&specs)?);
-            } else {
-                for s in specs {
-                    let ports = |ps: &[dnm_netlist::PortSpec]| {
-                        ps.iter()
-                            .map(|p| format!("{}: {}", p.name, p.message.schema_name))
+        Cmd::Kinds { json } => kinds(json),
+    }
+}
+
+/// `dnm up`: runs DNMs of a netlist on this machine until Ctrl-C.
+fn up(
+    z: &ZenohArgs,
+    netlist: &Path,
+    dnms: Vec<String>,
+    record: &RecordArgs,
+    state_dir: Option<PathBuf>,
+) -> anyhow::Result<ExitCode> {
+    let n = dnm::load_netlist(netlist).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let dnms = if dnms.is_empty() {
+        n.dnms.iter().map(|d| d.name.clone()).collect()
+    } else {
+        for d in &dnms {
+            if n.dnm(d).is_none() {
+                bail!("netlist {} declares no DNM `{d}`", netlist.display());
+            }
+        }
+        dnms
+    };
+    let mut options = HostOptions::standard().context("locating the module host")?;
+    options.record = record.options().map(|o| o.into_session(&n.system));
+    if let Some(d) = state_dir {
+        options.state_dir = Some(d);
+    }
+    if let Some(r) = &options.record {
+        println!(
+            "recording every port to {}/{}-<dnm>.mcap (the session's manifest: {}/{})",
+            r.dir.display(),
+            r.stem,
+            r.dir.display(),
+            dnm::session::MANIFEST
+        );
+    }
+    println!(
+        "system `{}`: DNMs {} up, task {}; Ctrl-C to stop",
+        n.system,
+        dnms.join(", "),
+        n.initial_task().unwrap_or("(none)")
+    );
+    let zenoh = z.options().config()?;
+    dnm::host::run_host(n, &dnms, options, zenoh)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `dnm stats`: what a recording holds, per channel; CSV export of channels.
+fn stats(file: &Path, csv: &[String], out: &Path, json: bool) -> anyhow::Result<ExitCode> {
+    let files = recording_files(file)?;
+    if files.len() > 1 && !csv.is_empty() {
+        bail!(
+            "{}: CSV export takes one file of the session (each file has its own rows): {}",
+            file.display(),
+            files
+                .iter()
+                .map(|f| f.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    let mut all = Vec::new();
+    for f in &files {
+        let bytes = std::fs::read(f).with_context(|| format!("reading {}", f.display()))?;
+        let s = dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist)
+            .map_err(|e| anyhow::anyhow!("{}: not a readable MCAP file: {e}", f.display()))?;
+        if !csv.is_empty() {
+            let written = dnm::stats::export_csv(&bytes, csv, out).map_err(anyhow::Error::msg)?;
+            for t in csv {
+                if !written.contains(t) {
+                    bail!(
+                        "{}: no channel `{t}`; channels: {}",
+                        f.display(),
+                        s.channels
+                            .iter()
+                            .map(|c| c.topic.as_str())
                             .collect::<Vec<_>>()
                             .join(", ")
-                    };
-                    println!(
-                        "{:<12} {}\n             in [{}] out [{}]",
-                        s.name,
-                        s.summary,
-                        ports(&s.inputs),
-                        ports(&s.outputs)
                     );
                 }
             }
-            Ok(ExitCode::SUCCESS)
+        }
+        if !json {
+            print_stats(f, &s);
+        }
+        all.push((f.display().to_string(), s));
+    }
+    if json {
+        if all.len() == 1 && file.is_file() {
+            println!("{}", serde_json::to_string_pretty(&all[0].1)?);
+        } else {
+            let v: Vec<_> = all
+                .iter()
+                .map(|(f, s)| serde_json::json!({"file": f, "stats": s}))
+                .collect();
+            println!("{}", serde_json::to_string_pretty(&v)?);
         }
     }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `dnm replay`: publishes a recording's samples again, at a rate, as fast as possible or
+/// step by step.
+fn replay(
+    file: &Path,
+    system: Option<&str>,
+    only: &[String],
+    (rate, fast, step): (f64, bool, bool),
+    json: bool,
+) -> anyhow::Result<ExitCode> {
+    let pace = if fast {
+        dnm::replay::Pace::Fast
+    } else if step {
+        dnm::replay::Pace::Step
+    } else {
+        dnm::replay::Pace::Rate(rate)
+    };
+    let r = dnm::replay::replay(
+        file,
+        system,
+        only,
+        pace,
+        &dnm::parse_recorded_netlist,
+    )
+    .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        println!(
+            "replayed {} messages from {} file(s) on {} in {:.1} s",
+            r.messages,
+            r.files.len(),
+            r.channels.join(", "),
+            r.seconds
+        );
+        for s in &r.skipped {
+            println!("not replayed: {s}");
+        }
+        if r.unreadable > 0 {
+            println!(
+                "{} messages could not be read back and were left out",
+                r.unreadable
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `dnm kinds`: the built-in module kinds and their ports.
+fn kinds(json: bool) -> anyhow::Result<ExitCode> {
+    let specs = dnm::registry().specs();
+    if json {
+        println!("{}", serde_json::to_string_pretty(&specs)?);
+    } else {
+        for s in specs {
+            let ports = |ps: &[dnm_netlist::PortSpec]| {
+                ps.iter()
+                    .map(|p| format!("{}: {}", p.name, p.message.schema_name))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            println!(
+                "{:<12} {}\n             in [{}] out [{}]",
+                s.name,
+                s.summary,
+                ports(&s.inputs),
+                ports(&s.outputs)
+            );
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn check_module(
@@ -629,15 +651,15 @@ fn check_module(
     let make = |kind: &str, setup: &mut dnm_module::Setup<'_>| {
         let r = registry
             .find(kind)
-            .ok_or_else(|| format!("this build cannot run kind `{kind}` here"))?;
-        (r.make)(setup).map_err(|e| e.to_string())
+            .ok_or_else(|| dnm::check::MakeError::UnknownKind(kind.to_string()))?;
+        Ok((r.make)(setup)?)
     };
     let r = dnm::check::check(
         path,
         module,
         &changes,
         tolerance,
-        &dnm::parse_recorded_netlist_text,
+        &dnm::parse_recorded_netlist,
         &make,
     )
     .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;

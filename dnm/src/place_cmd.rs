@@ -82,7 +82,7 @@ fn measured(path: &Path) -> anyhow::Result<dnm_place::Measured> {
     let mut sums: BTreeMap<(String, String), (u64, u64, f64)> = BTreeMap::new();
     for file in crate::recording_files(path)? {
         let bytes = std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
-        let stats = match dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist_text) {
+        let stats = match dnm::stats::stats(&bytes, &dnm::parse_recorded_netlist) {
             Ok(s) => s,
             Err(e) if path.is_dir() => {
                 eprintln!("{}: not a readable recording, skipped: {e}", file.display());

@@ -59,9 +59,26 @@ struct Ctx {
     hosts: Vec<String>,
 }
 
+/// Why the operator API did not start.
+#[derive(Debug, thiserror::Error)]
+pub enum ApiStartError {
+    #[error(
+        "the operator API on {0} would be reachable from other machines without a login: give it a token (`--token`, or $DNM_GROUND_TOKEN), or listen on 127.0.0.1"
+    )]
+    NoToken(SocketAddr),
+    #[error("a token of at least 16 characters, please (e.g. `openssl rand -hex 16`)")]
+    ShortToken,
+    #[error("listening on {addr}: {why}")]
+    Listen { addr: SocketAddr, why: String },
+    #[error("the server has no IP address")]
+    NoAddress,
+    #[error("starting the API's threads: {0}")]
+    Thread(#[source] std::io::Error),
+}
+
 impl Api {
     /// Serves `station` on `addr` (port 0 picks one; see [`Api::addr`]), loopback only.
-    pub fn serve(station: Arc<Station>, addr: SocketAddr) -> Result<Self, String> {
+    pub fn serve(station: Arc<Station>, addr: SocketAddr) -> Result<Self, ApiStartError> {
         Self::serve_with(station, addr, None)
     }
 
@@ -70,26 +87,24 @@ impl Api {
         station: Arc<Station>,
         addr: SocketAddr,
         token: Option<String>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, ApiStartError> {
         let token = token.filter(|t| !t.is_empty());
         if !addr.ip().is_loopback() && token.is_none() {
-            return Err(format!(
-                "the operator API on {addr} would be reachable from other machines without a \
-                 login: give it a token (`--token`, or $DNM_GROUND_TOKEN), or listen on 127.0.0.1"
-            ));
+            return Err(ApiStartError::NoToken(addr));
         }
         if let Some(t) = &token
             && t.len() < 16
         {
-            return Err(
-                "a token of at least 16 characters, please (e.g. `openssl rand -hex 16`)".into(),
-            );
+            return Err(ApiStartError::ShortToken);
         }
-        let server = Arc::new(Server::http(addr).map_err(|e| format!("listening on {addr}: {e}"))?);
+        let server = Arc::new(Server::http(addr).map_err(|e| ApiStartError::Listen {
+            addr,
+            why: e.to_string(),
+        })?);
         let addr = server
             .server_addr()
             .to_ip()
-            .ok_or_else(|| "the server has no IP address".to_string())?;
+            .ok_or(ApiStartError::NoAddress)?;
         let hosts = if addr.ip().is_loopback() {
             let port = addr.port();
             vec![
@@ -101,7 +116,8 @@ impl Api {
         } else {
             Vec::new()
         };
-        let view = SystemView::start(station.session().clone(), station.system())?;
+        let view = SystemView::start(station.session().clone(), station.system())
+            .map_err(ApiStartError::Thread)?;
         let ctx = Arc::new(Ctx {
             in_flight: std::sync::atomic::AtomicUsize::new(0),
             station,
@@ -138,7 +154,7 @@ impl Api {
                         }
                     }
                 })
-                .map_err(|e| e.to_string())?
+                .map_err(ApiStartError::Thread)?
         };
         tracing::info!(%addr, "operator API ready");
         Ok(Self {
@@ -424,7 +440,7 @@ fn handle_web(
             let since = query_u64(query, "since").unwrap_or(0);
             match web.view.watch(&module, &port, since) {
                 Ok(r) => json(200, &r),
-                Err(e) => error(404, e),
+                Err(e) => error(404, e.to_string()),
             }
         }
         (Method::Get, "/api/frame") => {

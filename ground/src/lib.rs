@@ -24,12 +24,13 @@ pub mod http;
 pub mod view;
 pub mod web;
 
+pub use dnm_proto::clock::now_unix_ns;
 use std::collections::{BTreeMap, VecDeque};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use redb::{Database, ReadableDatabase, ReadableTable, TableDefinition};
 use serde::{Deserialize, Serialize};
@@ -58,12 +59,6 @@ pub enum StationError {
 
 fn store<E: std::fmt::Display>(e: E) -> StationError {
     StationError::Store(e.to_string())
-}
-
-pub fn now_unix_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// How a station works.

@@ -154,8 +154,30 @@ fn consensus(wirings: Vec<Wiring>) -> Option<Wiring> {
     votes.into_values().max_by_key(|(n, _)| *n).map(|(_, w)| w)
 }
 
+/// Why an output cannot be watched.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WatchError {
+    #[error("the station has not heard the rover's wiring yet; try again shortly")]
+    NoWiring,
+    #[error("no module `{0}` in the netlist in force")]
+    NoModule(String),
+    #[error("module `{module}` has no output `{port}`; its outputs: {outputs}")]
+    NoOutput {
+        module: String,
+        port: String,
+        outputs: String,
+    },
+    #[error("{0} outputs are watched already; close one first")]
+    TooMany(usize),
+    #[error("subscribing to {key}: {why}")]
+    Subscribe { key: String, why: String },
+    #[error("the station's watches are unusable after a panic; restart the station")]
+    Poisoned,
+}
+
 impl SystemView {
-    pub fn start(session: zenoh::Session, system: &str) -> Result<Self, String> {
+    /// Starts the thread that keeps the view fresh.
+    pub fn start(session: zenoh::Session, system: &str) -> std::io::Result<Self> {
         let inner = Arc::new(Inner {
             session,
             system: system.to_string(),
@@ -172,8 +194,7 @@ impl SystemView {
             let inner = inner.clone();
             std::thread::Builder::new()
                 .name("ground-view".into())
-                .spawn(move || refresh_loop(&inner))
-                .map_err(|e| e.to_string())?
+                .spawn(move || refresh_loop(&inner))?
         };
         Ok(Self {
             inner,
@@ -220,31 +241,36 @@ impl SystemView {
 
     /// Samples of `module.port` newer than `since`; the first call starts watching it (at
     /// 10 Hz, camera frames at 1 Hz: what a radio link can carry).
-    pub fn watch(&self, module: &str, port: &str, since: u64) -> Result<WatchReply, String> {
+    pub fn watch(&self, module: &str, port: &str, since: u64) -> Result<WatchReply, WatchError> {
         let live = self.live();
         let wiring = live
             .wiring
-            .ok_or("the station has not heard the rover's wiring yet; try again shortly")?;
+            .ok_or(WatchError::NoWiring)?;
         let m = wiring
             .module(module)
-            .ok_or_else(|| format!("no module `{module}` in the netlist in force"))?;
-        let p = m.outputs.iter().find(|p| p.name == port).ok_or_else(|| {
-            let outs: Vec<&str> = m.outputs.iter().map(|p| p.name.as_str()).collect();
-            format!(
-                "module `{module}` has no output `{port}`; its outputs: {}",
-                outs.join(", ")
-            )
-        })?;
+            .ok_or_else(|| WatchError::NoModule(module.to_string()))?;
+        let p = m
+            .outputs
+            .iter()
+            .find(|p| p.name == port)
+            .ok_or_else(|| WatchError::NoOutput {
+                module: module.to_string(),
+                port: port.to_string(),
+                outputs: m
+                    .outputs
+                    .iter()
+                    .map(|p| p.name.as_str())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            })?;
         let key = (m.dnm.clone(), module.to_string(), port.to_string());
         let watch = {
-            let mut watches = self.inner.watches.lock().map_err(|e| e.to_string())?;
+            let mut watches = self.inner.watches.lock().map_err(|_| WatchError::Poisoned)?;
             match watches.get(&key) {
                 Some(w) if w.message == p.message => w.clone(),
                 _ => {
                     if watches.len() >= MAX_WATCHES && !watches.contains_key(&key) {
-                        return Err(format!(
-                            "{MAX_WATCHES} outputs are watched already; close one first"
-                        ));
+                        return Err(WatchError::TooMany(MAX_WATCHES));
                     }
                     let w = self.subscribe(&key, p.message.clone())?;
                     watches.insert(key.clone(), w.clone());
@@ -255,7 +281,7 @@ impl SystemView {
         if let Ok(mut t) = watch.polled.lock() {
             *t = Instant::now();
         }
-        let buf = watch.samples.lock().map_err(|e| e.to_string())?;
+        let buf = watch.samples.lock().map_err(|_| WatchError::Poisoned)?;
         Ok(WatchReply {
             watch: watch.id,
             dnm: key.0,
@@ -283,7 +309,7 @@ impl SystemView {
         buf.frame.as_ref().map(|(_, b)| b.clone())
     }
 
-    fn subscribe(&self, key: &WatchKey, message: MessageType) -> Result<Arc<Watch>, String> {
+    fn subscribe(&self, key: &WatchKey, message: MessageType) -> Result<Arc<Watch>, WatchError> {
         let rate = if message.encoding == "dnm-image-rgb8" {
             WatchRate::Hz1
         } else {
@@ -329,7 +355,10 @@ impl SystemView {
                     });
                 })
                 .wait()
-                .map_err(|e| format!("watching {zkey}: {e}"))?
+                .map_err(|e| WatchError::Subscribe {
+                    key: zkey.to_string(),
+                    why: e.to_string(),
+                })?
         };
         tracing::info!(key = %zkey, "watching an output for the web interface");
         Ok(Arc::new(Watch {

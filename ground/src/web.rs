@@ -15,7 +15,7 @@ use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use dnm_netlist::{Catalog, KindSource, KindSpec, Netlist};
+use dnm_netlist::{Catalog, DescribeError, KindSource, KindSpec, Netlist};
 use serde::Serialize;
 
 use crate::view::SystemView;
@@ -89,17 +89,39 @@ impl Web {
     }
 }
 
-/// A netlist's text as the JSON document the page edits (`None`: it is not TOML).
-pub fn document(text: &str) -> Result<serde_json::Value, String> {
-    let table: toml::Table = toml::from_str(text).map_err(|e| e.to_string())?;
-    serde_json::to_value(table).map_err(|e| e.to_string())
+/// Why a netlist's text is no document the page can edit.
+#[derive(Debug, thiserror::Error)]
+pub enum DocumentError {
+    #[error("{0}")]
+    Toml(#[from] toml::de::Error),
+    #[error("{0}")]
+    Json(#[from] serde_json::Error),
+}
+
+/// A netlist's text as the JSON document the page edits (an error: it is not TOML).
+pub fn document(text: &str) -> Result<serde_json::Value, DocumentError> {
+    let table: toml::Table = toml::from_str(text)?;
+    Ok(serde_json::to_value(table)?)
+}
+
+/// Why a draft could not be written as netlist text.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error(
+        "the draft is not a netlist document ({0}); every value must be text, a number, true/false, a list or a table"
+    )]
+    NotADocument(#[source] toml::ser::Error),
+    #[error("writing `{key}`: {source}")]
+    Write {
+        key: String,
+        #[source]
+        source: toml::ser::Error,
+    },
 }
 
 /// A JSON document as netlist text, sections in the usual order.
-pub fn render(doc: &serde_json::Value) -> Result<String, String> {
-    let table: toml::Table = toml::Table::try_from(doc).map_err(|e| {
-        format!("the draft is not a netlist document ({e}); every value must be text, a number, true/false, a list or a table")
-    })?;
+pub fn render(doc: &serde_json::Value) -> Result<String, RenderError> {
+    let table: toml::Table = toml::Table::try_from(doc).map_err(RenderError::NotADocument)?;
     let mut keys: Vec<&String> = table.keys().collect();
     keys.sort_by_key(|k| {
         (
@@ -114,7 +136,10 @@ pub fn render(doc: &serde_json::Value) -> Result<String, String> {
     for k in keys {
         let mut one = toml::Table::new();
         one.insert(k.clone(), table[k].clone());
-        let text = toml::to_string(&one).map_err(|e| format!("writing `{k}`: {e}"))?;
+        let text = toml::to_string(&one).map_err(|source| RenderError::Write {
+            key: k.clone(),
+            source,
+        })?;
         out.push('\n');
         out.push_str(&text);
     }
@@ -139,7 +164,7 @@ pub fn check(doc: &serde_json::Value, file: &str, kinds: &Catalog) -> Checked {
                 ok: false,
                 file,
                 toml: String::new(),
-                errors: vec![problem("", e, None)],
+                errors: vec![problem("", e.to_string(), None)],
             };
         }
     };
@@ -155,13 +180,18 @@ pub fn check(doc: &serde_json::Value, file: &str, kinds: &Catalog) -> Checked {
             )],
         };
     }
-    let mut describe = |exec: &Path| -> Result<KindSpec, String> {
+    let mut describe = |exec: &Path| -> Result<KindSpec, DescribeError> {
         let wanted = exec.file_name();
         kinds
             .iter()
             .find(|e| matches!(&e.source, KindSource::Exec { path } if Path::new(path).file_name() == wanted))
             .map(|e| e.spec.clone())
-            .ok_or_else(|| format!("the rover has no module executable `{}` installed", exec.display()))
+            .ok_or_else(|| {
+                DescribeError::NotRun(format!(
+                    "the rover has no module executable `{}` installed",
+                    exec.display()
+                ))
+            })
     };
     match Netlist::parse(Path::new(&file), &text, kinds, &mut describe) {
         Ok(_) => Checked {

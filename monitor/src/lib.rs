@@ -20,9 +20,10 @@
 //! - **Layout.** A blueprint for a rover operator: world and camera on the left; the connection
 //!   graph, time series (a tab per module) and the log on the right.
 
+use dnm_proto::clock::now_unix_ns;
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError, SyncSender};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use dnm_netlist::{MessageType, Wiring};
 use dnm_proto::keys::{self, JPEG_ENCODING, WatchRate};
@@ -225,12 +226,6 @@ fn collect<T: serde::de::DeserializeOwned>(
         }
     }
     out
-}
-
-fn now_unix_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// A pose path keeps a point per this much movement, m.

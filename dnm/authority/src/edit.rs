@@ -3,11 +3,35 @@
 
 use dnm_proto::station::ModuleEdit;
 
+/// Why a module edit could not be made to the netlist's text. Nothing changed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ModuleEditError {
+    #[error("parameter `{0}` must be `key=value`")]
+    Parameter(String),
+    #[error("link `{0}` must be `TASK:from.port -> to.port`")]
+    Link(String),
+    #[error("module `{0}` exists already; replace it or pick another name")]
+    Exists(String),
+    #[error("the netlist in force has no module `{0}`")]
+    NoModule(String),
+    /// The netlist's text is not the shape a netlist has (`what` says where).
+    #[error("the netlist in force {what}")]
+    Shape { what: String },
+    #[error("writing the edited netlist: {0}")]
+    Write(#[source] toml::ser::Error),
+}
+
+fn shape(what: &str) -> ModuleEditError {
+    ModuleEditError::Shape {
+        what: what.to_string(),
+    }
+}
+
 /// `key=value`, the value read as TOML (a bare word is a string).
-pub fn param_value(kv: &str) -> Result<(String, toml::Value), String> {
+pub fn param_value(kv: &str) -> Result<(String, toml::Value), ModuleEditError> {
     let (k, v) = kv
         .split_once('=')
-        .ok_or_else(|| format!("parameter `{kv}` must be `key=value`"))?;
+        .ok_or_else(|| ModuleEditError::Parameter(kv.to_string()))?;
     let v = v.trim();
     let value = format!("v = {v}")
         .parse::<toml::Table>()
@@ -17,7 +41,7 @@ pub fn param_value(kv: &str) -> Result<(String, toml::Value), String> {
     Ok((k.trim().to_string(), value))
 }
 
-fn params(list: &[String]) -> Result<toml::Table, String> {
+fn params(list: &[String]) -> Result<toml::Table, ModuleEditError> {
     let mut p = toml::Table::new();
     for kv in list {
         let (k, v) = param_value(kv)?;
@@ -28,15 +52,15 @@ fn params(list: &[String]) -> Result<toml::Table, String> {
 
 /// The netlist `text` with `edit` made, and a sentence saying what changed. The result still
 /// has to be validated (the kind may not exist, a link may not fit).
-pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), String> {
+pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), ModuleEditError> {
     let mut doc: toml::Table = text
         .parse()
-        .map_err(|e| format!("the netlist in force does not parse: {e}"))?;
+        .map_err(|e| shape(&format!("does not parse: {e}")))?;
     let modules = doc
         .entry("module")
         .or_insert_with(|| toml::Value::Array(Vec::new()))
         .as_array_mut()
-        .ok_or("`module` is not an array")?;
+        .ok_or_else(|| shape("has a `module` that is not an array"))?;
     let what = match edit {
         ModuleEdit::Add {
             name,
@@ -49,9 +73,7 @@ pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), S
                 .iter()
                 .any(|m| m.get("name").and_then(|n| n.as_str()) == Some(name.as_str()))
             {
-                return Err(format!(
-                    "module `{name}` exists already; replace it or pick another name"
-                ));
+                return Err(ModuleEditError::Exists(name.clone()));
             }
             let mut m = toml::Table::new();
             m.insert("name".into(), name.clone().into());
@@ -67,7 +89,7 @@ pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), S
             for l in links {
                 let (task, link) = l
                     .split_once(':')
-                    .ok_or_else(|| format!("link `{l}` must be `TASK:from.port -> to.port`"))?;
+                    .ok_or_else(|| ModuleEditError::Link(l.clone()))?;
                 let to = link
                     .split_once("->")
                     .map(|(_, t)| t.trim().to_string())
@@ -76,17 +98,17 @@ pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), S
                     .entry("task")
                     .or_insert_with(|| toml::Value::Table(toml::Table::new()))
                     .as_table_mut()
-                    .ok_or("`task` is not a table")?;
+                    .ok_or_else(|| shape("has a `task` that is not a table"))?;
                 let t = tasks
                     .entry(task.trim())
                     .or_insert_with(|| toml::Value::Table(toml::Table::new()))
                     .as_table_mut()
-                    .ok_or("a task is not a table")?;
+                    .ok_or_else(|| shape("has a task that is not a table"))?;
                 let list = t
                     .entry("links")
                     .or_insert_with(|| toml::Value::Array(Vec::new()))
                     .as_array_mut()
-                    .ok_or("`links` is not an array")?;
+                    .ok_or_else(|| shape("has `links` that are not an array"))?;
                 // The new link takes over the input it feeds.
                 list.retain(|x| {
                     x.as_str()
@@ -101,7 +123,7 @@ pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), S
             let before = modules.len();
             modules.retain(|m| m.get("name").and_then(|n| n.as_str()) != Some(name.as_str()));
             if modules.len() == before {
-                return Err(format!("the netlist in force has no module `{name}`"));
+                return Err(ModuleEditError::NoModule(name.clone()));
             }
             if let Some(tasks) = doc.get_mut("task").and_then(|t| t.as_table_mut()) {
                 let prefix = format!("{name}.");
@@ -126,7 +148,7 @@ pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), S
                 .iter_mut()
                 .find(|m| m.get("name").and_then(|n| n.as_str()) == Some(name.as_str()))
                 .and_then(|m| m.as_table_mut())
-                .ok_or_else(|| format!("the netlist in force has no module `{name}`"))?;
+                .ok_or_else(|| ModuleEditError::NoModule(name.clone()))?;
             if let Some(k) = kind {
                 m.insert("kind".into(), k.clone().into());
                 m.remove("params");
@@ -137,7 +159,7 @@ pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), S
             format!("replaced module `{name}`")
         }
     };
-    let text = toml::to_string(&doc).map_err(|e| format!("writing the edited netlist: {e}"))?;
+    let text = toml::to_string(&doc).map_err(ModuleEditError::Write)?;
     Ok((text, what))
 }
 
@@ -182,6 +204,7 @@ links = ["a.out -> b.in"]
         );
         assert!(text.contains(r#"tag = "x""#), "{text}");
         let e = edit_netlist(TEXT, &ModuleEdit::Remove { name: "z".into() }).unwrap_err();
-        assert!(e.contains("no module `z`"), "{e}");
+        assert_eq!(e, ModuleEditError::NoModule("z".into()));
+        assert!(e.to_string().contains("no module `z`"), "{e}");
     }
 }

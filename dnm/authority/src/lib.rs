@@ -30,9 +30,9 @@
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! # let session: zenoh::Session = unimplemented!();
 //! # let netlist: dnm_netlist::Netlist = unimplemented!();
-//! # let parse: dnm_authority::ParseNetlist = unimplemented!();
+//! # let door: dnm_netlist::NetlistDoor = unimplemented!();
 //! let options = dnm_authority::AuthorityOptions::new("/var/lib/dnm/beetle-authority.redb");
-//! let authority = dnm_authority::Authority::start(session, &netlist, parse, options)?;
+//! let authority = dnm_authority::Authority::start(session, &netlist, door, options)?;
 //! // ... until the DNMs stop:
 //! authority.stop();
 //! # Ok(()) }
@@ -42,14 +42,15 @@ mod edit;
 mod safing;
 mod store;
 
+pub(crate) use dnm_proto::clock::now_unix_ns;
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, mpsc};
 use std::thread::JoinHandle;
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
-use dnm_netlist::Netlist;
+use dnm_netlist::{AcceptError, Netlist, NetlistDoor};
 use dnm_proto::station::{
     DEFAULT_LATE_BY_MS, Downlink, Fate, Order, RoverEvent, RoverState, Sent, Uplink,
 };
@@ -58,11 +59,8 @@ use zenoh::Wait;
 use zenoh::qos::{CongestionControl, Priority};
 use zenoh::query::{ConsolidationMode, Query, QueryTarget};
 
-pub use edit::{edit_netlist, param_value};
+pub use edit::{ModuleEditError, edit_netlist, param_value};
 use store::{DecisionRecord, Finish, State, Store, Timer};
-
-/// Validates a netlist text as the DNMs do (the module catalogue is the caller's).
-pub type ParseNetlist = Arc<dyn Fn(&Path, &str) -> Result<Netlist, String> + Send + Sync>;
 
 #[derive(Debug, thiserror::Error)]
 pub enum AuthorityError {
@@ -111,12 +109,6 @@ const MAX_TIMERS: usize = 256;
 /// Events and time-tagged commands in an answer to a station, at most.
 const STATE_EVENTS: usize = 16;
 
-pub(crate) fn now_unix_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
-
 /// What the worker decides with: the durable state and the netlist in force.
 pub(crate) struct Core {
     state: State,
@@ -163,7 +155,8 @@ pub(crate) struct Shared {
     name: String,
     session: zenoh::Session,
     store: Store,
-    parse: ParseNetlist,
+    /// Where the netlists of stations' applies and module edits come in.
+    door: NetlistDoor,
     options: AuthorityOptions,
     core: Mutex<Core>,
     /// What stations are told of the rover.
@@ -222,7 +215,7 @@ impl Authority {
     pub fn start(
         session: zenoh::Session,
         netlist: &Netlist,
-        parse: ParseNetlist,
+        door: NetlistDoor,
         options: AuthorityOptions,
     ) -> Result<Self, AuthorityError> {
         let name = netlist
@@ -253,7 +246,7 @@ impl Authority {
                 let revision = used + 1;
                 // A rover already running (this store was lost or replaced) goes on with what
                 // it runs: the newest netlist in force on its DNMs, in its task.
-                let (file, text, task) = match running(&session, &system, &parse) {
+                let (file, text, task) = match running(&session, &door) {
                     Some((n, task)) => {
                         tracing::warn!(
                             file = %n.file.display(),
@@ -284,7 +277,7 @@ impl Authority {
                 s
             }
         };
-        let current = (parse)(Path::new(&state.file), &state.text).map_err(|e| {
+        let current = door.accept(&state.file, &state.text).map_err(|e| {
             AuthorityError::Netlist(format!("the decided netlist no longer validates: {e}"))
         })?;
         let digest = format!("{:016x}", current.digest());
@@ -295,7 +288,7 @@ impl Authority {
             name,
             session: session.clone(),
             store,
-            parse,
+            door,
             options,
             core: Mutex::new(Core {
                 state,
@@ -875,33 +868,25 @@ fn run_command(
             transact(s, core, None, Some(task.clone()), *at_unix_ns, cmd, None);
             Ok(())
         }
-        Order::Apply { file, text } => match (s.parse)(Path::new(file), text) {
-            Err(e) => refuse(
-                s,
-                station,
-                &sent,
-                format!("netlist refused, nothing changed:\n{e}"),
-            ),
-            Ok(n) if n.system != s.system => refuse(
-                s,
-                station,
-                &sent,
-                format!(
-                    "netlist is for system `{}`, this is `{}`",
-                    n.system, s.system
-                ),
-            ),
+        Order::Apply { file, text } => match s.door.accept(file, text) {
+            Err(e) => refuse(s, station, &sent, e.to_string()),
             Ok(n) => {
                 transact(s, core, Some(n), None, None, cmd, None);
                 Ok(())
             }
         },
         Order::Module { edit } => {
-            let edited = edit_netlist(&core.state.text, edit).and_then(|(text, what)| {
-                let file = format!("<{} netlist in force, {what}>", s.system);
-                (s.parse)(Path::new(&file), &text)
-                    .map_err(|e| format!("{what}: the netlist would not validate:\n{e}"))
-            });
+            let edited = edit_netlist(&core.state.text, edit)
+                .map_err(|e| e.to_string())
+                .and_then(|(text, what)| {
+                    let file = format!("<{} netlist in force, {what}>", s.system);
+                    s.door.accept(&file, &text).map_err(|e| match e {
+                        AcceptError::Invalid(e) => {
+                            format!("{what}: the netlist would not validate:\n{e}")
+                        }
+                        other => format!("{what}: {other}"),
+                    })
+                });
             match edited {
                 Err(e) => refuse(s, station, &sent, e),
                 Ok(n) => {
@@ -1376,11 +1361,8 @@ fn last_contact(store: &Store) -> Instant {
 }
 
 /// The newest netlist in force on the reachable DNMs (that still validates here) and its task.
-fn running(
-    session: &zenoh::Session,
-    system: &str,
-    parse: &ParseNetlist,
-) -> Option<(Netlist, Option<String>)> {
+fn running(session: &zenoh::Session, door: &NetlistDoor) -> Option<(Netlist, Option<String>)> {
+    let system = door.system();
     let replies = session
         .get(dnm_proto::keys::netlist(system, "*"))
         .target(QueryTarget::All)
@@ -1401,10 +1383,7 @@ fn running(
     }
     let n = newest?;
     let file = n.file.unwrap_or_else(|| "netlist.toml".into());
-    let netlist = parse(Path::new(&file), n.text.as_deref()?).ok()?;
-    if netlist.system != system {
-        return None;
-    }
+    let netlist = door.accept(&file, n.text.as_deref()?).ok()?;
     let task = n.active_task.filter(|t| netlist.tasks.contains_key(t));
     Some((netlist, task))
 }

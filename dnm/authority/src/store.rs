@@ -354,9 +354,7 @@ impl<'t> Taking<'t> {
         let bytes = serde_json::to_vec(&taken.received).map_err(db)?;
         meta.insert(format!("recv\0{station}").as_str(), bytes.as_slice())
             .map_err(db)?;
-        let now = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos() as u64);
+        let now = dnm_proto::clock::now_unix_ns();
         let bytes = serde_json::to_vec(&now).map_err(db)?;
         meta.insert("contact", bytes.as_slice()).map_err(db)?;
         Ok(taken)

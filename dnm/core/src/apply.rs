@@ -30,7 +30,7 @@ const PREPARE_PER_START: std::time::Duration = std::time::Duration::from_millis(
 const MAX_PREPARE: std::time::Duration = std::time::Duration::from_secs(60);
 use crate::pending::{Outcome, PendingApply};
 use crate::plan::{module_plan, task_slots};
-use crate::plugin::{Context, Plugin};
+use crate::plugin::{Context, Plugin, PluginPrepareError};
 use crate::slot::{ModuleSlot, PortServices, exec_of};
 
 impl Dnm {
@@ -40,7 +40,7 @@ impl Dnm {
         &mut self,
         netlist: Netlist,
         key: Option<CommandKey>,
-        reply: Reply<Result<u64, String>>,
+        reply: Reply<Result<u64, DnmError>>,
     ) {
         if let Some(a) = self.apply.as_mut()
             && key.is_some()
@@ -50,7 +50,7 @@ impl Dnm {
             return;
         }
         if self.stopping_all {
-            reply.send(Err(DnmError::Stopped.to_string()));
+            reply.send(Err(DnmError::Stopped));
             return;
         }
         if self.apply.is_some()
@@ -58,7 +58,7 @@ impl Dnm {
             || self.waits_for_stopping(&netlist)
         {
             if self.queued_applies.len() >= COMMAND_QUEUE {
-                reply.send(Err(DnmError::Busy(self.queued_applies.len()).to_string()));
+                reply.send(Err(DnmError::Busy(self.queued_applies.len())));
                 return;
             }
             self.queued_applies.push_back((netlist, key, reply));
@@ -73,7 +73,7 @@ impl Dnm {
         &mut self,
         netlist: Netlist,
         key: Option<CommandKey>,
-        reply: Reply<Result<u64, String>>,
+        reply: Reply<Result<u64, DnmError>>,
     ) -> bool {
         match self.prepare_apply(netlist, key.clone(), None) {
             Ok(mut pending) => {
@@ -84,7 +84,6 @@ impl Dnm {
                 true
             }
             Err(e) => {
-                let e = e.to_string();
                 if let Some(k) = key {
                     self.remember(k, Outcome::Apply(Err(e.clone())));
                 }
@@ -262,7 +261,7 @@ impl Dnm {
         })
         .map_err(|(i, why)| DnmError::Plugin {
             plugin: self.plugins[i].name(),
-            why,
+            why: why.to_string(),
         })?;
         let netlist = &p.netlist;
         // 3. New modules: control services, their plan (found as history), then the process.
@@ -290,8 +289,8 @@ impl Dnm {
     fn with_plugins(
         &mut self,
         order: impl IntoIterator<Item = usize>,
-        mut f: impl FnMut(&mut dyn Plugin, &Context<'_>) -> Result<(), String>,
-    ) -> Result<(), (usize, String)> {
+        mut f: impl FnMut(&mut dyn Plugin, &Context<'_>) -> Result<(), PluginPrepareError>,
+    ) -> Result<(), (usize, PluginPrepareError)> {
         let local_outputs = self.local_outputs();
         let ctx = Context {
             system: &self.system,
@@ -331,10 +330,10 @@ impl Dnm {
                 && let Some(p) = self.apply.take()
             {
                 let id = p.txn.unwrap_or_default();
-                let why = format!(
-                    "transaction {id} given up: no decision within {} s",
-                    crate::safe::HOLD_LIMIT.as_secs()
-                );
+                let why = DnmError::GivenUp {
+                    txn: id,
+                    limit_s: crate::safe::HOLD_LIMIT.as_secs(),
+                };
                 self.remember_decided(id, Err(why.clone()));
                 self.abort_apply(p, why);
             }
@@ -421,12 +420,12 @@ impl Dnm {
 
     fn fail_apply(&mut self, e: DnmError) {
         if let Some(p) = self.apply.take() {
-            self.abort_apply(p, e.to_string());
+            self.abort_apply(p, e);
         }
     }
 
     /// Undoes a pending apply and answers it with `why`.
-    pub(crate) fn abort_apply(&mut self, mut p: PendingApply, why: String) {
+    pub(crate) fn abort_apply(&mut self, mut p: PendingApply, why: DnmError) {
         tracing::warn!(dnm = %self.name, revision = p.revision, "apply refused: {why}");
         let replies = std::mem::take(&mut p.replies);
         let ready = std::mem::take(&mut p.ready);

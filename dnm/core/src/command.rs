@@ -3,6 +3,8 @@
 use dnm_netlist::Netlist;
 use dnm_proto::{DnmReport, NetlistState, SwitchRecord};
 
+use crate::DnmError;
+
 /// Identifies a command for exactly-once handling: the sending client and its id.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct CommandKey {
@@ -49,28 +51,28 @@ pub enum Command {
     Switch {
         task: String,
         key: Option<CommandKey>,
-        reply: Reply<Result<SwitchRecord, String>>,
+        reply: Reply<Result<SwitchRecord, DnmError>>,
     },
     /// Apply a validated netlist. The answer comes when the revision is committed or refused;
     /// switches go on meanwhile.
     Apply {
         netlist: Box<Netlist>,
         key: Option<CommandKey>,
-        reply: Reply<Result<u64, String>>,
+        reply: Reply<Result<u64, DnmError>>,
     },
     /// First phase of a transaction the system's authority runs across its DNMs: get ready to
     /// put `txn` in force and hold it until the decision. The answer comes once everything is
     /// prepared (for an apply: every module has opened the new revision's subscriptions).
     Prepare {
         txn: Txn,
-        reply: Reply<Result<(), String>>,
+        reply: Reply<Result<(), DnmError>>,
     },
     /// Second phase: commit the held transaction `id` at `at_unix_ns` (wall clock; at once if
     /// past) or drop it. The answer comes when it took effect (`None` when dropped). A retried
     /// decision is answered with its first result.
     Decide {
         decision: Decision,
-        reply: Reply<Result<Option<SwitchRecord>, String>>,
+        reply: Reply<Result<Option<SwitchRecord>, DnmError>>,
     },
     /// Takes over what the authority decided, outside any transaction: a DNM that missed a
     /// decision (it restarted, or was cut off) catches up with it. Applies `netlist` as
@@ -79,12 +81,12 @@ pub enum Command {
         revision: u64,
         task: Option<String>,
         netlist: Box<Netlist>,
-        reply: Reply<Result<u64, String>>,
+        reply: Reply<Result<u64, DnmError>>,
     },
     /// See [`SafeOrder`]. Answered once the safe task is in force here.
     Safe {
         order: SafeOrder,
-        reply: Reply<Result<(), String>>,
+        reply: Reply<Result<(), DnmError>>,
     },
 }
 

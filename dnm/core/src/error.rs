@@ -1,7 +1,8 @@
 //! What can go wrong in a DNM's operations.
 
-/// Failures of DNM operations. Each leaves the running system as it was.
-#[derive(Debug, thiserror::Error)]
+/// Failures of DNM operations, as their replies carry them. Each leaves the running system as
+/// it was.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum DnmError {
     #[error("shared memory: {0}")]
     Ipc(String),
@@ -49,6 +50,46 @@ pub enum DnmError {
     Stopped,
     #[error("{0}")]
     Refused(String),
+    #[error("command id `{id}` of `{client}` was already used for {used_for}")]
+    IdReused {
+        id: String,
+        client: String,
+        used_for: &'static str,
+    },
+    /// A transaction is held until its decision: nothing else is prepared or adopted meanwhile.
+    #[error("DNM `{dnm}` holds transaction {txn} {until}")]
+    Holding {
+        dnm: String,
+        txn: u64,
+        until: &'static str,
+    },
+    #[error("DNM `{dnm}` has revision {in_force} in force, not {wanted}")]
+    OtherRevision {
+        dnm: String,
+        in_force: u64,
+        wanted: u64,
+    },
+    #[error("DNM `{dnm}` is applying a netlist; {retry}")]
+    Applying { dnm: String, retry: &'static str },
+    #[error("modules of DNM `{0}` are still stopping; send the transaction again")]
+    StillStopping(String),
+    #[error("transaction {0} dropped")]
+    Dropped(u64),
+    #[error(
+        "DNM `{dnm}` does not hold transaction {txn} (it restarted or never prepared it); it needs revision {revision} adopted"
+    )]
+    NotHeld {
+        dnm: String,
+        txn: u64,
+        revision: u64,
+    },
+    #[error("transaction {0} is no longer held here")]
+    NoLongerHeld(u64),
+    #[error("transaction {txn} given up: no decision within {limit_s} s")]
+    GivenUp { txn: u64, limit_s: u64 },
+    /// What the DNM held was dropped when it made itself safe.
+    #[error("dropped: DNM `{dnm}` made itself safe ({reason})")]
+    Safed { dnm: String, reason: String },
 }
 
 /// Maps an iceoryx2 error to [`DnmError::Ipc`], naming what failed.

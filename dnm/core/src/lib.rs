@@ -49,7 +49,7 @@ pub use dnm_proto::{
 pub use error::DnmError;
 pub use node::{Commander, Dnm, clear_stop_if_idle, request_stop};
 pub use options::{DnmOptions, module_host_path};
-pub use plugin::{Context, Plugin, Snapshot};
+pub use plugin::{Context, Plugin, PluginPrepareError, Snapshot};
 
 use dnm_netlist::Netlist;
 

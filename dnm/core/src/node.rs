@@ -157,7 +157,7 @@ pub struct Dnm {
     /// On the safe task by the authority's safing or its own lease, until the next decision.
     pub(crate) safed: Option<dnm_proto::Safed>,
     /// A transaction's prepare waiting for module processes to stop.
-    pub(crate) deferred_prepare: Option<(crate::command::Txn, Reply<Result<(), String>>)>,
+    pub(crate) deferred_prepare: Option<(crate::command::Txn, Reply<Result<(), DnmError>>)>,
     /// At real-time priority until a decision is in force.
     pub(crate) hurried: bool,
     pub(crate) warned_realtime: bool,
@@ -182,7 +182,7 @@ impl Dnm {
     /// Opens this DNM's shared-memory namespace, removing leftovers of dead processes in it.
     pub fn new(system: &str, name: &str, options: DnmOptions) -> Result<Self, DnmError> {
         let prefix = dnm_prefix(system, name);
-        let config = dnm_config(&prefix).map_err(DnmError::Ipc)?;
+        let config = dnm_config(&prefix).map_err(|e| DnmError::Ipc(e.to_string()))?;
         let node_name: NodeName = format!("dnm-{name}")
             .as_str()
             .try_into()
@@ -289,7 +289,7 @@ impl Dnm {
     /// [`Dnm::run`]: the loop ends when all of them are dropped.
     pub fn commander(&self) -> Result<Commander, DnmError> {
         let tx = self.command_tx.clone().ok_or(DnmError::Stopped)?;
-        let config = dnm_config(&self.prefix).map_err(DnmError::Ipc)?;
+        let config = dnm_config(&self.prefix).map_err(|e| DnmError::Ipc(e.to_string()))?;
         let node = NodeBuilder::new()
             .config(&config)
             .create::<TsSvc>()
@@ -344,7 +344,7 @@ impl Dnm {
         self.begin_apply(netlist.clone(), None, reply);
         loop {
             if let Ok(r) = rx.try_recv() {
-                return r.map_err(DnmError::Refused);
+                return r;
             }
             // Blocks until a module posts a status (or 50 ms pass, to notice exits).
             self.events
@@ -615,12 +615,12 @@ impl Dnm {
             match cmd {
                 Command::Status(reply) => reply.send(self.report()),
                 Command::Netlist(reply) => reply.send(self.netlist_state()),
-                Command::Switch { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
-                Command::Apply { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
-                Command::Prepare { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
-                Command::Decide { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
-                Command::Adopt { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
-                Command::Safe { reply, .. } => reply.send(Err(DnmError::Stopped.to_string())),
+                Command::Switch { reply, .. } => reply.send(Err(DnmError::Stopped)),
+                Command::Apply { reply, .. } => reply.send(Err(DnmError::Stopped)),
+                Command::Prepare { reply, .. } => reply.send(Err(DnmError::Stopped)),
+                Command::Decide { reply, .. } => reply.send(Err(DnmError::Stopped)),
+                Command::Adopt { reply, .. } => reply.send(Err(DnmError::Stopped)),
+                Command::Safe { reply, .. } => reply.send(Err(DnmError::Stopped)),
             }
         }
     }
@@ -634,15 +634,16 @@ impl Dnm {
                     match self.answered(k) {
                         Some(Outcome::Switch(r)) => return reply.send(r),
                         Some(Outcome::Apply(_)) => {
-                            return reply.send(Err(format!(
-                                "command id `{}` of `{}` was already used for an apply",
-                                k.id, k.client
-                            )));
+                            return reply.send(Err(DnmError::IdReused {
+                                id: k.id.clone(),
+                                client: k.client.clone(),
+                                used_for: "an apply",
+                            }));
                         }
                         None => {}
                     }
                 }
-                let r = self.switch(&task).map_err(|e| e.to_string());
+                let r = self.switch(&task);
                 if let Some(k) = key {
                     self.remember(k, Outcome::Switch(r.clone()));
                 }
@@ -659,10 +660,11 @@ impl Dnm {
                     match self.answered(k) {
                         Some(Outcome::Apply(r)) => return reply.send(r),
                         Some(Outcome::Switch(_)) => {
-                            return reply.send(Err(format!(
-                                "command id `{}` of `{}` was already used for a switch",
-                                k.id, k.client
-                            )));
+                            return reply.send(Err(DnmError::IdReused {
+                                id: k.id.clone(),
+                                client: k.client.clone(),
+                                used_for: "a switch",
+                            }));
                         }
                         None => {}
                     }

@@ -1,6 +1,7 @@
 //! An apply in progress, applies waiting for it, transactions held and scheduled, and the
 //! remembered answers of commands.
 
+use crate::DnmError;
 use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
@@ -26,14 +27,14 @@ pub(crate) struct PendingApply {
     pub(crate) prepare_for: std::time::Duration,
     pub(crate) deadline: Instant,
     pub(crate) key: Option<CommandKey>,
-    pub(crate) replies: Vec<Reply<Result<u64, String>>>,
+    pub(crate) replies: Vec<Reply<Result<u64, DnmError>>>,
     /// The authority's transaction this apply prepares: once prepared it is held (no deadline)
     /// until the decision.
     pub(crate) txn: Option<u64>,
     /// The task to put in force with the revision (else the active one carries over).
     pub(crate) task: Option<String>,
     /// Answered once every module has prepared.
-    pub(crate) ready: Vec<Reply<Result<(), String>>>,
+    pub(crate) ready: Vec<Reply<Result<(), DnmError>>>,
     /// Prepared and waiting for the authority's decision.
     pub(crate) held: bool,
 }
@@ -41,12 +42,12 @@ pub(crate) struct PendingApply {
 /// The remembered answer of a command, by its key.
 #[derive(Debug, Clone)]
 pub(crate) enum Outcome {
-    Switch(Result<SwitchRecord, String>),
-    Apply(Result<u64, String>),
+    Switch(Result<SwitchRecord, DnmError>),
+    Apply(Result<u64, DnmError>),
 }
 
 /// An apply waiting for the one in progress: the netlist, its command key, its reply.
-pub(crate) type QueuedApply = (Netlist, Option<CommandKey>, Reply<Result<u64, String>>);
+pub(crate) type QueuedApply = (Netlist, Option<CommandKey>, Reply<Result<u64, DnmError>>);
 
 /// A prepared switch waiting for its decision.
 #[derive(Debug)]
@@ -63,7 +64,7 @@ pub(crate) struct Scheduled {
     pub(crate) replies: Vec<Reply<DecideResult>>,
 }
 
-pub(crate) type DecideResult = Result<Option<SwitchRecord>, String>;
+pub(crate) type DecideResult = Result<Option<SwitchRecord>, DnmError>;
 
 /// Decisions remembered for retries.
 pub(crate) const DECIDED: usize = 256;

@@ -21,6 +21,9 @@ pub struct Context<'a> {
     pub local_outputs: &'a BTreeSet<String>,
 }
 
+/// Why a plugin could not prepare a revision: its own error, whatever its type.
+pub type PluginPrepareError = Box<dyn std::error::Error + Send + Sync>;
+
 /// Something a DNM carries along with its modules: the Zenoh bridge, the recorder. The DNM
 /// calls it from its own thread; a plugin must return quickly (hand slow work to its own
 /// threads) so switches and supervision are never delayed.
@@ -28,13 +31,13 @@ pub trait Plugin {
     /// Its name, in errors and logs.
     fn name(&self) -> &'static str;
     /// Before modules get the plans of `revision`: make what they will reference (for example
-    /// mirrors of remote outputs). An error aborts the apply.
+    /// mirrors of remote outputs). An error aborts the apply; its message says why.
     fn prepare(
         &mut self,
         ctx: &Context<'_>,
         netlist: &Netlist,
         revision: u64,
-    ) -> Result<(), String> {
+    ) -> Result<(), PluginPrepareError> {
         let _ = (ctx, netlist, revision);
         Ok(())
     }

@@ -6,7 +6,8 @@
 //! so no agreement is needed to reach it: a DNM safe on its own is a decided state, which the
 //! authority adopts when it hears of it.
 
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use dnm_proto::clock::now_unix_ns;
+use std::time::Duration;
 
 use dnm_proto::Safed;
 
@@ -20,16 +21,10 @@ use crate::node::Dnm;
 /// from blocking every later transaction.
 pub(crate) const HOLD_LIMIT: Duration = Duration::from_secs(30);
 
-fn now_unix_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
-
 impl Dnm {
     /// Puts `order.task` in force now, dropping whatever transaction is held or scheduled, and
     /// records why. A repeated order only takes on the authority's epoch.
-    pub(crate) fn make_safe(&mut self, order: SafeOrder, reply: Reply<Result<(), String>>) {
+    pub(crate) fn make_safe(&mut self, order: SafeOrder, reply: Reply<Result<(), DnmError>>) {
         if self.netlist.is_none() {
             // Runs nothing: nothing to make safe.
             return reply.send(Ok(()));
@@ -38,8 +33,7 @@ impl Dnm {
             return reply.send(Err(DnmError::UnknownTask {
                 task: order.task,
                 known: self.tasks.join(", "),
-            }
-            .to_string()));
+            }));
         }
         let on_task = self.active.as_deref() == Some(order.task.as_str());
         let holds = self.holding().is_some();
@@ -53,13 +47,13 @@ impl Dnm {
             }
             return reply.send(Ok(()));
         }
-        let why = format!(
-            "dropped: DNM `{}` made itself safe ({})",
-            self.name, order.reason
-        );
+        let why = DnmError::Safed {
+            dnm: self.name.clone(),
+            reason: order.reason.clone(),
+        };
         self.drop_held(&why);
         if !on_task && let Err(e) = self.switch(&order.task) {
-            return reply.send(Err(e.to_string()));
+            return reply.send(Err(e));
         }
         tracing::warn!(dnm = %self.name, task = %order.task, epoch = ?order.epoch, "made safe: {}", order.reason);
         self.event(
@@ -79,25 +73,25 @@ impl Dnm {
 
     /// Drops every transaction held or scheduled here: none of them may be put in force any
     /// more. A decision arriving later for one of them is answered with `why`.
-    fn drop_held(&mut self, why: &str) {
+    fn drop_held(&mut self, why: &DnmError) {
         if let Some(h) = self.held_switch.take() {
-            self.remember_decided(h.id, Err(why.to_string()));
+            self.remember_decided(h.id, Err(why.clone()));
         }
         // A prepared transaction, or an adoption under way: neither may put its task in force
         // after the safing.
         if let Some(p) = self.apply.take() {
             if let Some(id) = p.txn {
-                self.remember_decided(id, Err(why.to_string()));
+                self.remember_decided(id, Err(why.clone()));
             }
-            self.abort_apply(p, why.to_string());
+            self.abort_apply(p, why.clone());
         }
         if let Some((_, reply)) = self.deferred_prepare.take() {
-            reply.send(Err(why.to_string()));
+            reply.send(Err(why.clone()));
         }
         if let Some(s) = self.scheduled.take() {
-            self.remember_decided(s.decision.id, Err(why.to_string()));
+            self.remember_decided(s.decision.id, Err(why.clone()));
             for r in s.replies {
-                r.send(Err(why.to_string()));
+                r.send(Err(why.clone()));
             }
         }
         self.calm();
@@ -123,10 +117,10 @@ impl Dnm {
         self.held_switch = None;
         self.remember_decided(
             id,
-            Err(format!(
-                "transaction {id} given up: no decision within {} s",
-                HOLD_LIMIT.as_secs()
-            )),
+            Err(DnmError::GivenUp {
+                txn: id,
+                limit_s: HOLD_LIMIT.as_secs(),
+            }),
         );
         self.publish();
     }

@@ -151,103 +151,72 @@ impl Dnm {
     /// One supervision pass: exits, hangs, restarts, processes being stopped. Never blocks.
     pub(crate) fn supervise(&mut self) {
         let now = Instant::now();
+        let mut pass = Pass::default();
+        self.check_processes(now, &mut pass);
+        for pid in std::mem::take(&mut pass.to_kill) {
+            // SAFETY: kill(2) with the pid of a child we have not reaped yet. SIGKILL also ends
+            // a stopped process.
+            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+        }
+        self.wake_starting();
+        pass.any_died |= self.reap_stopping(now);
+        if pass.any_died {
+            self.janitor.sweep();
+        }
+        // An apply that waited for a stopping process may start now.
+        if self.apply.is_none() && !self.queued_applies.is_empty() {
+            self.next_apply();
+        }
+        self.start_due(now, &mut pass.events);
+        for (module, what, detail) in pass.events {
+            self.event(&module, what, detail);
+        }
+    }
+
+    /// Every running module process: has it exited, hung, or recovered?
+    fn check_processes(&mut self, now: Instant, pass: &mut Pass) {
         let now_ns = monotonic_ns();
-        let mut any_died = false;
-        let mut events: Vec<(String, &'static str, String)> = Vec::new();
-        let mut to_kill: Vec<u32> = Vec::new();
+        let prepare_timeout = self.options.prepare_timeout;
         for (name, slot) in self.modules.iter_mut() {
             let Some(child) = slot.child.as_mut() else {
                 continue;
             };
             match child.try_wait() {
                 Ok(Some(exit)) => {
-                    any_died = true;
-                    slot.child = None;
-                    let why = match slot.killed_hung.take() {
-                        Some(h) => format!("{h}; killed ({exit})"),
-                        None => exit.to_string(),
-                    };
-                    slot.last_exit = Some(why.clone());
-                    let restart = match slot.decl.restart.mode {
-                        RestartMode::Always => true,
-                        RestartMode::OnFailure => !exit.success(),
-                        RestartMode::Never => false,
-                    } && slot.restarts < slot.decl.restart.max_restarts;
-                    slot.state = if restart {
-                        ModuleRunState::Failed
-                    } else {
-                        ModuleRunState::Stopped
-                    };
-                    if restart {
-                        // Back off: 100 ms, doubling to at most 5 s.
-                        let backoff =
-                            Duration::from_millis(100 << slot.restarts.min(6)).min(MAX_BACKOFF);
-                        slot.start_at = Some(now + backoff);
-                    }
-                    tracing::warn!(dnm = %self.name, module = %name, exit = %why, restart, "module exited");
-                    events.push((
-                        name.clone(),
-                        if restart { "exited" } else { "gave_up" },
-                        why,
-                    ));
+                    pass.any_died = true;
+                    pass.events.push(exited(&self.name, name, slot, exit, now));
                     continue;
                 }
                 Ok(None) => {}
                 Err(e) => tracing::warn!(module = %name, "cannot poll module process: {e}"),
             }
-            // A live process: is it still stepping?
-            let alive_ns = slot.status.heartbeat_ns.max(slot.status.last_step_ns);
-            let silent = match slot.state {
-                ModuleRunState::Running | ModuleRunState::Hung if alive_ns > 0 => {
-                    Duration::from_nanos(now_ns.saturating_sub(alive_ns))
+            let pid = child.id();
+            if let Some((event, kill)) =
+                liveness(&self.name, name, slot, now, now_ns, prepare_timeout)
+            {
+                if kill {
+                    pass.to_kill.push(pid);
                 }
-                // Never reached its first step: count from the start of the process.
-                ModuleRunState::Starting => now
-                    .duration_since(slot.spawned_at)
-                    .saturating_sub(self.options.prepare_timeout),
-                _ => Duration::ZERO,
-            };
-            let hung = silent > slot.hung_after;
-            match (slot.state, hung) {
-                (ModuleRunState::Running | ModuleRunState::Starting, true) => {
-                    slot.state = ModuleRunState::Hung;
-                    slot.hangs += 1;
-                    let detail = format!(
-                        "no sign of life for {} ms (deadline {} ms)",
-                        silent.as_millis(),
-                        slot.hung_after.as_millis()
-                    );
-                    tracing::warn!(dnm = %self.name, module = %name, "{detail}");
-                    let restart = slot.decl.restart.mode != RestartMode::Never
-                        && slot.restarts < slot.decl.restart.max_restarts;
-                    if restart {
-                        // The exit is noticed on a later pass and restarts it per its policy.
-                        slot.killed_hung = Some(format!("hung: {detail}"));
-                        to_kill.push(child.id());
-                    }
-                    events.push((name.clone(), "hung", detail));
-                }
-                (ModuleRunState::Hung, false) if slot.killed_hung.is_none() => {
-                    slot.state = ModuleRunState::Running;
-                    events.push((name.clone(), "recovered", "stepping again".into()));
-                }
-                _ => {}
+                pass.events.push(event);
             }
         }
-        for pid in to_kill {
-            // SAFETY: kill(2) with the pid of a child we have not reaped yet. SIGKILL also ends
-            // a stopped process.
-            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
-        }
+    }
+
+    /// A (re)started process finds its plans as history once the publisher updates its
+    /// connections; then it needs a wake-up to read them.
+    fn wake_starting(&self) {
         for slot in self.modules.values() {
             if slot.state == ModuleRunState::Starting && slot.child.is_some() {
-                // A (re)started process finds its plans as history once the publisher updates
-                // its connections; then it needs a wake-up to read them.
                 let _ = slot.plan_pub.update_connections();
                 let _ = slot.wake.notify();
             }
         }
-        // Processes on their way out.
+    }
+
+    /// Processes on their way out: forgotten once gone, killed at their deadline. Whether one
+    /// went.
+    fn reap_stopping(&mut self, now: Instant) -> bool {
+        let mut any_died = false;
         let mut i = 0;
         while i < self.stopping.len() {
             let s = &mut self.stopping[i];
@@ -265,15 +234,12 @@ impl Dnm {
             }
             i += 1;
         }
-        if any_died {
-            self.janitor.sweep();
-        }
-        // An apply that waited for a stopping process may start now.
-        if self.apply.is_none() && !self.queued_applies.is_empty() {
-            self.next_apply();
-        }
-        // Starts that are due: restarts after their back-off, replacements once the process
-        // they replace is gone and its shared memory removed (the sweep wakes this DNM).
+        any_died
+    }
+
+    /// Starts that are due: restarts after their back-off, replacements once the process they
+    /// replace is gone and its shared memory removed (the sweep wakes this DNM).
+    fn start_due(&mut self, now: Instant, events: &mut Vec<Event>) {
         let swept = self.janitor.idle();
         let due: Vec<String> = self
             .modules
@@ -317,9 +283,6 @@ impl Dnm {
             }
             self.modules.insert(name, slot);
         }
-        for (module, what, detail) in events {
-            self.event(&module, what, detail);
-        }
     }
 
     /// CPU and rate readings; memory once a second.
@@ -353,10 +316,10 @@ impl Dnm {
         self.stopping_all = true;
         self.refuse_queued_commands();
         for (_, _, reply) in std::mem::take(&mut self.queued_applies) {
-            reply.send(Err(DnmError::Stopped.to_string()));
+            reply.send(Err(DnmError::Stopped));
         }
         if let Some(a) = self.apply.take() {
-            self.abort_apply(a, DnmError::Stopped.to_string());
+            self.abort_apply(a, DnmError::Stopped);
         }
         let names: Vec<String> = self.modules.keys().cloned().collect();
         for name in names {
@@ -378,5 +341,106 @@ impl Dnm {
         // Plugins finish (the recorder writes its summary and footer).
         self.plugins.clear();
         tracing::info!(dnm = %self.name, "stopped");
+    }
+}
+
+/// A module event: the module, what happened, the detail.
+type Event = (String, &'static str, String);
+
+/// What one supervision pass found.
+#[derive(Default)]
+struct Pass {
+    any_died: bool,
+    events: Vec<Event>,
+    /// Hung processes to kill (their exits restart them per policy on a later pass).
+    to_kill: Vec<u32>,
+}
+
+/// A module's process exited: it is failed (and restarted after a back-off) or stopped, per
+/// its restart policy.
+fn exited(
+    dnm: &str,
+    name: &str,
+    slot: &mut ModuleSlot,
+    exit: std::process::ExitStatus,
+    now: Instant,
+) -> Event {
+    slot.child = None;
+    let why = match slot.killed_hung.take() {
+        Some(h) => format!("{h}; killed ({exit})"),
+        None => exit.to_string(),
+    };
+    slot.last_exit = Some(why.clone());
+    let restart = match slot.decl.restart.mode {
+        RestartMode::Always => true,
+        RestartMode::OnFailure => !exit.success(),
+        RestartMode::Never => false,
+    } && slot.restarts < slot.decl.restart.max_restarts;
+    slot.state = if restart {
+        ModuleRunState::Failed
+    } else {
+        ModuleRunState::Stopped
+    };
+    if restart {
+        // Back off: 100 ms, doubling to at most 5 s.
+        let backoff = Duration::from_millis(100 << slot.restarts.min(6)).min(MAX_BACKOFF);
+        slot.start_at = Some(now + backoff);
+    }
+    tracing::warn!(dnm = %dnm, module = %name, exit = %why, restart, "module exited");
+    (
+        name.to_string(),
+        if restart { "exited" } else { "gave_up" },
+        why,
+    )
+}
+
+/// A live process: is it still stepping? The event of a hang or a recovery, and whether the
+/// hung process is to be killed.
+fn liveness(
+    dnm: &str,
+    name: &str,
+    slot: &mut ModuleSlot,
+    now: Instant,
+    now_ns: u64,
+    prepare_timeout: Duration,
+) -> Option<(Event, bool)> {
+    let alive_ns = slot.status.heartbeat_ns.max(slot.status.last_step_ns);
+    let silent = match slot.state {
+        ModuleRunState::Running | ModuleRunState::Hung if alive_ns > 0 => {
+            Duration::from_nanos(now_ns.saturating_sub(alive_ns))
+        }
+        // Never reached its first step: count from the start of the process.
+        ModuleRunState::Starting => now
+            .duration_since(slot.spawned_at)
+            .saturating_sub(prepare_timeout),
+        _ => Duration::ZERO,
+    };
+    let hung = silent > slot.hung_after;
+    match (slot.state, hung) {
+        (ModuleRunState::Running | ModuleRunState::Starting, true) => {
+            slot.state = ModuleRunState::Hung;
+            slot.hangs += 1;
+            let detail = format!(
+                "no sign of life for {} ms (deadline {} ms)",
+                silent.as_millis(),
+                slot.hung_after.as_millis()
+            );
+            tracing::warn!(dnm = %dnm, module = %name, "{detail}");
+            let restart = slot.decl.restart.mode != RestartMode::Never
+                && slot.restarts < slot.decl.restart.max_restarts;
+            if restart {
+                // The exit is noticed on a later pass and restarts it per its policy.
+                slot.killed_hung = Some(format!("hung: {detail}"));
+            }
+            Some(((name.to_string(), "hung", detail), restart))
+        }
+        (ModuleRunState::Hung, false) if slot.killed_hung.is_none() => {
+            slot.state = ModuleRunState::Running;
+            Some((
+                (name.to_string(), "recovered", "stepping again".into()),
+                false,
+            ))
+        }
+        _ => None,
     }
 }

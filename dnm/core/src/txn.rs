@@ -7,7 +7,8 @@
 //! [`crate::safe::HOLD_LIMIT`]; then it is given up (the authority has a DNM that missed a
 //! commit adopt the decided revision). Safing (`safe.rs`) drops whatever is held.
 
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use dnm_proto::clock::now_unix_ns;
+use std::time::{Duration, Instant};
 
 use dnm_module::protocol::monotonic_ns;
 use dnm_netlist::Netlist;
@@ -19,12 +20,6 @@ use crate::node::Dnm;
 use crate::pending::{
     DECIDED, DecideResult, FINE_WAIT, HeldSwitch, QUIET_BEFORE, QUIET_HOLD, Scheduled,
 };
-
-fn now_unix_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
 
 /// The local instant of a wall-clock time (now if it has passed).
 fn due_instant(at_unix_ns: u64) -> Instant {
@@ -61,7 +56,7 @@ impl Dnm {
         }
     }
 
-    pub(crate) fn prepare_txn(&mut self, txn: Txn, reply: Reply<Result<(), String>>) {
+    pub(crate) fn prepare_txn(&mut self, txn: Txn, reply: Reply<Result<(), DnmError>>) {
         // A retried prepare of what is held, scheduled or done already.
         if self.held_switch.as_ref().is_some_and(|h| h.id == txn.id)
             || self
@@ -81,28 +76,29 @@ impl Dnm {
             return;
         }
         if let Some(other) = self.holding() {
-            return reply.send(Err(format!(
-                "DNM `{}` holds transaction {other} until its decision",
-                self.name
-            )));
+            return reply.send(Err(DnmError::Holding {
+                dnm: self.name.clone(),
+                txn: other,
+                until: "until its decision",
+            }));
         }
         if self.stopping_all {
-            return reply.send(Err(DnmError::Stopped.to_string()));
+            return reply.send(Err(DnmError::Stopped));
         }
         let Some(netlist) = txn.netlist else {
             let task = txn.task.unwrap_or_default();
             if txn.revision != self.revision {
-                return reply.send(Err(format!(
-                    "DNM `{}` has revision {} in force, not {}",
-                    self.name, self.revision, txn.revision
-                )));
+                return reply.send(Err(DnmError::OtherRevision {
+                    dnm: self.name.clone(),
+                    in_force: self.revision,
+                    wanted: txn.revision,
+                }));
             }
             if !self.tasks.contains(&task) {
                 return reply.send(Err(DnmError::UnknownTask {
                     task,
                     known: self.tasks.join(", "),
-                }
-                .to_string()));
+                }));
             }
             self.held_switch = Some(HeldSwitch {
                 id: txn.id,
@@ -113,19 +109,16 @@ impl Dnm {
             return reply.send(Ok(()));
         };
         if self.apply.is_some() || !self.queued_applies.is_empty() {
-            return reply.send(Err(format!(
-                "DNM `{}` is applying a netlist; send the transaction again",
-                self.name
-            )));
+            return reply.send(Err(DnmError::Applying {
+                dnm: self.name.clone(),
+                retry: "send the transaction again",
+            }));
         }
         if self.waits_for_stopping(&netlist) {
             // A process of a module it starts again is still stopping (an apply undone a
             // moment ago): prepared once it is gone, within the authority's prepare timeout.
             if self.deferred_prepare.is_some() {
-                return reply.send(Err(format!(
-                    "modules of DNM `{}` are still stopping; send the transaction again",
-                    self.name
-                )));
+                return reply.send(Err(DnmError::StillStopping(self.name.clone())));
             }
             self.deferred_prepare = Some((
                 Txn {
@@ -144,7 +137,7 @@ impl Dnm {
                 self.apply = Some(p);
                 self.progress_apply();
             }
-            Err(e) => reply.send(Err(e.to_string())),
+            Err(e) => reply.send(Err(e)),
         }
     }
 
@@ -166,7 +159,7 @@ impl Dnm {
         }
         if let Some((_, waiting)) = self.deferred_prepare.take_if(|(t, _)| t.id == d.id) {
             // Decided before it could be prepared: it can only have been dropped.
-            waiting.send(Err(format!("transaction {} dropped", d.id)));
+            waiting.send(Err(DnmError::Dropped(d.id)));
             return reply.send(Ok(None));
         }
         if let Some(s) = self.scheduled.as_mut().filter(|s| s.decision.id == d.id) {
@@ -182,24 +175,24 @@ impl Dnm {
             if !d.commit {
                 // Nothing held; a prepare still in progress is dropped too.
                 if let Some(p) = self.apply.take_if(|p| p.txn == Some(d.id)) {
-                    self.abort_apply(p, format!("transaction {} dropped", d.id));
+                    self.abort_apply(p, DnmError::Dropped(d.id));
                 }
                 return reply.send(Ok(None));
             }
             if self.revision == d.revision && self.active == d.task {
                 return reply.send(Ok(None));
             }
-            return reply.send(Err(format!(
-                "DNM `{}` does not hold transaction {} (it restarted or never prepared it); \
-                 it needs revision {} adopted",
-                self.name, d.id, d.revision
-            )));
+            return reply.send(Err(DnmError::NotHeld {
+                dnm: self.name.clone(),
+                txn: d.id,
+                revision: d.revision,
+            }));
         }
         if !d.commit {
             if holds_switch {
                 self.held_switch = None;
             } else if let Some(p) = self.apply.take() {
-                self.abort_apply(p, format!("transaction {} dropped", d.id));
+                self.abort_apply(p, DnmError::Dropped(d.id));
             }
             self.remember_decided(d.id, Ok(None));
             self.publish();
@@ -311,10 +304,10 @@ impl Dnm {
         }
     }
 
-    fn put_in_force(&mut self, d: &Decision) -> Result<SwitchRecord, String> {
+    fn put_in_force(&mut self, d: &Decision) -> Result<SwitchRecord, DnmError> {
         if let Some(h) = self.held_switch.take_if(|h| h.id == d.id) {
             self.safed = None;
-            return self.switch(&h.task).map_err(|e| e.to_string());
+            return self.switch(&h.task);
         }
         if let Some(p) = self.apply.take_if(|p| p.txn == Some(d.id) && p.held) {
             let at_ns = monotonic_ns();
@@ -329,7 +322,7 @@ impl Dnm {
                 at_ns,
             });
         }
-        Err(format!("transaction {} is no longer held here", d.id))
+        Err(DnmError::NoLongerHeld(d.id))
     }
 
     /// The decided revision `revision` has no place for this DNM (an apply removed it): its
@@ -374,13 +367,14 @@ impl Dnm {
         revision: u64,
         task: Option<String>,
         netlist: Netlist,
-        reply: Reply<Result<u64, String>>,
+        reply: Reply<Result<u64, DnmError>>,
     ) {
         if let Some(id) = self.holding() {
-            return reply.send(Err(format!(
-                "DNM `{}` holds transaction {id}; decide it first",
-                self.name
-            )));
+            return reply.send(Err(DnmError::Holding {
+                dnm: self.name.clone(),
+                txn: id,
+                until: "; decide it first",
+            }));
         }
         if netlist.dnm(&self.name).is_none() {
             return reply.send(Ok(self.retire(revision)));
@@ -393,17 +387,17 @@ impl Dnm {
             if let Some(t) = task.filter(|t| self.active.as_ref() != Some(t)) {
                 self.safed = None;
                 if let Err(e) = self.switch(&t) {
-                    return reply.send(Err(e.to_string()));
+                    return reply.send(Err(e));
                 }
                 self.publish();
             }
             return reply.send(Ok(revision));
         }
         if self.apply.is_some() || !self.queued_applies.is_empty() {
-            return reply.send(Err(format!(
-                "DNM `{}` is applying a netlist; adopt again later",
-                self.name
-            )));
+            return reply.send(Err(DnmError::Applying {
+                dnm: self.name.clone(),
+                retry: "adopt again later",
+            }));
         }
         match self.prepare_apply(netlist, None, Some(revision)) {
             Ok(mut p) => {
@@ -412,7 +406,7 @@ impl Dnm {
                 self.apply = Some(p);
                 self.progress_apply();
             }
-            Err(e) => reply.send(Err(e.to_string())),
+            Err(e) => reply.send(Err(e)),
         }
     }
 }

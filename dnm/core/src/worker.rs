@@ -24,6 +24,28 @@ pub fn err<E: std::fmt::Display>(what: &str) -> impl FnOnce(E) -> String + '_ {
     move |e| format!("{what}: {e}")
 }
 
+/// Why a helper thread did not start: which of its parts failed, and how.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{what}: {detail}")]
+pub struct WorkerStartError {
+    pub what: &'static str,
+    pub detail: String,
+}
+
+fn start_dbg<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> WorkerStartError {
+    move |e| WorkerStartError {
+        what,
+        detail: format!("{e:?}"),
+    }
+}
+
+fn start_err<E: std::fmt::Display>(what: &'static str) -> impl FnOnce(E) -> WorkerStartError {
+    move |e| WorkerStartError {
+        what,
+        detail: e.to_string(),
+    }
+}
+
 /// What the thread sees: its node, its control listener (attach it to the WaitSet) and the
 /// sets the DNM sends.
 #[allow(missing_debug_implementations)]
@@ -70,16 +92,17 @@ pub struct Worker<T> {
 
 impl<T: Send + 'static> Worker<T> {
     /// Starts `body` on a thread named `name`, once its control listener (on service `event`
-    /// of the namespace `prefix`) exists, so no notification is lost.
-    pub fn spawn(
+    /// of the namespace `prefix`) exists, so no notification is lost. The error `body` ends
+    /// with is logged.
+    pub fn spawn<E: std::fmt::Display>(
         name: String,
         prefix: &str,
         event: &'static str,
-        body: impl FnOnce(Control<T>) -> Result<(), String> + Send + 'static,
-    ) -> Result<Self, String> {
-        let config = dnm_config(prefix)?;
+        body: impl FnOnce(Control<T>) -> Result<(), E> + Send + 'static,
+    ) -> Result<Self, WorkerStartError> {
+        let config = dnm_config(prefix).map_err(start_err("shared-memory configuration"))?;
         let (sets, rx) = mpsc::channel::<Vec<T>>();
-        let (ready_tx, ready_rx) = mpsc::sync_channel::<Result<(), String>>(1);
+        let (ready_tx, ready_rx) = mpsc::sync_channel::<Result<(), WorkerStartError>>(1);
         let thread_config = config.clone();
         let thread_name = name.clone();
         let thread = std::thread::Builder::new()
@@ -89,13 +112,13 @@ impl<T: Send + 'static> Worker<T> {
                     let node = NodeBuilder::new()
                         .config(&thread_config)
                         .create::<Svc>()
-                        .map_err(dbg("node"))?;
+                        .map_err(start_dbg("node"))?;
                     let listener = event_service(&node, event)
-                        .map_err(err("control event"))?
+                        .map_err(start_err("control event"))?
                         .listener_builder()
                         .create()
-                        .map_err(dbg("control listener"))?;
-                    Ok::<_, String>(Control {
+                        .map_err(start_dbg("control listener"))?;
+                    Ok::<_, WorkerStartError>(Control {
                         node,
                         listener,
                         sets: rx,
@@ -113,21 +136,26 @@ impl<T: Send + 'static> Worker<T> {
                     }
                 }
             })
-            .map_err(err("spawning thread"))?;
+            .map_err(start_err("spawning thread"))?;
         match ready_rx.recv() {
             Ok(Ok(())) => {}
             Ok(Err(e)) => return Err(e),
-            Err(_) => return Err("helper thread stopped while starting".into()),
+            Err(_) => {
+                return Err(WorkerStartError {
+                    what: "helper thread",
+                    detail: "stopped while starting".into(),
+                });
+            }
         }
         let node = NodeBuilder::new()
             .config(&config)
             .create::<TsSvc>()
-            .map_err(dbg("node"))?;
+            .map_err(start_dbg("node"))?;
         let wake = event_service(&node, event)
-            .map_err(err("control event"))?
+            .map_err(start_err("control event"))?
             .notifier_builder()
             .create()
-            .map_err(dbg("control notifier"))?;
+            .map_err(start_dbg("control notifier"))?;
         Ok(Self {
             sets,
             wake,

@@ -46,6 +46,40 @@ impl fmt::Display for NetlistError {
     }
 }
 
+/// Why a module executable named by a netlist (`exec`) did not say what kind it is. The
+/// netlist's diagnostic for the kind quotes it.
+#[derive(Debug, thiserror::Error)]
+pub enum DescribeError {
+    /// It is not run here: why, and what to do.
+    #[error("{0}")]
+    NotRun(String),
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+    #[error("`describe` did not finish within {0} s")]
+    Timeout(u64),
+    #[error("`describe` printed more than {0} bytes")]
+    TooMuchOutput(u64),
+    #[error("`describe` exited with {0}")]
+    Failed(std::process::ExitStatus),
+    #[error("`describe` printed no kind: {0}")]
+    NoKind(#[source] serde_json::Error),
+}
+
+impl From<String> for DescribeError {
+    fn from(why: String) -> Self {
+        Self::NotRun(why)
+    }
+}
+
+impl From<&str> for DescribeError {
+    fn from(why: &str) -> Self {
+        Self::NotRun(why.to_string())
+    }
+}
+
+/// Asks a module executable for its kind (see [`crate::Netlist::parse`]).
+pub type Describe<'a> = dyn FnMut(&Path) -> Result<crate::KindSpec, DescribeError> + 'a;
+
 /// Collects diagnostics while validating one source text.
 #[derive(Debug)]
 pub(crate) struct Reporter<'a> {

@@ -15,15 +15,18 @@
 //! is reported at once. The validated [`Netlist`] carries a petgraph [`ModuleGraph`] that
 //! placement and routing reuse.
 
+mod door;
 mod error;
 mod model;
 pub mod spec;
+mod validate;
 pub mod values;
 pub mod wiring;
 
-pub use error::{Diagnostic, NetlistError};
+pub use door::{AcceptError, NetlistDoor, ParseNetlist};
+pub use error::{Describe, DescribeError, Diagnostic, NetlistError};
 pub use model::{
-    Connection, DEFAULT_DNM, Dnm, Link, LinkLoss, MAX_HUNG_AFTER_MS, MAX_NAME_LEN, MAX_RATE_HZ,
+    Connection, DEFAULT_DNM, DnmDecl, Link, LinkLoss, MAX_HUNG_AFTER_MS, MAX_NAME_LEN, MAX_RATE_HZ,
     MIN_HUNG_AFTER_MS, MIN_RATE_HZ, Module, ModuleGraph, ModuleNode, Netlist, PortRef, RestartMode,
     RestartPolicy, Task, parse_duration_ms,
 };

@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::{Dnm, Link, Netlist, ParamValue, PortSpec};
+use crate::{DnmDecl, Link, Netlist, ParamValue, PortSpec};
 
 /// A netlist revision in force, wired.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -17,7 +17,7 @@ pub struct Wiring {
     pub dnm: String,
     pub revision: u64,
     pub active_task: Option<String>,
-    pub dnms: Vec<Dnm>,
+    pub dnms: Vec<DnmDecl>,
     pub modules: Vec<WiredModule>,
     /// Every task's links, by task name.
     pub tasks: BTreeMap<String, Vec<Link>>,

@@ -11,6 +11,7 @@
 //! assert!(json.contains(r#""cmd":"switch""#));
 //! ```
 
+pub mod clock;
 pub mod keys;
 pub mod station;
 

@@ -1,6 +1,7 @@
 //! Recordings: every output port of a DNM written to MCAP by the [`record::Recorder`] (a DNM
 //! plugin, off the modules' path), one folder and manifest per session ([`session`]),
 //! recordings replayed into a running system ([`replay`]), and their statistics ([`stats`]).
+//! How a sample is stored and read back is [`codec`] (and [`standard`] for standard messages).
 //!
 //! ```no_run
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
@@ -12,6 +13,7 @@
 //! ```
 
 pub mod check;
+pub mod codec;
 pub mod record;
 pub mod replay;
 pub mod session;
@@ -27,22 +29,42 @@ pub fn is_raw(topic: &str) -> bool {
     topic.ends_with(RAW_SUFFIX) && topic.trim_start_matches('/').split('/').count() == 4
 }
 
-/// Parses and validates a netlist stored in a recording (`file` names it in errors).
-pub type ParseNetlist<'a> =
-    dyn Fn(&std::path::Path, &str) -> Result<dnm_netlist::Netlist, String> + 'a;
+/// Parses and validates a netlist stored in a recording (`file` names it in errors); the
+/// caller decides what it may describe (nothing is run for a recording).
+pub use dnm_netlist::ParseNetlist;
 
 /// Largest record or decompressed chunk a recording may declare (a corrupt length would
 /// otherwise be allocated as given).
 const MAX_RECORD: u64 = 1 << 30;
 
+/// Why [`check_layout`] refused a file: it is not a recording, or a length it declares cannot
+/// be trusted (the file is damaged).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum LayoutError {
+    #[error("not an MCAP file (no MCAP magic at its start)")]
+    NotMcap,
+    /// A record longer than any a recording holds, and than what is left of the file.
+    #[error("corrupt recording: the record at byte {at} claims {len} bytes")]
+    RecordTooLong { at: usize, len: u64 },
+    #[error(
+        "corrupt recording: the chunk at byte {at} claims {uncompressed} bytes \
+         uncompressed from {compressed} compressed"
+    )]
+    ChunkTooLarge {
+        at: usize,
+        uncompressed: u64,
+        compressed: u64,
+    },
+}
+
 /// Checks the lengths an MCAP file declares before a reader trusts them: every record lies
 /// within the file (the last may be cut short, as in a file still being written) and no chunk
 /// claims more uncompressed bytes than its compressed data can plausibly hold.
-pub fn check_layout(bytes: &[u8]) -> Result<(), String> {
+pub fn check_layout(bytes: &[u8]) -> Result<(), LayoutError> {
     const MAGIC: &[u8] = b"\x89MCAP0\r\n";
     const CHUNK: u8 = 0x06;
     if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
-        return Err("not an MCAP file (no MCAP magic at its start)".into());
+        return Err(LayoutError::NotMcap);
     }
     let u64_at = |at: usize| -> Option<u64> {
         Some(u64::from_le_bytes(bytes.get(at..at + 8)?.try_into().ok()?))
@@ -58,9 +80,7 @@ pub fn check_layout(bytes: &[u8]) -> Result<(), String> {
         let left = (bytes.len() - body) as u64;
         if len > left {
             if len > MAX_RECORD {
-                return Err(format!(
-                    "corrupt recording: the record at byte {at} claims {len} bytes"
-                ));
+                return Err(LayoutError::RecordTooLong { at, len });
             }
             // Cut short: the readers stop there.
             break;
@@ -71,10 +91,11 @@ pub fn check_layout(bytes: &[u8]) -> Result<(), String> {
             let name_len = u64::from(u32_at(body + 28).unwrap_or(0));
             let compressed = len.saturating_sub(32 + name_len + 8);
             if uncompressed > MAX_RECORD || uncompressed > 64 * 1024 * 1024 + compressed * 1024 {
-                return Err(format!(
-                    "corrupt recording: the chunk at byte {at} claims {uncompressed} bytes \
-                     uncompressed from {compressed} compressed"
-                ));
+                return Err(LayoutError::ChunkTooLarge {
+                    at,
+                    uncompressed,
+                    compressed,
+                });
             }
         }
         at = body + len as usize;
@@ -113,7 +134,7 @@ impl std::fmt::Debug for Messages<'_> {
 }
 
 impl Iterator for Messages<'_> {
-    type Item = Result<mcap::Message<'static>, String>;
+    type Item = Result<mcap::Message<'static>, mcap::McapError>;
 
     fn next(&mut self) -> Option<Self::Item> {
         use mcap::sans_io::MessageReadEvent;
@@ -129,7 +150,7 @@ impl Iterator for Messages<'_> {
                     self.at += k;
                 }
                 Ok(MessageReadEvent::Message(m)) => return Some(Ok(m)),
-                Err(e) => return Some(Err(e.to_string())),
+                Err(e) => return Some(Err(e)),
             }
         }
     }
@@ -140,4 +161,52 @@ pub(crate) fn within(bytes: &[u8], idx: &mcap::records::MetadataIndex) -> bool {
     idx.offset
         .checked_add(idx.length)
         .is_some_and(|end| end <= bytes.len() as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn errors_go_across_threads_and_into_other_errors() {
+        fn ok<E: std::error::Error + Send + Sync + 'static>() {}
+        ok::<LayoutError>();
+        ok::<codec::DecodeError>();
+        ok::<codec::ReadError>();
+        ok::<standard::StandardMappingError>();
+        ok::<stats::ExportError>();
+        ok::<session::SessionError>();
+        ok::<record::RecorderStartError>();
+        ok::<replay::RecordingFilesError>();
+        ok::<replay::OpenError>();
+        ok::<replay::ReplayError>();
+        ok::<check::ParamError>();
+        ok::<check::CheckError>();
+    }
+
+    #[test]
+    fn lengths_a_file_cannot_hold_are_refused() {
+        assert_eq!(check_layout(b"PK\x03\x04"), Err(LayoutError::NotMcap));
+        let mut file = b"\x89MCAP0\r\n".to_vec();
+        file.push(0x01);
+        file.extend_from_slice(&(2 * MAX_RECORD).to_le_bytes());
+        assert_eq!(
+            check_layout(&file),
+            Err(LayoutError::RecordTooLong {
+                at: 8,
+                len: 2 * MAX_RECORD
+            })
+        );
+        assert_eq!(
+            check_layout(&file).unwrap_err().to_string(),
+            format!(
+                "corrupt recording: the record at byte 8 claims {} bytes",
+                2 * MAX_RECORD
+            )
+        );
+        // Cut short, but by a length a record may have: read up to there.
+        file.truncate(9);
+        file.extend_from_slice(&100u64.to_le_bytes());
+        assert_eq!(check_layout(&file), Ok(()));
+    }
 }

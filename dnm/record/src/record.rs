@@ -13,10 +13,10 @@
 //! Encodings the robotics tools read without our code: fixed-size messages are ROS 2 `.msg`
 //! schemas with CDR messages (their `repr(C)` layout of 8-byte fields is CDR's, after the
 //! 4-byte encapsulation header); images become `sensor_msgs/msg/Image`; JSON stays JSON with a
-//! JSON schema; other bytes are `uint8[] data` in CDR. A fixed-size type that declares its
-//! standard ROS 2 equivalent (odometry, IMU, battery, range, twist, joints, transforms) is
-//! recorded as that message ([`crate::standard`]); when it cannot hold our fields exactly, our
-//! bytes are kept beside it on `<topic>/raw`. Log and publish times are the producer's
+//! JSON schema; other bytes are `uint8[] data` in CDR ([`crate::codec`]). A fixed-size type
+//! that declares its standard ROS 2 equivalent (odometry, IMU, battery, range, twist, joints,
+//! transforms) is recorded as that message ([`crate::standard`]); when it cannot hold our fields
+//! exactly, our bytes are kept beside it on `<topic>/raw`. Log and publish times are the producer's
 //! send stamps, mapped from CLOCK_MONOTONIC to Unix time. The netlist of each revision is an
 //! attachment and a metadata record; task switches are a JSON channel `/<dnm>/_switches`.
 
@@ -37,7 +37,8 @@ use dnm_netlist::{MessageType, Netlist};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
-use crate::standard::{Cdr, Plan};
+pub use crate::codec::{encode, encode_into, mcap_encoding};
+use crate::standard::{Cdr, StandardMapping};
 use dnm_core::worker::{Control, Sets, Worker, dbg};
 use dnm_core::{Context, DnmReport, ModuleEvent, Plugin, SwitchRecord};
 pub use dnm_proto::RecordReport;
@@ -163,6 +164,24 @@ enum Item {
     Event(String),
 }
 
+/// Why a recorder did not start.
+#[derive(Debug, thiserror::Error)]
+pub enum RecorderStartError {
+    /// The recordings folder could not be made.
+    #[error("recordings folder {}: {source}", dir.display())]
+    Folder {
+        dir: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// No thread for the writer.
+    #[error("{0}")]
+    WriterThread(#[source] std::io::Error),
+    /// The reader (its thread, or its node in the DNM's shared memory) did not start.
+    #[error("{0}")]
+    Reader(String),
+}
+
 /// A DNM's recorder: the reader and writer threads.
 pub struct Recorder {
     queue: SyncSender<Item>,
@@ -187,9 +206,15 @@ impl std::fmt::Debug for Recorder {
 impl Recorder {
     /// Starts recording DNM `dnm`, whose shared-memory namespace is `prefix`; ports follow
     /// each committed revision.
-    pub fn start(dnm: &str, prefix: &str, options: RecordOptions) -> Result<Self, String> {
-        std::fs::create_dir_all(&options.dir)
-            .map_err(|e| format!("recordings folder {}: {e}", options.dir.display()))?;
+    pub fn start(
+        dnm: &str,
+        prefix: &str,
+        options: RecordOptions,
+    ) -> Result<Self, RecorderStartError> {
+        std::fs::create_dir_all(&options.dir).map_err(|source| RecorderStartError::Folder {
+            dir: options.dir.clone(),
+            source,
+        })?;
         let counters = Arc::new(Counters::default());
         let clock = Clock::new();
         let (queue, items) = mpsc::sync_channel::<Item>(QUEUE);
@@ -211,7 +236,7 @@ impl Recorder {
                         }
                     }
                 })
-                .map_err(|e| e.to_string())?
+                .map_err(RecorderStartError::WriterThread)?
         };
         let reader = {
             let counters = counters.clone();
@@ -221,7 +246,8 @@ impl Recorder {
                 prefix,
                 RECORDER_EVENT,
                 move |control| read_loop(&control, &queue, &spares, &counters, clock),
-            )?
+            )
+            .map_err(|e| RecorderStartError::Reader(e.to_string()))?
         };
         Ok(Self {
             queue,
@@ -310,7 +336,7 @@ impl Plugin for Recorder {
         ctx: &Context<'_>,
         netlist: &Netlist,
         revision: u64,
-    ) -> Result<(), String> {
+    ) -> Result<(), dnm_core::PluginPrepareError> {
         // Subscribed before the modules of the revision run: their first samples are recorded.
         Recorder::commit(self, netlist, ctx.dnm, revision);
         self.prepared = Some(revision);
@@ -383,47 +409,19 @@ fn read_loop(
     clock: Clock,
 ) -> Result<(), String> {
     // Normal priority: its drains are short, and a starved reader would lose samples.
-    let node = &control.node;
-    let mut wanted: Vec<RecPort> = Vec::new();
-    // The previous set's subscribers, with their sequence numbers: a port in both sets keeps
-    // its subscriber, so nothing it sends while the set changes (an apply) is missed.
-    let mut previous: Vec<(RecPort, Option<PortSubscriber>, SeqByPublisher)> = Vec::new();
-    let mut buffers = Buffers::default();
+    let mut reader = Reader {
+        queue,
+        counters,
+        clock,
+        wanted: Vec::new(),
+        previous: Vec::new(),
+        buffers: Buffers::default(),
+    };
     loop {
         // If the writer is gone (disk full, folder removed), the ports are still drained and
         // every sample counted as dropped.
-        let _ = queue.send(Item::Ports(wanted.clone()));
-        // One slot per port, aligned with the writer's channels; a port that cannot be
-        // subscribed to (all its subscriber slots taken) is reported and left out.
-        let mut open: Vec<Option<Subscriber<Svc, [u8], PortHeader>>> = Vec::new();
-        // Next expected sequence number, per port and publisher (a replay or a replacement
-        // publishes beside the module).
-        let mut next_seq: Vec<SeqByPublisher> = Vec::new();
-        for p in &wanted {
-            if let Some(i) = previous.iter().position(|(q, s, _)| q == p && s.is_some()) {
-                let (_, subscriber, seqs) = previous.swap_remove(i);
-                open.push(subscriber);
-                next_seq.push(seqs);
-                continue;
-            }
-            next_seq.push(HashMap::new());
-            let service = output_service(&p.module, &p.port);
-            let subscriber = port_service(node, &service, &p.message.payload)
-                .map_err(|e| e.to_string())
-                .and_then(|s| {
-                    s.subscriber_builder()
-                        .buffer_size(dnm_module::protocol::recorder_buffer(&p.message.payload))
-                        .create()
-                        .map_err(dbg("subscriber"))
-                });
-            match subscriber {
-                Ok(subscriber) => open.push(Some(subscriber)),
-                Err(e) => {
-                    tracing::error!(port = %service, "not recorded: {e}");
-                    open.push(None);
-                }
-            }
-        }
+        let _ = queue.send(Item::Ports(reader.wanted.clone()));
+        let mut ports = reader.subscribe(&control.node);
         let waitset = WaitSetBuilder::new()
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Svc>()
@@ -434,19 +432,13 @@ fn read_loop(
         let _tick_guard = waitset
             .attach_interval(DRAIN_PERIOD)
             .map_err(dbg("attach"))?;
-        previous.clear();
+        reader.previous.clear();
         loop {
             // Sets sent before the waitset was attached count too.
             match control.newest() {
                 Sets::Closed => return Ok(()),
                 Sets::New(set) => {
-                    previous = std::mem::take(&mut wanted)
-                        .into_iter()
-                        .zip(std::mem::take(&mut open))
-                        .zip(std::mem::take(&mut next_seq))
-                        .map(|((p, s), n)| (p, s, n))
-                        .collect();
-                    wanted = set;
+                    reader.replace(set, ports);
                     break;
                 }
                 Sets::Same => {}
@@ -454,66 +446,141 @@ fn read_loop(
             waitset
                 .wait_and_process_once(|_| CallbackProgression::Continue)
                 .map_err(dbg("recorder wait"))?;
-            buffers.take(spares);
-            for (i, (o, next)) in open.iter().zip(next_seq.iter_mut()).enumerate() {
-                let Some(subscriber) = o else { continue };
-                while let Ok(Some(s)) = subscriber.receive() {
-                    let header = *s.user_header();
-                    if let Some(expected) = next.insert(s.origin(), header.seq + 1) {
-                        // Samples overwritten before we read them.
-                        counters
-                            .dropped
-                            .fetch_add(header.seq.saturating_sub(expected), Ordering::Relaxed);
-                    }
-                    let len = s.payload().len() as u64;
-                    if counters.queued.load(Ordering::Relaxed) + len > QUEUE_BYTES {
-                        counters.dropped.fetch_add(1, Ordering::Relaxed);
-                        continue;
-                    }
-                    // Large samples (camera frames) are encoded here, straight from shared
-                    // memory: one copy of the frame less.
-                    let frame = wanted.get(i).filter(|p| {
-                        p.message.payload.max_bytes() > LARGE_PAYLOAD_BYTES
-                            && p.message.standard.is_none()
-                    });
-                    let bytes = match frame {
-                        Some(p) => {
-                            let mut bytes = buffers.fitting(s.payload().len());
-                            encode_into(
-                                &mut bytes,
-                                &p.message,
-                                &p.module,
-                                clock.unix(header.stamp_ns),
-                                s.payload(),
-                            );
-                            bytes
-                        }
-                        None => {
-                            let mut bytes = buffers.fitting(s.payload().len());
-                            bytes.extend_from_slice(s.payload());
-                            bytes
-                        }
-                    };
-                    // What the writer subtracts when it takes the item: the memory held, not
-                    // the bytes used.
-                    let len = bytes.capacity() as u64;
-                    let item = Item::Sample {
-                        port: i,
-                        header,
-                        bytes,
-                        encoded: frame.is_some(),
-                    };
-                    counters.queued.fetch_add(len, Ordering::Relaxed);
-                    if let Err(TrySendError::Full(item) | TrySendError::Disconnected(item)) =
-                        queue.try_send(item)
-                    {
-                        counters.queued.fetch_sub(len, Ordering::Relaxed);
-                        counters.dropped.fetch_add(1, Ordering::Relaxed);
-                        if let Item::Sample { bytes, .. } = item {
-                            buffers.keep(bytes);
-                        }
-                    }
+            reader.buffers.take(spares);
+            reader.drain(&mut ports);
+        }
+    }
+}
+
+/// A recorded port's subscriber (`None`: it could not be subscribed to) and the next sequence
+/// number expected from each of its publishers (a replay or a replacement publishes beside the
+/// module).
+struct Subscribed {
+    subscriber: Option<PortSubscriber>,
+    next_seq: SeqByPublisher,
+}
+
+/// The reader thread's state: the port set recorded, and the buffers its samples are copied
+/// into.
+struct Reader<'a> {
+    queue: &'a SyncSender<Item>,
+    counters: &'a Counters,
+    clock: Clock,
+    wanted: Vec<RecPort>,
+    /// The previous set's subscribers, with their sequence numbers: a port in both sets keeps
+    /// its subscriber, so nothing it sends while the set changes (an apply) is missed.
+    previous: Vec<(RecPort, Subscribed)>,
+    buffers: Buffers,
+}
+
+impl Reader<'_> {
+    /// One slot per wanted port, aligned with the writer's channels; a port that cannot be
+    /// subscribed to (all its subscriber slots taken) is reported and left out.
+    fn subscribe(&mut self, node: &Node<Svc>) -> Vec<Subscribed> {
+        let mut ports = Vec::with_capacity(self.wanted.len());
+        for p in &self.wanted {
+            if let Some(i) = self
+                .previous
+                .iter()
+                .position(|(q, s)| q == p && s.subscriber.is_some())
+            {
+                ports.push(self.previous.swap_remove(i).1);
+                continue;
+            }
+            let service = output_service(&p.module, &p.port);
+            let subscriber = port_service(node, &service, &p.message.payload)
+                .map_err(|e| e.to_string())
+                .and_then(|s| {
+                    s.subscriber_builder()
+                        .buffer_size(dnm_module::protocol::recorder_buffer(&p.message.payload))
+                        .create()
+                        .map_err(dbg("subscriber"))
+                });
+            let subscriber = match subscriber {
+                Ok(subscriber) => Some(subscriber),
+                Err(e) => {
+                    tracing::error!(port = %service, "not recorded: {e}");
+                    None
                 }
+            };
+            ports.push(Subscribed {
+                subscriber,
+                next_seq: HashMap::new(),
+            });
+        }
+        ports
+    }
+
+    /// A new port set: the current one's subscribers become the previous ones.
+    fn replace(&mut self, set: Vec<RecPort>, ports: Vec<Subscribed>) {
+        self.previous = std::mem::take(&mut self.wanted)
+            .into_iter()
+            .zip(ports)
+            .collect();
+        self.wanted = set;
+    }
+
+    /// Takes every sample waiting on `ports` (the wanted ones, in order).
+    fn drain(&mut self, ports: &mut [Subscribed]) {
+        for (i, port) in ports.iter_mut().enumerate() {
+            let Some(subscriber) = &port.subscriber else {
+                continue;
+            };
+            while let Ok(Some(s)) = subscriber.receive() {
+                let header = *s.user_header();
+                if let Some(expected) = port.next_seq.insert(s.origin(), header.seq + 1) {
+                    // Samples overwritten before we read them.
+                    self.counters
+                        .dropped
+                        .fetch_add(header.seq.saturating_sub(expected), Ordering::Relaxed);
+                }
+                self.queue_sample(i, header, s.payload());
+            }
+        }
+    }
+
+    /// Queues a sample of port `i` for the writer, in a buffer of its own; one the queue has
+    /// no room for is counted as dropped.
+    fn queue_sample(&mut self, i: usize, header: PortHeader, payload: &[u8]) {
+        let counters = self.counters;
+        let len = payload.len() as u64;
+        if counters.queued.load(Ordering::Relaxed) + len > QUEUE_BYTES {
+            counters.dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        // Large samples (camera frames) are encoded here, straight from shared memory: one
+        // copy of the frame less.
+        let frame = self.wanted.get(i).filter(|p| {
+            p.message.payload.max_bytes() > LARGE_PAYLOAD_BYTES && p.message.standard.is_none()
+        });
+        let mut bytes = self.buffers.fitting(payload.len());
+        match frame {
+            Some(p) => encode_into(
+                &mut bytes,
+                &p.message,
+                &p.module,
+                self.clock.unix(header.stamp_ns),
+                payload,
+            ),
+            None => bytes.extend_from_slice(payload),
+        }
+        // What the writer subtracts when it takes the item: the memory held, not the bytes
+        // used.
+        let len = bytes.capacity() as u64;
+        let item = Item::Sample {
+            port: i,
+            header,
+            bytes,
+            encoded: frame.is_some(),
+        };
+        counters.queued.fetch_add(len, Ordering::Relaxed);
+        if let Err(TrySendError::Full(item) | TrySendError::Disconnected(item)) =
+            self.queue.try_send(item)
+        {
+            counters.queued.fetch_sub(len, Ordering::Relaxed);
+            counters.dropped.fetch_add(1, Ordering::Relaxed);
+            if let Item::Sample { bytes, .. } = item {
+                self.buffers.keep(bytes);
             }
         }
     }
@@ -614,86 +681,11 @@ impl Clock {
     }
 }
 
-/// Schema (name, encoding, text) and message encoding of a port in the file.
-pub fn mcap_encoding(message: &MessageType) -> (String, &'static str, String, &'static str) {
-    if message.encoding == dnm_module::msg::POD_ENCODING {
-        (
-            message.schema_name.clone(),
-            "ros2msg",
-            message.schema.clone(),
-            "cdr",
-        )
-    } else if message.encoding == "dnm-image-rgb8" {
-        (
-            "sensor_msgs/msg/Image".into(),
-            "ros2msg",
-            IMAGE_SCHEMA.into(),
-            "cdr",
-        )
-    } else if message.encoding == "application/json" {
-        (
-            message.schema_name.clone(),
-            "jsonschema",
-            message.schema.clone(),
-            "json",
-        )
-    } else {
-        (
-            message.schema_name.clone(),
-            "ros2msg",
-            "uint8[] data\n".into(),
-            "cdr",
-        )
-    }
-}
-
-/// `sensor_msgs/msg/Image` with its dependencies, as ROS 2 tools expect a schema.
-const IMAGE_SCHEMA: &str = "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n================================================================================\nMSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n================================================================================\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n";
-
-/// The bytes a port sample is stored as.
-pub fn encode(message: &MessageType, frame: &str, stamp_unix_ns: u64, bytes: &[u8]) -> Vec<u8> {
-    let mut out = Vec::new();
-    encode_into(&mut out, message, frame, stamp_unix_ns, bytes);
-    out
-}
-
-/// [`encode`] into `out`, reusing its memory.
-pub fn encode_into(
-    out: &mut Vec<u8>,
-    message: &MessageType,
-    frame: &str,
-    stamp_unix_ns: u64,
-    bytes: &[u8],
-) {
-    if message.encoding == "application/json" {
-        out.clear();
-        out.extend_from_slice(bytes);
-        return;
-    }
-    let mut c = Cdr::reuse(std::mem::take(out), bytes.len());
-    if message.encoding == dnm_module::msg::POD_ENCODING {
-        c.0.extend_from_slice(bytes);
-    } else if message.encoding == "dnm-image-rgb8" && bytes.len() >= 12 {
-        let word =
-            |i: usize| u32::from_le_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
-        let (width, height, step) = (word(0), word(4), word(8));
-        c.i32((stamp_unix_ns / 1_000_000_000) as i32);
-        c.u32((stamp_unix_ns % 1_000_000_000) as u32);
-        c.string(frame);
-        c.u32(height);
-        c.u32(width);
-        c.string("rgb8");
-        c.0.push(0); // is_bigendian
-        c.u32(step);
-        c.bytes(&bytes[12..]);
-    } else {
-        c.bytes(bytes);
-    }
-    *out = c.0;
-}
+/// The MCAP writer of a recorder's file.
+type McapWriter = mcap::Writer<Counting<BufWriter<File>>>;
 
 struct OpenFile {
-    writer: mcap::Writer<Counting<BufWriter<File>>>,
+    writer: McapWriter,
     path: PathBuf,
     opened: Instant,
     /// Bytes written to the file so far.
@@ -708,7 +700,7 @@ struct OpenFile {
 struct Channel {
     id: u16,
     raw: Option<u16>,
-    plan: Option<Plan>,
+    standard: Option<StandardMapping>,
 }
 
 /// Counts the bytes that reach the file (compressed chunks, indexes), for rotation by size.
@@ -773,58 +765,7 @@ fn open_file(
     // Modules whose body is written (once per file, whatever their ports).
     let mut bodies: Vec<&str> = Vec::new();
     for p in ports {
-        let topic = format!("/{dnm}/{}/{}", p.module, p.port);
-        let mut meta = BTreeMap::new();
-        meta.insert("dnm".to_string(), dnm.to_string());
-        meta.insert("dnm_encoding".to_string(), p.message.encoding.clone());
-        meta.insert("dnm_schema".to_string(), p.message.schema_name.clone());
-        let plan = match Plan::of(&p.message) {
-            Ok(plan) => plan,
-            Err(e) => {
-                tracing::warn!(%topic, "recorded as it is, not as its standard message: {e}");
-                None
-            }
-        };
-        let (schema_name, schema_encoding, schema, message_encoding) = match &plan {
-            Some(plan) => (
-                plan.name().to_string(),
-                "ros2msg",
-                plan.schema().to_string(),
-                "cdr",
-            ),
-            None => mcap_encoding(&p.message),
-        };
-        let schema_id = writer
-            .add_schema(&schema_name, schema_encoding, schema.as_bytes())
-            .map_err(|e| e.to_string())?;
-        let id = writer
-            .add_channel(schema_id, &topic, message_encoding, &meta)
-            .map_err(|e| e.to_string())?;
-        // Our own bytes beside a standard message that cannot hold them exactly: what a
-        // replay feeds modules.
-        let raw = match &plan {
-            Some(plan) if !plan.exact() => {
-                let (schema_name, schema_encoding, schema, message_encoding) =
-                    mcap_encoding(&p.message);
-                let schema_id = writer
-                    .add_schema(&schema_name, schema_encoding, schema.as_bytes())
-                    .map_err(|e| e.to_string())?;
-                let mut meta = meta.clone();
-                meta.insert("dnm_raw_of".to_string(), topic.clone());
-                Some(
-                    writer
-                        .add_channel(
-                            schema_id,
-                            &format!("{topic}{}", crate::RAW_SUFFIX),
-                            message_encoding,
-                            &meta,
-                        )
-                        .map_err(|e| e.to_string())?,
-                )
-            }
-            _ => None,
-        };
-        channels.push(Channel { id, raw, plan });
+        channels.push(add_port(&mut writer, dnm, p)?);
         if let Some(body) = p.message.standard.as_ref().and_then(|s| s.body.as_deref())
             && !bodies.contains(&p.module.as_str())
         {
@@ -832,36 +773,18 @@ fn open_file(
             write_body(&mut writer, dnm, &p.module, body, clock)?;
         }
     }
-    let schema_id = writer
-        .add_schema(
-            "dnm/TaskSwitch",
-            "jsonschema",
-            br#"{"type":"object","properties":{"dnm":{"type":"string"},"revision":{"type":"integer"},"from":{"type":["string","null"]},"to":{"type":"string"},"duration_ns":{"type":"integer"},"at_ns":{"type":"integer"}}}"#,
-        )
-        .map_err(|e| e.to_string())?;
-    let switches = writer
-        .add_channel(
-            schema_id,
-            &format!("/{dnm}/_switches"),
-            "json",
-            &BTreeMap::new(),
-        )
-        .map_err(|e| e.to_string())?;
-    let schema_id = writer
-        .add_schema(
-            "dnm/ModuleEvent",
-            "jsonschema",
-            br#"{"type":"object","properties":{"dnm":{"type":"string"},"module":{"type":"string"},"what":{"type":"string"},"detail":{"type":"string"},"at_ns":{"type":"integer"}}}"#,
-        )
-        .map_err(|e| e.to_string())?;
-    let events = writer
-        .add_channel(
-            schema_id,
-            &format!("/{dnm}/_events"),
-            "json",
-            &BTreeMap::new(),
-        )
-        .map_err(|e| e.to_string())?;
+    let switches = add_json_channel(
+        &mut writer,
+        "dnm/TaskSwitch",
+        br#"{"type":"object","properties":{"dnm":{"type":"string"},"revision":{"type":"integer"},"from":{"type":["string","null"]},"to":{"type":"string"},"duration_ns":{"type":"integer"},"at_ns":{"type":"integer"}}}"#,
+        &format!("/{dnm}/_switches"),
+    )?;
+    let events = add_json_channel(
+        &mut writer,
+        "dnm/ModuleEvent",
+        br#"{"type":"object","properties":{"dnm":{"type":"string"},"module":{"type":"string"},"what":{"type":"string"},"detail":{"type":"string"},"at_ns":{"type":"integer"}}}"#,
+        &format!("/{dnm}/_events"),
+    )?;
     let mut f = OpenFile {
         writer,
         path,
@@ -877,6 +800,78 @@ fn open_file(
     Ok(f)
 }
 
+/// Adds port `p`'s channel (`/<dnm>/<module>/<port>`) to the file, and the channel of its own
+/// bytes beside it where its standard message cannot hold them exactly.
+fn add_port(writer: &mut McapWriter, dnm: &str, p: &RecPort) -> Result<Channel, String> {
+    let topic = format!("/{dnm}/{}/{}", p.module, p.port);
+    let mut meta = BTreeMap::new();
+    meta.insert("dnm".to_string(), dnm.to_string());
+    meta.insert("dnm_encoding".to_string(), p.message.encoding.clone());
+    meta.insert("dnm_schema".to_string(), p.message.schema_name.clone());
+    let standard = match StandardMapping::of(&p.message) {
+        Ok(mapping) => mapping,
+        Err(e) => {
+            tracing::warn!(%topic, "recorded as it is, not as its standard message: {e}");
+            None
+        }
+    };
+    let (schema_name, schema_encoding, schema, message_encoding) = match &standard {
+        Some(mapping) => (
+            mapping.name().to_string(),
+            "ros2msg",
+            mapping.schema().to_string(),
+            "cdr",
+        ),
+        None => mcap_encoding(&p.message),
+    };
+    let schema_id = writer
+        .add_schema(&schema_name, schema_encoding, schema.as_bytes())
+        .map_err(|e| e.to_string())?;
+    let id = writer
+        .add_channel(schema_id, &topic, message_encoding, &meta)
+        .map_err(|e| e.to_string())?;
+    // Our own bytes beside a standard message that cannot hold them exactly: what a
+    // replay feeds modules.
+    let raw = match &standard {
+        Some(mapping) if !mapping.exact() => {
+            let (schema_name, schema_encoding, schema, message_encoding) =
+                mcap_encoding(&p.message);
+            let schema_id = writer
+                .add_schema(&schema_name, schema_encoding, schema.as_bytes())
+                .map_err(|e| e.to_string())?;
+            let mut meta = meta.clone();
+            meta.insert("dnm_raw_of".to_string(), topic.clone());
+            Some(
+                writer
+                    .add_channel(
+                        schema_id,
+                        &format!("{topic}{}", crate::RAW_SUFFIX),
+                        message_encoding,
+                        &meta,
+                    )
+                    .map_err(|e| e.to_string())?,
+            )
+        }
+        _ => None,
+    };
+    Ok(Channel { id, raw, standard })
+}
+
+/// Adds a JSON channel `topic` of JSON schema `schema` (named `name`) to the file.
+fn add_json_channel(
+    writer: &mut McapWriter,
+    name: &str,
+    schema: &[u8],
+    topic: &str,
+) -> Result<u16, String> {
+    let schema_id = writer
+        .add_schema(name, "jsonschema", schema)
+        .map_err(|e| e.to_string())?;
+    writer
+        .add_channel(schema_id, topic, "json", &BTreeMap::new())
+        .map_err(|e| e.to_string())
+}
+
 /// Topic of the body a module's poses move (see [`dnm_netlist::Standard::body`]):
 /// `robot_description` in the topic is what tools look for; the `_` keeps it apart from ports.
 fn body_topic(dnm: &str, module: &str) -> String {
@@ -885,7 +880,7 @@ fn body_topic(dnm: &str, module: &str) -> String {
 
 /// Writes `body` (a URDF document) once, as a `std_msgs/msg/String`, at the file's start.
 fn write_body(
-    writer: &mut mcap::Writer<Counting<BufWriter<File>>>,
+    writer: &mut McapWriter,
     dnm: &str,
     module: &str,
     body: &str,
@@ -966,11 +961,18 @@ fn write_loop(
     clock: Clock,
 ) -> Result<(), String> {
     low_priority();
-    let mut ports: Vec<RecPort> = Vec::new();
-    let mut netlist: Option<(u64, String, String)> = None;
-    let mut index = 0u64;
-    let mut file: Option<OpenFile> = None;
-    let mut last_flush = Instant::now();
+    let mut w = Writer {
+        dnm,
+        options,
+        spares,
+        counters,
+        clock,
+        ports: Vec::new(),
+        netlist: None,
+        index: 0,
+        file: None,
+        last_flush: Instant::now(),
+    };
     loop {
         let item = match items.recv_timeout(CHUNK_PERIOD) {
             Ok(item) => Some(item),
@@ -980,133 +982,195 @@ fn write_loop(
         match item {
             Some(Item::Ports(p)) => {
                 // A new port set starts a new file: channels are fixed per file.
-                if let Some(f) = file.take() {
-                    close(f, options)?;
-                    index += 1;
-                }
-                ports = p;
+                w.close_file()?;
+                w.ports = p;
                 // Nothing to record (yet): no file.
-                if ports.is_empty() {
+                if w.ports.is_empty() {
                     continue;
                 }
-                let f = open_file(dnm, options, index, &ports, netlist.as_ref(), clock)?;
-                counters.files.fetch_add(1, Ordering::Relaxed);
-                if let Ok(mut name) = counters.file.lock() {
-                    *name = f.path.display().to_string();
-                }
-                file = Some(f);
+                w.open_file()?;
             }
             Some(Item::Netlist {
                 revision,
-                file: name,
+                file,
                 text,
             }) => {
                 // Written into the file the revision's port set opens (it always follows), so
                 // each file holds the netlist of its own data.
-                netlist = Some((revision, name, text));
+                w.netlist = Some((revision, file, text));
             }
-            Some(item @ (Item::Switch(_) | Item::Event(_))) => {
-                let (json, events) = match item {
-                    Item::Switch(j) => (j, false),
-                    Item::Event(j) => (j, true),
-                    _ => continue,
-                };
-                if let Some(f) = file.as_mut() {
-                    let now = clock.unix(monotonic_ns());
-                    let header = mcap::records::MessageHeader {
-                        channel_id: if events { f.events } else { f.switches },
-                        sequence: 0,
-                        log_time: now,
-                        publish_time: now,
-                    };
-                    f.writer
-                        .write_to_known_channel(&header, json.as_bytes())
-                        .map_err(|e| e.to_string())?;
-                }
-            }
+            Some(Item::Switch(json)) => w.write_json(&json, false)?,
+            Some(Item::Event(json)) => w.write_json(&json, true)?,
             Some(Item::Sample {
                 port,
                 header,
                 bytes,
                 encoded,
             }) => {
-                counters
-                    .queued
-                    .fetch_sub(bytes.capacity() as u64, Ordering::Relaxed);
-                let (Some(f), Some(p)) = (file.as_mut(), ports.get(port)) else {
-                    let _ = spares.try_send(bytes);
+                // Not written (no file, or no such port): on to the next item.
+                let written = w.write_sample(port, header, bytes, encoded)?;
+                if !written {
                     continue;
-                };
-                let time = clock.unix(header.stamp_ns);
-                let channel = &f.channels[port];
-                let mut head = mcap::records::MessageHeader {
-                    channel_id: channel.id,
-                    sequence: header.seq as u32,
-                    log_time: time,
-                    publish_time: time,
-                };
-                let mut written = 0;
-                let native = || encode(&p.message, &p.module, time, &bytes);
-                let encoded_here;
-                let data: &[u8] = match &channel.plan {
-                    _ if encoded => &bytes,
-                    Some(plan) => {
-                        encoded_here = plan.encode(&bytes, time, &p.module);
-                        &encoded_here
-                    }
-                    None => {
-                        encoded_here = native();
-                        &encoded_here
-                    }
-                };
-                if let Some(raw) = channel.raw {
-                    let data = native();
-                    let h = mcap::records::MessageHeader {
-                        channel_id: raw,
-                        ..head
-                    };
-                    f.writer
-                        .write_to_known_channel(&h, &data)
-                        .map_err(|e| e.to_string())?;
-                    written += data.len();
                 }
-                head.channel_id = channel.id;
-                f.writer
-                    .write_to_known_channel(&head, data)
-                    .map_err(|e| e.to_string())?;
-                written += data.len();
-                counters.messages.fetch_add(1, Ordering::Relaxed);
-                counters.bytes.fetch_add(written as u64, Ordering::Relaxed);
-                // The buffer goes back to the reader.
-                let _ = spares.try_send(bytes);
             }
             None => {}
         }
-        if last_flush.elapsed() >= CHUNK_PERIOD {
-            last_flush = Instant::now();
-            if let Some(f) = file.as_mut() {
+        w.flush_if_due()?;
+        w.rotate_if_due()?;
+    }
+    w.close_file()
+}
+
+/// The writer thread's state: the port set, the netlist each new file starts with, and the
+/// file open.
+struct Writer<'a> {
+    dnm: &'a str,
+    options: &'a RecordOptions,
+    /// Sample buffers go back to the reader through it.
+    spares: &'a SyncSender<Vec<u8>>,
+    counters: &'a Counters,
+    clock: Clock,
+    ports: Vec<RecPort>,
+    /// (revision, file, text).
+    netlist: Option<(u64, String, String)>,
+    /// Of the next file: its `.n`.
+    index: u64,
+    file: Option<OpenFile>,
+    last_flush: Instant,
+}
+
+impl Writer<'_> {
+    /// Opens the next file, for the port set.
+    fn open_file(&mut self) -> Result<(), String> {
+        let f = open_file(
+            self.dnm,
+            self.options,
+            self.index,
+            &self.ports,
+            self.netlist.as_ref(),
+            self.clock,
+        )?;
+        self.counters.files.fetch_add(1, Ordering::Relaxed);
+        if let Ok(mut name) = self.counters.file.lock() {
+            *name = f.path.display().to_string();
+        }
+        self.file = Some(f);
+        Ok(())
+    }
+
+    /// Closes the file open, if any: the next one is numbered after it.
+    fn close_file(&mut self) -> Result<(), String> {
+        if let Some(f) = self.file.take() {
+            close(f, self.options)?;
+            self.index += 1;
+        }
+        Ok(())
+    }
+
+    /// Writes a task switch or (`event`) a module event to the file open.
+    fn write_json(&mut self, json: &str, event: bool) -> Result<(), String> {
+        if let Some(f) = self.file.as_mut() {
+            let now = self.clock.unix(monotonic_ns());
+            let header = mcap::records::MessageHeader {
+                channel_id: if event { f.events } else { f.switches },
+                sequence: 0,
+                log_time: now,
+                publish_time: now,
+            };
+            f.writer
+                .write_to_known_channel(&header, json.as_bytes())
+                .map_err(|e| e.to_string())?;
+        }
+        Ok(())
+    }
+
+    /// Writes a sample of port `port` to the file open (`encoded`: `bytes` are the message as
+    /// written) and gives its buffer back to the reader; `false`: there was no file or no
+    /// such port to write it to.
+    fn write_sample(
+        &mut self,
+        port: usize,
+        header: PortHeader,
+        bytes: Vec<u8>,
+        encoded: bool,
+    ) -> Result<bool, String> {
+        self.counters
+            .queued
+            .fetch_sub(bytes.capacity() as u64, Ordering::Relaxed);
+        let (Some(f), Some(p)) = (self.file.as_mut(), self.ports.get(port)) else {
+            let _ = self.spares.try_send(bytes);
+            return Ok(false);
+        };
+        let time = self.clock.unix(header.stamp_ns);
+        let channel = &f.channels[port];
+        let mut head = mcap::records::MessageHeader {
+            channel_id: channel.id,
+            sequence: header.seq as u32,
+            log_time: time,
+            publish_time: time,
+        };
+        let mut written = 0;
+        let native = || encode(&p.message, &p.module, time, &bytes);
+        let encoded_here;
+        let data: &[u8] = match &channel.standard {
+            _ if encoded => &bytes,
+            Some(mapping) => {
+                encoded_here = mapping.encode(&bytes, time, &p.module);
+                &encoded_here
+            }
+            None => {
+                encoded_here = native();
+                &encoded_here
+            }
+        };
+        if let Some(raw) = channel.raw {
+            let data = native();
+            let h = mcap::records::MessageHeader {
+                channel_id: raw,
+                ..head
+            };
+            f.writer
+                .write_to_known_channel(&h, &data)
+                .map_err(|e| e.to_string())?;
+            written += data.len();
+        }
+        head.channel_id = channel.id;
+        f.writer
+            .write_to_known_channel(&head, data)
+            .map_err(|e| e.to_string())?;
+        written += data.len();
+        self.counters.messages.fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .bytes
+            .fetch_add(written as u64, Ordering::Relaxed);
+        // The buffer goes back to the reader.
+        let _ = self.spares.try_send(bytes);
+        Ok(true)
+    }
+
+    /// Flushes the file every [`CHUNK_PERIOD`]: a chunk is finished.
+    fn flush_if_due(&mut self) -> Result<(), String> {
+        if self.last_flush.elapsed() >= CHUNK_PERIOD {
+            self.last_flush = Instant::now();
+            if let Some(f) = self.file.as_mut() {
                 f.writer.flush().map_err(|e| e.to_string())?;
             }
         }
-        let rotate = file.as_ref().is_some_and(|f| {
-            f.written.load(Ordering::Relaxed) >= options.rotate_bytes
-                || f.opened.elapsed() >= options.rotate_after
+        Ok(())
+    }
+
+    /// Starts a new file when the one open is large or old enough.
+    fn rotate_if_due(&mut self) -> Result<(), String> {
+        let rotate = self.file.as_ref().is_some_and(|f| {
+            f.written.load(Ordering::Relaxed) >= self.options.rotate_bytes
+                || f.opened.elapsed() >= self.options.rotate_after
         });
-        if rotate && let Some(f) = file.take() {
-            close(f, options)?;
-            index += 1;
-            let f = open_file(dnm, options, index, &ports, netlist.as_ref(), clock)?;
-            counters.files.fetch_add(1, Ordering::Relaxed);
-            if let Ok(mut name) = counters.file.lock() {
-                *name = f.path.display().to_string();
-            }
-            file = Some(f);
+        if rotate {
+            self.close_file()?;
+            self.open_file()?;
         }
+        Ok(())
     }
-    if let Some(f) = file.take() {
-        close(f, options)?;
-    }
-    Ok(())
 }
 
 #[cfg(test)]

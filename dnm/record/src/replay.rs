@@ -18,10 +18,12 @@ use std::time::{Duration, Instant};
 
 use dnm_module::protocol::{PortHeader, dnm_config, dnm_prefix, monotonic_ns, output_event};
 use dnm_module::{event_service, port_service};
-use dnm_netlist::{MessageType, Netlist, Payload};
+use dnm_netlist::{MessageType, Netlist};
 use iceoryx2::prelude::*;
 
-use crate::standard::Plan;
+pub use crate::codec::decode;
+use crate::codec::{Reading, reading_of};
+use crate::session::SessionError;
 
 type Svc = ipc::Service;
 
@@ -53,76 +55,78 @@ pub struct ReplayReport {
     pub seconds: f64,
 }
 
-/// The port bytes a recorded message in the port's own type came from (the inverse of
-/// [`crate::record::encode`]).
-pub fn decode(message: &MessageType, data: &[u8]) -> Result<Vec<u8>, String> {
-    if message.encoding == dnm_module::msg::POD_ENCODING {
-        data.get(4..)
-            .map(<[u8]>::to_vec)
-            .ok_or_else(|| "message shorter than its CDR header".into())
-    } else if message.encoding == "application/json" {
-        Ok(data.to_vec())
-    } else if message.encoding == "dnm-image-rgb8" {
-        image(data)
-    } else {
-        let len = data
-            .get(4..8)
-            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
-            .ok_or("message shorter than its CDR header")?;
-        data.get(8..8usize.saturating_add(len))
-            .map(<[u8]>::to_vec)
-            .ok_or_else(|| "CDR byte sequence runs past the message".into())
-    }
+/// Why a path holds no recording to read.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordingFilesError {
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    /// A folder without MCAP files: give a session folder or one file.
+    #[error("{}: no recordings (.mcap) in it", dir.display())]
+    Empty { dir: PathBuf },
 }
 
-/// A camera frame (12-byte header: width, height, step; then the rows) from the
-/// `sensor_msgs/msg/Image` the recorder wrote.
-fn image(data: &[u8]) -> Result<Vec<u8>, String> {
-    let mut at = 4usize;
-    let mut take = |align: usize, n: usize| -> Result<&[u8], String> {
-        while !(at - 4).is_multiple_of(align) {
-            at += 1;
-        }
-        let s = data
-            .get(at..at.saturating_add(n))
-            .ok_or("the image message ends early")?;
-        at += n;
-        Ok(s)
-    };
-    let u32_of = |b: &[u8]| u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-    if data.get(..2) != Some(&[0, 1]) {
-        return Err("not little-endian CDR".into());
-    }
-    take(4, 8)?; // stamp
-    let n = u32_of(take(4, 4)?) as usize;
-    take(1, n)?; // frame id
-    let height = u32_of(take(4, 4)?);
-    let width = u32_of(take(4, 4)?);
-    let n = u32_of(take(4, 4)?) as usize;
-    let encoding = take(1, n)?;
-    if encoding != b"rgb8\0" {
-        return Err(format!(
-            "image encoding {} is not rgb8",
-            String::from_utf8_lossy(encoding)
-        ));
-    }
-    take(1, 1)?; // is_bigendian
-    let step = u32_of(take(4, 4)?);
-    let n = u32_of(take(4, 4)?) as usize;
-    let pixels = take(1, n)?;
-    let mut out = Vec::with_capacity(12 + pixels.len());
-    out.extend_from_slice(&width.to_le_bytes());
-    out.extend_from_slice(&height.to_le_bytes());
-    out.extend_from_slice(&step.to_le_bytes());
-    out.extend_from_slice(pixels);
-    Ok(out)
+/// Why a file of a recording could not be opened for reading.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    #[error("{}: {source}", file.display())]
+    Io {
+        file: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// Its index is damaged: a chunk lies beyond the file's end or is larger than a replay
+    /// reads.
+    #[error(
+        "{}: corrupt index: the chunk at byte {offset} does not fit the file or claims \
+         {uncompressed} bytes",
+        file.display()
+    )]
+    CorruptIndex {
+        file: PathBuf,
+        offset: u64,
+        uncompressed: u64,
+    },
+    #[error("{}: {source}", file.display())]
+    Mcap {
+        file: PathBuf,
+        #[source]
+        source: mcap::McapError,
+    },
 }
 
-/// How a channel's messages become its port's bytes.
-#[derive(Clone)]
-pub(crate) enum Reading {
-    Own,
-    Standard(Arc<Plan>),
+/// Why a replay did not run, or stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error(transparent)]
+    Files(#[from] RecordingFilesError),
+    #[error("the recording holds no netlist")]
+    NoNetlist,
+    /// The recorded netlist does not parse or validate.
+    #[error(transparent)]
+    Netlist(dnm_netlist::NetlistError),
+    #[error(transparent)]
+    Open(#[from] OpenError),
+    /// A port asked for by topic cannot be replayed, and why.
+    #[error("{topic}: {why}")]
+    NotReplayable { topic: String, why: String },
+    /// The port's shared memory gave no sample to write into.
+    #[error("{topic}: {source:?}")]
+    Loan {
+        topic: String,
+        #[source]
+        source: iceoryx2::port::LoanError,
+    },
+    #[error("{topic}: {source:?}")]
+    Send {
+        topic: String,
+        #[source]
+        source: iceoryx2::port::SendError,
+    },
+    #[error("the recording holds no messages to replay")]
+    NoMessages,
+    /// None of the ports asked for (`only`) has a message in the recording.
+    #[error("no messages on {}", only.join(", "))]
+    NoMessagesOn { only: Vec<String> },
 }
 
 /// One recorded message, on its way to a port.
@@ -150,9 +154,9 @@ enum Source {
 }
 
 impl Source {
-    /// `file` read from its start in file order.
-    fn linear(mut file: File) -> Result<Self, String> {
-        file.seek(SeekFrom::Start(0)).map_err(|e| e.to_string())?;
+    /// `file` (at `path`) read from its start in file order.
+    fn linear(mut file: File, path: &Path) -> Result<Self, OpenError> {
+        file.seek(SeekFrom::Start(0)).map_err(io_error(path))?;
         let reader = mcap::sans_io::MessageReader::new_with_options(
             mcap::sans_io::LinearReaderOptions::default()
                 .with_record_length_limit(MAX_CHUNK as usize)
@@ -164,13 +168,13 @@ impl Source {
         })
     }
 
-    fn open(path: &Path) -> Result<(Self, Option<mcap::Summary>), String> {
-        let mut file = File::open(path).map_err(|e| e.to_string())?;
-        let size = file.metadata().map_err(|e| e.to_string())?.len();
+    fn open(path: &Path) -> Result<(Self, Option<mcap::Summary>), OpenError> {
+        let mut file = File::open(path).map_err(io_error(path))?;
+        let size = file.metadata().map_err(io_error(path))?.len();
         let summary = crate::session::read_summary(&mut file, size).unwrap_or(None);
         let Some(summary) = summary else {
             tracing::warn!(file = %path.display(), "no summary (not closed): replayed in file order");
-            return Ok((Source::linear(file)?, None));
+            return Ok((Source::linear(file, path)?, None));
         };
         for c in &summary.chunk_indexes {
             let end = c.chunk_start_offset.checked_add(c.chunk_length);
@@ -178,10 +182,11 @@ impl Source {
                 || c.compressed_size > size
                 || c.uncompressed_size > MAX_CHUNK
             {
-                return Err(format!(
-                    "corrupt index: the chunk at byte {} does not fit the file or claims {} bytes",
-                    c.chunk_start_offset, c.uncompressed_size
-                ));
+                return Err(OpenError::CorruptIndex {
+                    file: path.to_path_buf(),
+                    offset: c.chunk_start_offset,
+                    uncompressed: c.uncompressed_size,
+                });
             }
         }
         // In log-time order the reader holds every chunk whose time range overlaps the next
@@ -213,7 +218,7 @@ impl Source {
             .any(|c| c.message_start_time > c.message_end_time);
         if overlap > MAX_CHUNK || disordered {
             tracing::warn!(file = %path.display(), "chunks overlap in time: replayed in file order");
-            return Ok((Source::linear(file)?, Some(summary)));
+            return Ok((Source::linear(file, path)?, Some(summary)));
         }
         let reader = mcap::sans_io::IndexedReader::new_with_options(
             &summary,
@@ -221,7 +226,10 @@ impl Source {
                 .with_order(mcap::sans_io::indexed_reader::ReadOrder::LogTime)
                 .with_record_length_limit(MAX_CHUNK as usize),
         )
-        .map_err(|e| e.to_string())?;
+        .map_err(|source| OpenError::Mcap {
+            file: path.to_path_buf(),
+            source,
+        })?;
         let channels = summary
             .channels
             .iter()
@@ -305,6 +313,14 @@ impl Source {
     }
 }
 
+/// An I/O error on the file at `path`, as an [`OpenError`].
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> OpenError + '_ {
+    move |source| OpenError::Io {
+        file: path.to_path_buf(),
+        source,
+    }
+}
+
 /// Files merged in log-time order.
 pub(crate) struct Merge {
     sources: Vec<Source>,
@@ -315,12 +331,12 @@ pub(crate) struct Merge {
 
 impl Merge {
     /// Opens `files`; returns each one's summary too (`None`: not closed).
-    pub(crate) fn open(files: &[PathBuf]) -> Result<(Self, Vec<Option<mcap::Summary>>), String> {
+    pub(crate) fn open(files: &[PathBuf]) -> Result<(Self, Vec<Option<mcap::Summary>>), OpenError> {
         let mut sources = Vec::new();
         let mut summaries = Vec::new();
         let mut names = Vec::new();
         for f in files {
-            let (source, summary) = Source::open(f).map_err(|e| format!("{}: {e}", f.display()))?;
+            let (source, summary) = Source::open(f)?;
             sources.push(source);
             summaries.push(summary);
             names.push(
@@ -364,58 +380,43 @@ impl Merge {
     }
 }
 
-/// How a message recorded as `schema` on a channel of `message`'s port becomes the port's
-/// bytes (`raw`: the channel of its own bytes kept beside a standard message).
-pub(crate) fn reading_of(
-    message: &MessageType,
-    schema: &str,
-    raw: bool,
-) -> Result<Reading, String> {
-    let own = raw
-        || schema == message.schema_name
-        || (message.encoding == "dnm-image-rgb8" && schema == "sensor_msgs/msg/Image");
-    if own {
-        return Ok(Reading::Own);
-    }
-    match Plan::of(message) {
-        Ok(Some(plan)) if plan.name() == schema => Ok(Reading::Standard(Arc::new(plan))),
-        _ => Err(format!(
-            "recorded as {schema}, which {} cannot be read back from",
-            message.schema_name
-        )),
-    }
-}
-
-impl Reading {
-    /// The port's bytes from a recorded message.
-    pub(crate) fn read(&self, message: &MessageType, data: &[u8]) -> Result<Vec<u8>, String> {
-        let p = match self {
-            Reading::Own => decode(message, data)?,
-            Reading::Standard(plan) => plan.decode(data)?,
-        };
-        let fits = match message.payload {
-            Payload::Fixed { size_bytes } => p.len() == size_bytes,
-            Payload::Bytes { max_bytes } => p.len() <= max_bytes,
-        };
-        if fits {
-            Ok(p)
-        } else {
-            Err(format!("{} bytes do not fit {message}", p.len()))
-        }
-    }
-}
-
+/// A port a replay publishes on.
 struct Target {
     publisher: iceoryx2::port::publisher::Publisher<Svc, [u8], PortHeader>,
     notifier: iceoryx2::port::notifier::Notifier<Svc>,
     message: MessageType,
 }
 
+impl Target {
+    /// Publishes `payload` on the port (`topic`) as sample `seq`, and wakes its readers.
+    fn publish(&self, topic: &str, payload: &[u8], seq: u32) -> Result<(), ReplayError> {
+        let sample = self
+            .publisher
+            .loan_slice_uninit(payload.len())
+            .map_err(|source| ReplayError::Loan {
+                topic: topic.to_string(),
+                source,
+            })?;
+        let mut sample = sample.write_from_slice(payload);
+        *sample.user_header_mut() = PortHeader {
+            stamp_ns: monotonic_ns(),
+            seq: u64::from(seq),
+            task_word: 0,
+        };
+        sample.send().map_err(|source| ReplayError::Send {
+            topic: topic.to_string(),
+            source,
+        })?;
+        let _ = self.notifier.notify();
+        Ok(())
+    }
+}
+
 /// A channel's port topic and how to read it, or why it is not replayed (empty: silently).
 type Decided = Result<(String, Reading), String>;
 
 /// What a replay reads and where it publishes.
-struct Plans<'a> {
+struct Routes<'a> {
     netlist: &'a Netlist,
     system: String,
     only: &'a [String],
@@ -428,7 +429,45 @@ struct Plans<'a> {
     skipped: BTreeMap<String, String>,
 }
 
-impl Plans<'_> {
+impl<'a> Routes<'a> {
+    fn new(netlist: &'a Netlist, system: Option<&str>, only: &'a [String]) -> Self {
+        Self {
+            system: system.unwrap_or(&netlist.system).to_string(),
+            netlist,
+            only,
+            nodes: BTreeMap::new(),
+            targets: BTreeMap::new(),
+            readings: HashMap::new(),
+            raw_ports: BTreeSet::new(),
+            skipped: BTreeMap::new(),
+        }
+    }
+
+    /// Opens the port of every channel the files' summaries list.
+    fn open_all(&mut self, summaries: &[Option<mcap::Summary>]) {
+        for summary in summaries.iter().flatten() {
+            for c in summary.channels.values() {
+                self.note_raw(&c.topic);
+            }
+        }
+        // Every port is opened before the first sample, so subscribers connect in time.
+        for summary in summaries.iter().flatten() {
+            for c in summary.channels.values() {
+                let schema: Arc<str> = Arc::from(c.schema.as_ref().map_or("", |s| s.name.as_str()));
+                let topic: Arc<str> = Arc::from(c.topic.as_str());
+                self.reading(&topic, &schema);
+            }
+        }
+    }
+
+    /// Notes a channel of a port's own bytes, replayed instead of its standard message.
+    fn note_raw(&mut self, topic: &str) {
+        if crate::is_raw(topic) {
+            self.raw_ports
+                .insert(topic.trim_end_matches(crate::RAW_SUFFIX).to_string());
+        }
+    }
+
     /// How `topic` (recorded as `schema`) is replayed: its port's topic and how to read it.
     fn reading(&mut self, topic: &Arc<str>, schema: &Arc<str>) -> Option<(String, Reading)> {
         let key = (topic.clone(), schema.clone());
@@ -487,7 +526,7 @@ impl Plans<'_> {
         message: MessageType,
     ) -> Result<(), String> {
         if !self.nodes.contains_key(dnm) {
-            let config = dnm_config(&dnm_prefix(&self.system, dnm))?;
+            let config = dnm_config(&dnm_prefix(&self.system, dnm)).map_err(|e| e.to_string())?;
             let node = NodeBuilder::new()
                 .config(&config)
                 .create::<Svc>()
@@ -520,11 +559,13 @@ impl Plans<'_> {
 }
 
 /// The recording's files: a session folder's, or one file.
-pub fn inputs(path: &Path) -> Result<Vec<PathBuf>, String> {
+pub fn inputs(path: &Path) -> Result<Vec<PathBuf>, RecordingFilesError> {
     if path.is_dir() {
         let files = crate::session::files(path)?;
         if files.is_empty() {
-            return Err(format!("{}: no recordings (.mcap) in it", path.display()));
+            return Err(RecordingFilesError::Empty {
+                dir: path.to_path_buf(),
+            });
         }
         Ok(files)
     } else {
@@ -541,6 +582,54 @@ pub fn recorded_netlist(files: &[PathBuf]) -> Option<String> {
     netlists.into_values().next_back().map(|n| n.text)
 }
 
+/// Keeps a replay to its [`Pace`].
+struct Pacer {
+    pace: Pace,
+    start: Instant,
+    /// When the first message replayed was recorded.
+    t0: Option<u64>,
+    stdin: std::io::Stdin,
+}
+
+impl Pacer {
+    fn new(pace: Pace) -> Self {
+        Self {
+            pace,
+            start: Instant::now(),
+            t0: None,
+            stdin: std::io::stdin(),
+        }
+    }
+
+    /// Waits until the message recorded at `time` (sample `seq` of `topic`, `len` bytes) is
+    /// due; `false`: the replay is to stop (end of standard input, stepping).
+    fn wait(&mut self, time: u64, topic: &str, seq: u32, len: usize) -> bool {
+        let t0 = *self.t0.get_or_insert(time);
+        match self.pace {
+            Pace::Rate(factor) => {
+                let due = Duration::from_nanos(
+                    (time.saturating_sub(t0) as f64 / factor.max(1e-6)) as u64,
+                );
+                if let Some(wait) = due.checked_sub(self.start.elapsed()) {
+                    std::thread::sleep(wait);
+                }
+            }
+            Pace::Step => {
+                eprintln!(
+                    "+{:.3} s {topic} #{seq} ({len} bytes) [Enter]",
+                    time.saturating_sub(t0) as f64 / 1e9,
+                );
+                let mut line = String::new();
+                if self.stdin.read_line(&mut line).map_or(true, |n| n == 0) {
+                    return false;
+                }
+            }
+            Pace::Fast => {}
+        }
+        true
+    }
+}
+
 /// Replays the recording at `path` (a session folder or one MCAP file) into system `system` on
 /// this machine (default: the recorded one). `only` selects ports by topic (all when empty);
 /// the recorded netlist gives each port's message type.
@@ -549,45 +638,23 @@ pub fn replay(
     system: Option<&str>,
     only: &[String],
     pace: Pace,
-    parse: &crate::ParseNetlist<'_>,
-) -> Result<ReplayReport, String> {
+    parse: &crate::ParseNetlist,
+) -> Result<ReplayReport, ReplayError> {
     let files = inputs(path)?;
-    let text = recorded_netlist(&files).ok_or("the recording holds no netlist")?;
-    let netlist = parse(Path::new("recorded.toml"), &text)?;
-    let mut plans = Plans {
-        system: system.unwrap_or(&netlist.system).to_string(),
-        netlist: &netlist,
-        only,
-        nodes: BTreeMap::new(),
-        targets: BTreeMap::new(),
-        readings: HashMap::new(),
-        raw_ports: BTreeSet::new(),
-        skipped: BTreeMap::new(),
-    };
+    let text = recorded_netlist(&files).ok_or(ReplayError::NoNetlist)?;
+    let netlist = parse(Path::new("recorded.toml"), &text).map_err(ReplayError::Netlist)?;
+    let mut routes = Routes::new(&netlist, system, only);
     let (mut merge, summaries) = Merge::open(&files)?;
-    for summary in summaries.iter().flatten() {
-        for c in summary.channels.values() {
-            if crate::is_raw(&c.topic) {
-                plans
-                    .raw_ports
-                    .insert(c.topic.trim_end_matches(crate::RAW_SUFFIX).to_string());
-            }
-        }
-    }
-    // Every port is opened before the first sample, so subscribers connect in time.
-    for summary in summaries.iter().flatten() {
-        for c in summary.channels.values() {
-            let schema: Arc<str> = Arc::from(c.schema.as_ref().map_or("", |s| s.name.as_str()));
-            let topic: Arc<str> = Arc::from(c.topic.as_str());
-            plans.reading(&topic, &schema);
-        }
-    }
-    if let Some(e) = plans
+    routes.open_all(&summaries);
+    if let Some((topic, why)) = routes
         .skipped
         .iter()
         .find(|(t, _)| only.iter().any(|o| o == *t))
     {
-        return Err(format!("{}: {}", e.0, e.1));
+        return Err(ReplayError::NotReplayable {
+            topic: topic.clone(),
+            why: why.clone(),
+        });
     }
     std::thread::sleep(Duration::from_millis(200));
 
@@ -595,61 +662,23 @@ pub fn replay(
         files: merge.names.clone(),
         ..Default::default()
     };
-    let start = Instant::now();
-    let mut t0 = None;
-    let stdin = std::io::stdin();
+    let mut pacer = Pacer::new(pace);
     while let Some(m) = merge.next() {
-        if crate::is_raw(&m.topic) {
-            plans
-                .raw_ports
-                .insert(m.topic.trim_end_matches(crate::RAW_SUFFIX).to_string());
-        }
-        let Some((port_topic, reading)) = plans.reading(&m.topic, &m.schema) else {
+        routes.note_raw(&m.topic);
+        let Some((port_topic, reading)) = routes.reading(&m.topic, &m.schema) else {
             continue;
         };
-        let Some(target) = plans.targets.get(&port_topic) else {
+        let Some(target) = routes.targets.get(&port_topic) else {
             continue;
         };
         let Ok(payload) = reading.read(&target.message, &m.data) else {
             report.unreadable += 1;
             continue;
         };
-        let t0 = *t0.get_or_insert(m.time);
-        match pace {
-            Pace::Rate(factor) => {
-                let due = Duration::from_nanos(
-                    (m.time.saturating_sub(t0) as f64 / factor.max(1e-6)) as u64,
-                );
-                if let Some(wait) = due.checked_sub(start.elapsed()) {
-                    std::thread::sleep(wait);
-                }
-            }
-            Pace::Step => {
-                eprintln!(
-                    "+{:.3} s {port_topic} #{} ({} bytes) [Enter]",
-                    m.time.saturating_sub(t0) as f64 / 1e9,
-                    m.seq,
-                    payload.len()
-                );
-                let mut line = String::new();
-                if stdin.read_line(&mut line).map_or(true, |n| n == 0) {
-                    break;
-                }
-            }
-            Pace::Fast => {}
+        if !pacer.wait(m.time, &port_topic, m.seq, payload.len()) {
+            break;
         }
-        let sample = target
-            .publisher
-            .loan_slice_uninit(payload.len())
-            .map_err(|e| format!("{port_topic}: {e:?}"))?;
-        let mut sample = sample.write_from_slice(&payload);
-        *sample.user_header_mut() = PortHeader {
-            stamp_ns: monotonic_ns(),
-            seq: u64::from(m.seq),
-            task_word: 0,
-        };
-        sample.send().map_err(|e| format!("{port_topic}: {e:?}"))?;
-        let _ = target.notifier.notify();
+        target.publish(&port_topic, &payload, m.seq)?;
         report.messages += 1;
         if pace == Pace::Fast {
             // Let on-input consumers keep up (their buffers hold a few samples).
@@ -658,18 +687,20 @@ pub fn replay(
     }
     if report.messages == 0 {
         return Err(if only.is_empty() {
-            "the recording holds no messages to replay".into()
+            ReplayError::NoMessages
         } else {
-            format!("no messages on {}", only.join(", "))
+            ReplayError::NoMessagesOn {
+                only: only.to_vec(),
+            }
         });
     }
-    report.channels = plans.targets.keys().cloned().collect();
-    report.skipped = plans
+    report.channels = routes.targets.keys().cloned().collect();
+    report.skipped = routes
         .skipped
         .iter()
         .map(|(t, why)| format!("{t}: {why}"))
         .collect();
-    report.seconds = start.elapsed().as_secs_f64();
+    report.seconds = pacer.start.elapsed().as_secs_f64();
     Ok(report)
 }
 

@@ -76,6 +76,28 @@ pub struct Manifest {
     pub netlists: Vec<RecordedNetlist>,
 }
 
+/// Why a session folder's files or manifest could not be listed, read or written.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    /// The folder (a session's, or the folder of sessions) could not be listed.
+    #[error("{}: {source}", dir.display())]
+    ListFolder {
+        dir: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The manifest could not be written as JSON.
+    #[error("{0}")]
+    Serialize(#[source] serde_json::Error),
+    /// The manifest could not be written into the session's folder.
+    #[error("{}: {source}", path.display())]
+    WriteManifest {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
 /// `<system>-<YYYYMMDDTHHMMSSZ>` for a session started at `unix_s`.
 pub fn session_name(system: &str, unix_s: u64) -> String {
     let days = (unix_s / 86_400) as i64;
@@ -315,9 +337,12 @@ fn order_key(p: &Path) -> (String, u64) {
 
 /// The MCAP files of a folder (regular files only: a link to elsewhere is not the session's),
 /// each DNM's in the order written.
-pub fn files(dir: &Path) -> Result<Vec<PathBuf>, String> {
+pub fn files(dir: &Path) -> Result<Vec<PathBuf>, SessionError> {
     let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| format!("{}: {e}", dir.display()))?
+        .map_err(|source| SessionError::ListFolder {
+            dir: dir.to_path_buf(),
+            source,
+        })?
         .filter_map(|e| e.ok())
         .filter(|e| e.file_type().is_ok_and(|t| t.is_file()))
         .map(|e| e.path())
@@ -368,7 +393,7 @@ fn cached_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> F
 }
 
 /// The manifest of a session folder, built from its files.
-pub fn index(dir: &Path) -> Result<Manifest, String> {
+pub fn index(dir: &Path) -> Result<Manifest, SessionError> {
     let mut netlists = BTreeMap::new();
     let files: Vec<FileEntry> = files(dir)?
         .iter()
@@ -397,14 +422,17 @@ pub fn index(dir: &Path) -> Result<Manifest, String> {
 static WRITING: Mutex<()> = Mutex::new(());
 
 /// Builds the manifest of `dir` and writes it there (atomically: a reader never sees half).
-pub fn write_manifest(dir: &Path) -> Result<Manifest, String> {
+pub fn write_manifest(dir: &Path) -> Result<Manifest, SessionError> {
     let _one = WRITING.lock().unwrap_or_else(|e| e.into_inner());
     let m = index(dir)?;
     let tmp = dir.join(format!(".{MANIFEST}.{}", std::process::id()));
-    let json = serde_json::to_vec_pretty(&m).map_err(|e| e.to_string())?;
+    let json = serde_json::to_vec_pretty(&m).map_err(SessionError::Serialize)?;
     std::fs::write(&tmp, json)
         .and_then(|_| std::fs::rename(&tmp, dir.join(MANIFEST)))
-        .map_err(|e| format!("{}: {e}", dir.join(MANIFEST).display()))?;
+        .map_err(|source| SessionError::WriteManifest {
+            path: dir.join(MANIFEST),
+            source,
+        })?;
     Ok(m)
 }
 
@@ -475,7 +503,7 @@ fn manifest_loop() {
 
 /// The manifest of a session folder: the one written there if it is current (it lists exactly
 /// the folder's files), else built again.
-pub fn manifest(dir: &Path) -> Result<Manifest, String> {
+pub fn manifest(dir: &Path) -> Result<Manifest, SessionError> {
     let on_disk: Vec<(String, u64)> = files(dir)?
         .iter()
         .filter_map(|p| {
@@ -499,9 +527,12 @@ pub fn manifest(dir: &Path) -> Result<Manifest, String> {
 }
 
 /// The sessions under `root`: its folders holding MCAP files, oldest first.
-pub fn sessions(root: &Path) -> Result<Vec<Manifest>, String> {
+pub fn sessions(root: &Path) -> Result<Vec<Manifest>, SessionError> {
     let mut dirs: Vec<PathBuf> = std::fs::read_dir(root)
-        .map_err(|e| format!("{}: {e}", root.display()))?
+        .map_err(|source| SessionError::ListFolder {
+            dir: root.to_path_buf(),
+            source,
+        })?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.is_dir())
         .collect();

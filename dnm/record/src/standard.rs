@@ -2,13 +2,16 @@
 //! ([`dnm_netlist::Standard`]) is recorded as that message, CDR-encoded, so Rerun, Foxglove and
 //! PlotJuggler draw it without our code; and a replay maps it back.
 //!
-//! A [`Plan`] is compiled once per channel from the message type: where each field of the
-//! standard message comes from (one of our fields, a constant, the module's name, the send
-//! stamp, a quaternion from our yaw or roll/pitch/yaw). It knows whether the standard message
-//! holds every one of our fields exactly ([`Plan::exact`]); when it does not (a `float32`
-//! field, a quaternion, a field with no place in it), the recorder keeps our bytes beside it.
+//! A [`StandardMapping`] is compiled once per channel from the message type: where each field
+//! of the standard message comes from (one of our fields, a constant, the module's name, the
+//! send stamp, a quaternion from our yaw or roll/pitch/yaw). It knows whether the standard
+//! message holds every one of our fields exactly ([`StandardMapping::exact`]); when it does not
+//! (a `float32` field, a quaternion, a field with no place in it), the recorder keeps our bytes
+//! beside it.
 
 use dnm_netlist::MessageType;
+
+use crate::codec::DecodeError;
 
 const SEP: &str =
     "================================================================================\n";
@@ -339,9 +342,45 @@ enum Back {
     Lost,
 }
 
+/// Why a message type's declaration of its standard equivalent cannot be followed (the
+/// recorder then records the message as it is): the declaration is to be fixed.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum StandardMappingError {
+    #[error("{schema}: only fixed-size messages map to a standard message")]
+    NotFixedSize { schema: String },
+    #[error(
+        "{schema}: `{standard}` is not a standard message the recorder knows; it knows {}",
+        known.join(", ")
+    )]
+    UnknownStandard {
+        schema: String,
+        standard: String,
+        known: Vec<&'static str>,
+    },
+    /// A field of the schema that no standard message can hold.
+    #[error("{schema}: {reason}")]
+    Schema { schema: String, reason: String },
+    #[error("{schema}: its schema describes {described} bytes but the message is {declared}")]
+    Size {
+        schema: String,
+        described: usize,
+        declared: usize,
+    },
+    /// One declared field, `to` (in the standard message) from `from` (ours).
+    #[error("{schema}: standard field `{to}` from `{from}`: {why}")]
+    Field {
+        schema: String,
+        to: String,
+        from: String,
+        why: String,
+    },
+    #[error("{schema}: list elements must be declared from [0] on, without gaps")]
+    ListGap { schema: String },
+}
+
 /// How a message type is written as, and read back from, its standard message.
 #[derive(Debug, Clone)]
-pub struct Plan {
+pub struct StandardMapping {
     name: &'static str,
     schema: String,
     leaves: Vec<(Ty, Vec<Src>)>,
@@ -351,177 +390,62 @@ pub struct Plan {
     exact: bool,
 }
 
-impl Plan {
-    /// The plan for `message`, `None` when it declares no standard equivalent; an error says
+impl StandardMapping {
+    /// The mapping for `message`, `None` when it declares no standard equivalent; an error says
     /// why a declaration cannot be followed.
-    pub fn of(message: &MessageType) -> Result<Option<Plan>, String> {
+    pub fn of(message: &MessageType) -> Result<Option<StandardMapping>, StandardMappingError> {
         let Some(std) = &message.standard else {
             return Ok(None);
         };
+        let schema = || message.schema_name.clone();
         if message.encoding != dnm_netlist::POD_ENCODING {
-            return Err(format!(
-                "{}: only fixed-size messages map to a standard message",
-                message.schema_name
-            ));
+            return Err(StandardMappingError::NotFixedSize { schema: schema() });
         }
         let all = defs();
         let Some((def, leaves)) = all.iter().find(|(d, _)| d.name == std.name) else {
-            return Err(format!(
-                "{}: `{}` is not a standard message the recorder knows; it knows {}",
-                message.schema_name,
-                std.name,
-                supported().join(", ")
-            ));
+            return Err(StandardMappingError::UnknownStandard {
+                schema: schema(),
+                standard: std.name.clone(),
+                known: supported(),
+            });
         };
-        let fields =
-            fields(&message.schema).map_err(|e| format!("{}: {e}", message.schema_name))?;
+        let fields = fields(&message.schema).map_err(|reason| StandardMappingError::Schema {
+            schema: schema(),
+            reason,
+        })?;
         let size = fields.len() * 8;
         if let dnm_netlist::Payload::Fixed { size_bytes } = message.payload
             && size_bytes != size
         {
-            return Err(format!(
-                "{}: its schema describes {size} bytes but the message is {size_bytes}",
-                message.schema_name
-            ));
+            return Err(StandardMappingError::Size {
+                schema: schema(),
+                described: size,
+                declared: size_bytes,
+            });
         }
-        let field = |name: &str| fields.iter().position(|f| f.name == name);
-        let mut srcs: Vec<(Ty, Vec<Src>)> = leaves
-            .iter()
-            .map(|(_, ty)| {
-                let n = match ty {
-                    Ty::F64Arr(n) => *n,
-                    Ty::F32Seq | Ty::F64Seq | Ty::StrSeq => 0,
-                    _ => 1,
-                };
-                (*ty, vec![Src::Zero; n])
-            })
-            .collect();
-        let mut back = vec![Back::Lost; fields.len()];
-        let mut exact = true;
-        let leaf_of = |path: &str| leaves.iter().position(|(p, _)| *p == path);
+        let mut draft = Draft::new(leaves, &fields);
         for [to, from] in &std.fields {
-            let bad = |why: &str| {
-                format!(
-                    "{}: standard field `{to}` from `{from}`: {why}",
-                    message.schema_name
-                )
-            };
-            // A quaternion from yaw, or roll pitch yaw.
-            if let Some(x) = leaf_of(&format!("{to}.x"))
-                && leaf_of(&format!("{to}.w")).is_some()
-            {
-                let names: Vec<&str> = from.split_whitespace().collect();
-                let idx: Vec<Option<usize>> = names.iter().map(|n| field(n)).collect();
-                if idx.iter().any(Option::is_none) || !(names.len() == 1 || names.len() == 3) {
-                    return Err(bad(
-                        "a quaternion comes from `yaw` or `roll pitch yaw`, fields of the message",
-                    ));
-                }
-                let rpy = if idx.len() == 1 {
-                    [None, None, idx[0]]
-                } else {
-                    [idx[0], idx[1], idx[2]]
-                };
-                if (0..4).any(|c| !matches!(srcs[x + c].1.first(), Some(Src::Zero))) {
-                    return Err(bad("that quaternion is given twice"));
-                }
-                for c in 0..4 {
-                    srcs[x + c].1 = vec![Src::Quat(rpy, c)];
-                }
-                for (angle, f) in rpy.iter().enumerate() {
-                    if let Some(f) = f {
-                        if !matches!(back[*f], Back::Lost) {
-                            return Err(bad("that field is mapped twice"));
-                        }
-                        back[*f] = Back::Angle(x, angle);
-                    }
-                }
-                exact = false;
-                continue;
-            }
-            // `path` or `path[i]`.
-            let (path, elem) = match to.split_once('[') {
-                Some((p, rest)) => (
-                    p,
-                    Some(
-                        rest.trim_end_matches(']')
-                            .parse::<usize>()
-                            .map_err(|_| bad("bad index"))?,
-                    ),
-                ),
-                None => (to.as_str(), None),
-            };
-            let leaf =
-                leaf_of(path).ok_or_else(|| bad(&format!("{} has no such field", std.name)))?;
-            let ty = srcs[leaf].0;
-            let slot = match (ty, elem) {
-                (Ty::F64Arr(n), Some(i)) if i < n => i,
-                (Ty::F32Seq | Ty::F64Seq | Ty::StrSeq, Some(i)) if i < 64 => {
-                    if srcs[leaf].1.len() <= i {
-                        srcs[leaf].1.resize(i + 1, Src::Zero);
-                    }
-                    i
-                }
-                (Ty::Stamp | Ty::Count(_), _) => return Err(bad("written by the recorder")),
-                (Ty::F64Arr(_) | Ty::F32Seq | Ty::F64Seq | Ty::StrSeq, _) => {
-                    return Err(bad("name an element, e.g. `name[0]`"));
-                }
-                (_, None) => 0,
-                (_, Some(_)) => return Err(bad("not a list")),
-            };
-            let src = if from == "$module" {
-                Src::Module
-            } else if let Some(text) = from.strip_prefix('\'').and_then(|t| t.strip_suffix('\'')) {
-                Src::Text(text.to_string())
-            } else if let Ok(c) = from.parse::<f64>() {
-                Src::Const(c)
-            } else if let Some(f) = field(from) {
-                if !matches!(back[f], Back::Lost) {
-                    return Err(bad("that field is mapped twice"));
-                }
-                back[f] = Back::Leaf(leaf, slot);
-                let lossless =
-                    matches!(ty, Ty::F64 | Ty::F64Arr(_) | Ty::F64Seq) && fields[f].ty == NTy::F64;
-                exact &= lossless;
-                if matches!(ty, Ty::Str | Ty::StrSeq) {
-                    return Err(bad("a number cannot be a text field"));
-                }
-                Src::Field(f)
-            } else {
-                return Err(bad(
-                    "neither a field of the message, a number, 'text' nor $module",
-                ));
-            };
-            let is_text = matches!(ty, Ty::Str | Ty::StrSeq);
-            if is_text != matches!(src, Src::Text(_) | Src::Module) {
-                return Err(bad(
-                    "text fields take 'text' or $module, number fields numbers or fields",
-                ));
-            }
-            if !matches!(srcs[leaf].1[slot], Src::Zero) {
-                return Err(bad("that standard field is given twice"));
-            }
-            srcs[leaf].1[slot] = src;
+            draft
+                .map(to, from, &std.name)
+                .map_err(|why| StandardMappingError::Field {
+                    schema: schema(),
+                    to: to.clone(),
+                    from: from.clone(),
+                    why,
+                })?;
         }
-        for (ty, s) in &srcs {
-            if matches!(ty, Ty::F32Seq | Ty::F64Seq | Ty::StrSeq)
-                && s.iter().any(|s| matches!(s, Src::Zero))
-            {
-                // Gaps in a list would write zeros the declaration did not ask for.
-                return Err(format!(
-                    "{}: list elements must be declared from [0] on, without gaps",
-                    message.schema_name
-                ));
-            }
+        if draft.has_gaps() {
+            // Gaps in a list would write zeros the declaration did not ask for.
+            return Err(StandardMappingError::ListGap { schema: schema() });
         }
-        exact &= back.iter().all(|b| !matches!(b, Back::Lost));
-        Ok(Some(Plan {
+        let exact = draft.exact && draft.back.iter().all(|b| !matches!(b, Back::Lost));
+        Ok(Some(StandardMapping {
             name: def.name,
             schema: (def.schema)(),
-            leaves: srcs,
+            leaves: draft.srcs,
+            back: draft.back,
             fields,
             size,
-            back,
             exact,
         }))
     }
@@ -636,13 +560,13 @@ impl Plan {
         w.0
     }
 
-    /// Our message's bytes from a standard message this plan wrote. Fields it has no place for
+    /// Our message's bytes from a standard message this mapping wrote. Fields it has no place for
     /// are zero; `float32` fields come back as `float32` held them.
-    pub fn decode(&self, data: &[u8]) -> Result<Vec<u8>, String> {
+    pub fn decode(&self, data: &[u8]) -> Result<Vec<u8>, DecodeError> {
         match data.get(..2) {
             Some([0, 1]) => {}
-            Some([0, 0]) => return Err("big-endian CDR is not read".into()),
-            _ => return Err("not CDR (no little-endian encapsulation header)".into()),
+            Some([0, 0]) => return Err(DecodeError::BigEndian),
+            _ => return Err(DecodeError::NotCdr),
         }
         let mut r = Reader { data, at: 4 };
         let mut values: Vec<Vec<f64>> = Vec::with_capacity(self.leaves.len());
@@ -665,7 +589,7 @@ impl Plan {
                 Ty::F32Seq | Ty::F64Seq | Ty::StrSeq => {
                     let n = r.u32()? as usize;
                     if n > r.data.len() {
-                        return Err("a list longer than the message".into());
+                        return Err(DecodeError::ListTooLong);
                     }
                     for _ in 0..n {
                         match ty {
@@ -677,7 +601,7 @@ impl Plan {
                 }
                 Ty::Count(n) => {
                     if r.u32()? != *n {
-                        return Err(format!("expected {n} element(s) in the list"));
+                        return Err(DecodeError::ListCount { expected: *n });
                     }
                 }
             }
@@ -712,6 +636,172 @@ impl Plan {
             out[f.offset..f.offset + 8].copy_from_slice(&b);
         }
         Ok(out)
+    }
+}
+
+/// A [`StandardMapping`] being built from a declaration: where each leaf of the standard
+/// message comes from, and how each of our fields is read back.
+struct Draft<'a> {
+    /// The standard message's leaves, in CDR order.
+    leaves: &'a [(&'static str, Ty)],
+    /// Ours.
+    fields: &'a [Field],
+    srcs: Vec<(Ty, Vec<Src>)>,
+    back: Vec<Back>,
+    /// Whether every field mapped so far is held exactly.
+    exact: bool,
+}
+
+impl<'a> Draft<'a> {
+    /// Nothing mapped yet: every leaf zero, every field lost.
+    fn new(leaves: &'a [(&'static str, Ty)], fields: &'a [Field]) -> Self {
+        let srcs = leaves
+            .iter()
+            .map(|(_, ty)| {
+                let n = match ty {
+                    Ty::F64Arr(n) => *n,
+                    Ty::F32Seq | Ty::F64Seq | Ty::StrSeq => 0,
+                    _ => 1,
+                };
+                (*ty, vec![Src::Zero; n])
+            })
+            .collect();
+        Self {
+            leaves,
+            fields,
+            srcs,
+            back: vec![Back::Lost; fields.len()],
+            exact: true,
+        }
+    }
+
+    /// Our field `name`.
+    fn field(&self, name: &str) -> Option<usize> {
+        self.fields.iter().position(|f| f.name == name)
+    }
+
+    /// The standard message's leaf `path`.
+    fn leaf(&self, path: &str) -> Option<usize> {
+        self.leaves.iter().position(|(p, _)| *p == path)
+    }
+
+    /// Maps standard field `to` (of standard message `standard`) from `from`; an error says
+    /// why it cannot be.
+    fn map(&mut self, to: &str, from: &str, standard: &str) -> Result<(), String> {
+        // A quaternion from yaw, or roll pitch yaw.
+        if let Some(x) = self.leaf(&format!("{to}.x"))
+            && self.leaf(&format!("{to}.w")).is_some()
+        {
+            return self.quaternion(x, from);
+        }
+        self.value(to, from, standard)
+    }
+
+    /// The quaternion whose x leaf is `x`, from `yaw` or `roll pitch yaw` (`from`).
+    fn quaternion(&mut self, x: usize, from: &str) -> Result<(), String> {
+        let names: Vec<&str> = from.split_whitespace().collect();
+        let idx: Vec<Option<usize>> = names.iter().map(|n| self.field(n)).collect();
+        if idx.iter().any(Option::is_none) || !(names.len() == 1 || names.len() == 3) {
+            return Err(
+                "a quaternion comes from `yaw` or `roll pitch yaw`, fields of the message".into(),
+            );
+        }
+        let rpy = if idx.len() == 1 {
+            [None, None, idx[0]]
+        } else {
+            [idx[0], idx[1], idx[2]]
+        };
+        if (0..4).any(|c| !matches!(self.srcs[x + c].1.first(), Some(Src::Zero))) {
+            return Err("that quaternion is given twice".into());
+        }
+        for c in 0..4 {
+            self.srcs[x + c].1 = vec![Src::Quat(rpy, c)];
+        }
+        for (angle, f) in rpy.iter().enumerate() {
+            if let Some(f) = f {
+                if !matches!(self.back[*f], Back::Lost) {
+                    return Err("that field is mapped twice".into());
+                }
+                self.back[*f] = Back::Angle(x, angle);
+            }
+        }
+        self.exact = false;
+        Ok(())
+    }
+
+    /// Leaf `to` (`path` or `path[i]`) from `from`: one of our fields, a number, 'text' or
+    /// `$module`.
+    fn value(&mut self, to: &str, from: &str, standard: &str) -> Result<(), String> {
+        let (path, elem) = match to.split_once('[') {
+            Some((p, rest)) => (
+                p,
+                Some(
+                    rest.trim_end_matches(']')
+                        .parse::<usize>()
+                        .map_err(|_| "bad index")?,
+                ),
+            ),
+            None => (to, None),
+        };
+        let leaf = self
+            .leaf(path)
+            .ok_or_else(|| format!("{standard} has no such field"))?;
+        let ty = self.srcs[leaf].0;
+        let slot = match (ty, elem) {
+            (Ty::F64Arr(n), Some(i)) if i < n => i,
+            (Ty::F32Seq | Ty::F64Seq | Ty::StrSeq, Some(i)) if i < 64 => {
+                if self.srcs[leaf].1.len() <= i {
+                    self.srcs[leaf].1.resize(i + 1, Src::Zero);
+                }
+                i
+            }
+            (Ty::Stamp | Ty::Count(_), _) => return Err("written by the recorder".into()),
+            (Ty::F64Arr(_) | Ty::F32Seq | Ty::F64Seq | Ty::StrSeq, _) => {
+                return Err("name an element, e.g. `name[0]`".into());
+            }
+            (_, None) => 0,
+            (_, Some(_)) => return Err("not a list".into()),
+        };
+        let src = if from == "$module" {
+            Src::Module
+        } else if let Some(text) = from.strip_prefix('\'').and_then(|t| t.strip_suffix('\'')) {
+            Src::Text(text.to_string())
+        } else if let Ok(c) = from.parse::<f64>() {
+            Src::Const(c)
+        } else if let Some(f) = self.field(from) {
+            if !matches!(self.back[f], Back::Lost) {
+                return Err("that field is mapped twice".into());
+            }
+            self.back[f] = Back::Leaf(leaf, slot);
+            let lossless =
+                matches!(ty, Ty::F64 | Ty::F64Arr(_) | Ty::F64Seq) && self.fields[f].ty == NTy::F64;
+            self.exact &= lossless;
+            if matches!(ty, Ty::Str | Ty::StrSeq) {
+                return Err("a number cannot be a text field".into());
+            }
+            Src::Field(f)
+        } else {
+            return Err("neither a field of the message, a number, 'text' nor $module".into());
+        };
+        let is_text = matches!(ty, Ty::Str | Ty::StrSeq);
+        if is_text != matches!(src, Src::Text(_) | Src::Module) {
+            return Err(
+                "text fields take 'text' or $module, number fields numbers or fields".into(),
+            );
+        }
+        if !matches!(self.srcs[leaf].1[slot], Src::Zero) {
+            return Err("that standard field is given twice".into());
+        }
+        self.srcs[leaf].1[slot] = src;
+        Ok(())
+    }
+
+    /// Whether a list has an element not declared before a declared one.
+    fn has_gaps(&self) -> bool {
+        self.srcs.iter().any(|(ty, s)| {
+            matches!(ty, Ty::F32Seq | Ty::F64Seq | Ty::StrSeq)
+                && s.iter().any(|s| matches!(s, Src::Zero))
+        })
     }
 }
 
@@ -768,32 +858,34 @@ struct Reader<'a> {
 }
 
 impl Reader<'_> {
-    fn take(&mut self, align: usize, n: usize) -> Result<&[u8], String> {
+    fn take(&mut self, align: usize, n: usize) -> Result<&[u8], DecodeError> {
         while !(self.at - 4).is_multiple_of(align) {
             self.at += 1;
         }
         let b = self
             .data
             .get(self.at..self.at.saturating_add(n))
-            .ok_or("the message ends early")?;
+            .ok_or(DecodeError::EndsEarly)?;
         self.at += n;
         Ok(b)
     }
-    fn u8(&mut self) -> Result<u8, String> {
+    fn u8(&mut self) -> Result<u8, DecodeError> {
         Ok(self.take(1, 1)?[0])
     }
-    fn u32(&mut self) -> Result<u32, String> {
+    fn u32(&mut self) -> Result<u32, DecodeError> {
         let b = self.take(4, 4)?;
         Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
     }
-    fn f32(&mut self) -> Result<f32, String> {
+    fn f32(&mut self) -> Result<f32, DecodeError> {
         Ok(f32::from_bits(self.u32()?))
     }
-    fn f64(&mut self) -> Result<f64, String> {
+    fn f64(&mut self) -> Result<f64, DecodeError> {
         let b = self.take(8, 8)?;
-        Ok(f64::from_le_bytes(b.try_into().map_err(|_| "short")?))
+        Ok(f64::from_le_bytes(
+            b.try_into().map_err(|_| DecodeError::EndsEarly)?,
+        ))
     }
-    fn string(&mut self) -> Result<(), String> {
+    fn string(&mut self) -> Result<(), DecodeError> {
         let n = self.u32()? as usize;
         self.take(1, n)?;
         Ok(())
@@ -840,7 +932,7 @@ mod tests {
                 ("header.frame_id", "'base_link'"),
             ],
         );
-        let p = Plan::of(&m).unwrap().unwrap();
+        let p = StandardMapping::of(&m).unwrap().unwrap();
         assert!(p.exact());
         let native = f64s(&[0.25, -0.125]);
         let cdr = p.encode(&native, 1_700_000_000_123_456_789, "m");
@@ -864,7 +956,7 @@ mod tests {
                 ("pose.pose.orientation", "yaw"),
             ],
         );
-        let p = Plan::of(&m).unwrap().unwrap();
+        let p = StandardMapping::of(&m).unwrap().unwrap();
         assert!(!p.exact());
         assert_eq!(p.lost(), vec!["distance"]);
         let back = p
@@ -885,7 +977,7 @@ mod tests {
             "tf2_msgs/msg/TFMessage",
             &[("transform.rotation", "roll pitch yaw")],
         );
-        let p = Plan::of(&m).unwrap().unwrap();
+        let p = StandardMapping::of(&m).unwrap().unwrap();
         let back = p
             .decode(&p.encode(&f64s(&[0.1, -0.2, 3.0]), 0, "m"))
             .unwrap();
@@ -938,7 +1030,9 @@ mod tests {
             ),
         ];
         for (name, fields, why) in bad {
-            let e = Plan::of(&message("float64 x\n", name, &fields)).unwrap_err();
+            let e = StandardMapping::of(&message("float64 x\n", name, &fields))
+                .unwrap_err()
+                .to_string();
             assert!(e.contains(why), "{name} {fields:?}: {e}");
         }
     }
@@ -950,7 +1044,7 @@ mod tests {
             "sensor_msgs/msg/JointState",
             &[("name[0]", "$module"), ("position[0]", "x")],
         );
-        let p = Plan::of(&m).unwrap().unwrap();
+        let p = StandardMapping::of(&m).unwrap().unwrap();
         let good = p.encode(&f64s(&[4.0]), 5, "wheel");
         for n in 0..good.len() {
             assert!(p.decode(&good[..n]).is_err());

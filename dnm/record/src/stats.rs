@@ -3,9 +3,11 @@
 //! channels exported to CSV for plotting.
 
 use std::collections::BTreeMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde::Serialize;
+
+use crate::LayoutError;
 
 /// One channel of a recording.
 #[derive(Debug, Clone, Serialize)]
@@ -50,8 +52,34 @@ struct Seen {
     bytes: u64,
 }
 
-/// Reads a recording, tolerating a missing end (a DNM that was killed).
-pub fn stats(bytes: &[u8], parse: &crate::ParseNetlist<'_>) -> Result<Stats, String> {
+/// Why [`export_csv`] wrote no CSV files, or not all of them.
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    /// The recording is not one, or is damaged.
+    #[error(transparent)]
+    Layout(#[from] LayoutError),
+    /// The output folder could not be made.
+    #[error("{}: {source}", dir.display())]
+    Folder {
+        dir: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A CSV file could not be created in the output folder.
+    #[error("{}: {source}", path.display())]
+    Create {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// Writing a CSV file failed (a full disk).
+    #[error("{0}")]
+    Write(#[source] std::io::Error),
+}
+
+/// Reads a recording, tolerating a missing end (a DNM that was killed); an error says why it
+/// is not a readable recording.
+pub fn stats(bytes: &[u8], parse: &crate::ParseNetlist) -> Result<Stats, LayoutError> {
     crate::check_layout(bytes)?;
     let mut channels: BTreeMap<String, Seen> = BTreeMap::new();
     let mut switches = Vec::new();
@@ -204,10 +232,13 @@ fn link_latencies(
 
 /// Writes each of `topics` to `<dir>/<topic with / as _>.csv`: log time, sequence, then the
 /// decoded fields (fixed-size messages and JSON) or the byte count. Returns the files written.
-pub fn export_csv(bytes: &[u8], topics: &[String], dir: &Path) -> Result<Vec<String>, String> {
+pub fn export_csv(bytes: &[u8], topics: &[String], dir: &Path) -> Result<Vec<String>, ExportError> {
     use std::io::Write;
     crate::check_layout(bytes)?;
-    std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    std::fs::create_dir_all(dir).map_err(|source| ExportError::Folder {
+        dir: dir.to_path_buf(),
+        source,
+    })?;
     let mut files: BTreeMap<String, (std::io::BufWriter<std::fs::File>, Vec<String>)> =
         BTreeMap::new();
     for m in crate::messages(bytes) {
@@ -234,12 +265,14 @@ pub fn export_csv(bytes: &[u8], topics: &[String], dir: &Path) -> Result<Vec<Str
                     m.channel.topic.trim_start_matches('/').replace('/', "_")
                 );
                 let path = dir.join(name);
-                let file =
-                    std::fs::File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+                let file = match std::fs::File::create(&path) {
+                    Ok(file) => file,
+                    Err(source) => return Err(ExportError::Create { path, source }),
+                };
                 let mut w = std::io::BufWriter::new(file);
                 let columns: Vec<String> = fields.iter().map(|(k, _)| k.clone()).collect();
                 writeln!(w, "log_time_ns,sequence,{}", columns.join(","))
-                    .map_err(|e| e.to_string())?;
+                    .map_err(ExportError::Write)?;
                 v.insert((w, columns))
             }
         };
@@ -255,11 +288,11 @@ pub fn export_csv(bytes: &[u8], topics: &[String], dir: &Path) -> Result<Vec<Str
             })
             .collect();
         writeln!(entry.0, "{},{},{}", m.log_time, m.sequence, row.join(","))
-            .map_err(|e| e.to_string())?;
+            .map_err(ExportError::Write)?;
     }
     let mut written = Vec::new();
     for (topic, (mut w, _)) in files {
-        w.flush().map_err(|e| e.to_string())?;
+        w.flush().map_err(ExportError::Write)?;
         written.push(topic);
     }
     Ok(written)

@@ -21,47 +21,38 @@
 //! DNM) and counted, so a flood of queries costs the DNM's thread nothing.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::Path;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::mpsc::{self, Receiver, SyncSender};
+use std::sync::mpsc::{self, SyncSender};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use dnm_core::worker::{Control, Sets, Worker, dbg, err};
-use dnm_core::{
-    Command, CommandKey, Commander, Context, Decision, DnmReport, Plugin, Reply, Snapshot, Txn,
-};
-use dnm_module::protocol::{PortHeader, dnm_config, output_event, output_service};
-use dnm_module::{event_service, event_service_for, port_service, port_service_for};
-use dnm_netlist::{MessageType, Netlist, Wiring};
+use std::thread::JoinHandle;
 
+use dnm_core::worker::{Worker, WorkerStartError, dbg, err};
+use dnm_core::{Commander, Context, DnmReport, Plugin, PluginPrepareError, Snapshot};
+use dnm_module::protocol::{DnmConfigError, dnm_config, output_event, output_service};
+use dnm_module::{event_service_for, port_service_for};
+use dnm_netlist::{MessageType, Netlist, NetlistDoor, Wiring};
+
+use crate::command::{CommandJob, command_loop};
+use crate::egress::{Counters, EGRESS_EVENT, EgressRoute, egress_loop, room};
+use crate::ingress::{Ingress, Mirror, output_message};
 use crate::lease::{Lease, lease_loop};
+use crate::query::{Target, admit, query_loop};
 use crate::watch::{WATCH_EVENT, WatchPort, watch_loop};
-use crate::wire::{encoding, from_wire, to_wire, traffic_class};
 use dnm_proto::keys;
 use dnm_proto::station::Beat;
-use dnm_proto::{
-    NetReport, NetlistState, PeerReport, RemoteCommand, Request, Response, RouteReport,
-};
-use iceoryx2::port::listener::Listener;
-use iceoryx2::port::notifier::Notifier;
-use iceoryx2::port::publisher::Publisher;
-use iceoryx2::port::subscriber::Subscriber;
+use dnm_proto::{NetReport, NetlistState, PeerReport};
 use iceoryx2::prelude::*;
-use iceoryx2::service::port_factory::publish_subscribe::PortFactory as PubSubFactory;
 use zenoh::Wait;
-use zenoh::bytes::Encoding;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Subscriber as ZSubscriber;
-use zenoh::qos::CongestionControl;
 use zenoh::query::{Query, Queryable};
-use zenoh::sample::{Sample, SampleKind};
+use zenoh::sample::SampleKind;
 
-type Svc = ipc::Service;
-type TsSvc = ipc_threadsafe::Service;
+pub(crate) type Svc = ipc::Service;
+pub(crate) type TsSvc = ipc_threadsafe::Service;
 
-/// Event service that wakes a DNM's egress thread after its set of routes changed.
-const EGRESS_EVENT: &str = "_dnm/egress";
 /// Queries the query thread holds at most (queued or being answered).
 pub const QUERY_QUEUE: usize = 256;
 /// Commands the command thread holds at most (queued, at the DNM, or being answered).
@@ -69,76 +60,63 @@ pub const COMMAND_QUEUE: usize = 32;
 /// Applies among them at most: applies take seconds, and must leave room for switches.
 pub const APPLIES_IN_FLIGHT: usize = 4;
 
-/// Parses and validates a netlist sent in a command (`file` names it in errors).
-pub type ParseNetlist = Arc<dyn Fn(&Path, &str) -> Result<Netlist, String> + Send + Sync>;
-
-/// Which of a DNM's queryables a query reached.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Target {
-    Dnm,
-    Netlist,
-    Wiring,
-    Module,
-    Port,
-}
-
 /// What the bridge's threads and callbacks share.
 #[derive(Default)]
-struct Shared {
-    snapshot: Mutex<Option<Arc<Snapshot>>>,
-    peers: Mutex<BTreeMap<String, (bool, Instant)>>,
+pub(crate) struct Shared {
+    pub(crate) snapshot: Mutex<Option<Arc<Snapshot>>>,
+    pub(crate) peers: Mutex<BTreeMap<String, (bool, Instant)>>,
     /// Local outputs and their types, for last-value readers (set at each commit).
-    outputs: Mutex<Option<Vec<(String, MessageType)>>>,
+    pub(crate) outputs: Mutex<Option<Vec<(String, MessageType)>>>,
     /// The wiring of the revision committed last.
-    wiring: Mutex<Option<Wiring>>,
+    pub(crate) wiring: Mutex<Option<Wiring>>,
     /// The kinds that revision could use (built in and the executables it declares).
-    kinds: Mutex<Option<Arc<dnm_netlist::Catalog>>>,
-    queries_in_flight: AtomicUsize,
-    commands_in_flight: AtomicUsize,
-    applies_in_flight: Arc<AtomicUsize>,
-    refused: AtomicU64,
-    answered: AtomicU64,
+    pub(crate) kinds: Mutex<Option<Arc<dnm_netlist::Catalog>>>,
+    pub(crate) queries_in_flight: AtomicUsize,
+    pub(crate) commands_in_flight: AtomicUsize,
+    pub(crate) applies_in_flight: Arc<AtomicUsize>,
+    pub(crate) refused: AtomicU64,
+    pub(crate) answered: AtomicU64,
     /// Set when the bridge is dropped: its threads end.
-    stop: std::sync::atomic::AtomicBool,
+    pub(crate) stop: std::sync::atomic::AtomicBool,
     /// The system's authority, when it has one: switches and applies then come only from it
     /// (as transactions); a direct one would put this DNM on a task the others are not on.
-    authority: std::sync::OnceLock<String>,
+    pub(crate) authority: std::sync::OnceLock<String>,
     /// The DNM's lease on that authority.
-    lease: Mutex<Lease>,
+    pub(crate) lease: Mutex<Lease>,
 }
 
 impl Shared {
-    fn snapshot(&self) -> Option<Arc<Snapshot>> {
+    pub(crate) fn snapshot(&self) -> Option<Arc<Snapshot>> {
         self.snapshot.lock().ok().and_then(|s| s.clone())
     }
 }
 
 /// A DNM's presence on Zenoh, plugged into the DNM (see the module docs).
 pub struct Bridge {
-    session: zenoh::Session,
-    system: String,
-    dnm: String,
-    shared: Arc<Shared>,
-    ts_node: Node<TsSvc>,
-    _token: LivelinessToken,
-    _queryables: Vec<Queryable<()>>,
-    _peer_watch: ZSubscriber<()>,
-    ingress: BTreeMap<String, Ingress>,
+    pub(crate) session: zenoh::Session,
+    pub(crate) system: String,
+    pub(crate) dnm: String,
+    pub(crate) shared: Arc<Shared>,
+    pub(crate) ts_node: Node<TsSvc>,
+    pub(crate) _token: LivelinessToken,
+    pub(crate) _queryables: Vec<Queryable<()>>,
+    pub(crate) _peer_watch: ZSubscriber<()>,
+    pub(crate) ingress: BTreeMap<String, Ingress>,
     /// Mirrors made by the apply being prepared.
-    prepared: Vec<String>,
-    egress: Vec<EgressRoute>,
-    egress_worker: Worker<EgressRoute>,
-    watch: Vec<WatchPort>,
-    watch_worker: Worker<WatchPort>,
-    declared_dnms: Vec<String>,
-    query_thread: Option<std::thread::JoinHandle<()>>,
-    command_thread: Option<std::thread::JoinHandle<()>>,
-    query_tx: Option<SyncSender<(Target, Query)>>,
-    command_tx: Option<SyncSender<CommandJob>>,
+    pub(crate) prepared: Vec<String>,
+    pub(crate) egress: Vec<EgressRoute>,
+    pub(crate) egress_worker: Worker<EgressRoute>,
+    pub(crate) watch: Vec<WatchPort>,
+    pub(crate) watch_worker: Worker<WatchPort>,
+    pub(crate) declared_dnms: Vec<String>,
+    pub(crate) query_thread: Option<std::thread::JoinHandle<()>>,
+    pub(crate) command_thread: Option<std::thread::JoinHandle<()>>,
+    pub(crate) query_tx: Option<SyncSender<(Target, Query)>>,
+    pub(crate) command_tx: Option<SyncSender<CommandJob>>,
     /// For the lease: it makes the DNM safe.
-    commander: Commander,
-    _beats: Option<ZSubscriber<()>>,
-    lease_thread: Option<std::thread::JoinHandle<()>>,
+    pub(crate) commander: Commander,
+    pub(crate) _beats: Option<ZSubscriber<()>>,
+    pub(crate) lease_thread: Option<std::thread::JoinHandle<()>>,
 }
 
 impl std::fmt::Debug for Bridge {
@@ -150,16 +128,11 @@ impl std::fmt::Debug for Bridge {
     }
 }
 
-enum CommandJob {
-    Query(Query),
-    Answer(Query, Response),
-}
-
 impl Bridge {
     /// Takes switches and applies only from the system's authority `dnm` (see
     /// `dnm-authority`); other clients are told to go through a ground station. Keeps a lease
     /// on it (see [`crate::lease`]): the DNM makes itself safe when it must, whoever is down.
-    pub fn follow_authority(mut self, dnm: &str) -> Result<Self, String> {
+    pub fn follow_authority(mut self, dnm: &str) -> Result<Self, BridgeStartError> {
         let _ = self.shared.authority.set(dnm.to_string());
         let beats = {
             let shared = self.shared.clone();
@@ -176,7 +149,7 @@ impl Bridge {
                     }
                 })
                 .wait()
-                .map_err(err("subscribing to the authority's beat"))?
+                .map_err(zenoh_err("subscribing to the authority's beat"))?
         };
         let thread = {
             let shared = self.shared.clone();
@@ -194,7 +167,7 @@ impl Bridge {
                         &shared.stop,
                     )
                 })
-                .map_err(err("spawning the lease thread"))?
+                .map_err(thread_err("lease"))?
         };
         self._beats = Some(beats);
         self.lease_thread = Some(thread);
@@ -203,143 +176,34 @@ impl Bridge {
 
     /// Declares the DNM on `session`: its liveliness token, queryables, the watch on the other
     /// DNMs, and the threads that answer queries and commands. `commander` reaches the DNM;
-    /// `parse` validates netlists sent in `apply` commands.
+    /// `door` takes the netlists sent in commands.
     pub fn new(
         session: zenoh::Session,
         system: &str,
         dnm: &str,
         prefix: &str,
         commander: Commander,
-        parse: ParseNetlist,
-    ) -> Result<Self, String> {
+        door: NetlistDoor,
+    ) -> Result<Self, BridgeStartError> {
         let config = dnm_config(prefix)?;
         let ts_node = NodeBuilder::new()
             .config(&config)
             .create::<TsSvc>()
-            .map_err(dbg("zenoh bridge node"))?;
+            .map_err(BridgeStartError::Node)?;
         let shared = Arc::new(Shared::default());
-
-        let (query_tx, query_rx) = mpsc::sync_channel::<(Target, Query)>(QUERY_QUEUE);
-        let query_thread = {
-            let shared = shared.clone();
-            let session = session.clone();
-            let (system, dnm, prefix) = (system.to_string(), dnm.to_string(), prefix.to_string());
-            std::thread::Builder::new()
-                .name(format!("zenoh-queries-{dnm}"))
-                .spawn(move || query_loop(&session, &system, &dnm, &prefix, &shared, &query_rx))
-                .map_err(err("spawning the query thread"))?
-        };
-        let (command_tx, command_rx) = mpsc::sync_channel::<CommandJob>(COMMAND_QUEUE * 2);
+        let (query_thread, query_tx) = spawn_query_thread(&session, system, dnm, prefix, &shared)?;
         let lease_commander = commander.clone();
-        let command_thread = {
-            let shared = shared.clone();
-            let tx = command_tx.clone();
-            let (system, dnm) = (system.to_string(), dnm.to_string());
-            std::thread::Builder::new()
-                .name(format!("zenoh-commands-{dnm}"))
-                .spawn(move || {
-                    command_loop(&system, &dnm, &shared, &commander, &parse, &tx, &command_rx)
-                })
-                .map_err(err("spawning the command thread"))?
-        };
-
-        let mut queryables = Vec::new();
-        for (target, key) in [
-            (Target::Dnm, keys::dnm(system, dnm)),
-            (Target::Netlist, keys::netlist(system, dnm)),
-            (Target::Wiring, keys::wiring(system, dnm)),
-            (Target::Module, keys::module(system, dnm, "*")),
-            (Target::Port, keys::port(system, dnm, "*", "*")),
-        ] {
-            let tx = query_tx.clone();
-            let shared = shared.clone();
-            let q = session
-                .declare_queryable(key.clone())
-                .callback(move |q| {
-                    if admit(&shared.queries_in_flight, QUERY_QUEUE, &shared.refused)
-                        && tx.try_send((target, q)).is_err()
-                    {
-                        shared.queries_in_flight.fetch_sub(1, Ordering::Relaxed);
-                        shared.refused.fetch_add(1, Ordering::Relaxed);
-                    }
-                })
-                .wait()
-                .map_err(err("declaring queryable"))?;
-            queryables.push(q);
-        }
-        {
-            let tx = command_tx.clone();
-            let shared = shared.clone();
-            let q = session
-                .declare_queryable(keys::cmd(system, dnm))
-                .callback(move |q| {
-                    if admit(&shared.commands_in_flight, COMMAND_QUEUE, &shared.refused)
-                        && tx.try_send(CommandJob::Query(q)).is_err()
-                    {
-                        shared.commands_in_flight.fetch_sub(1, Ordering::Relaxed);
-                        shared.refused.fetch_add(1, Ordering::Relaxed);
-                    }
-                })
-                .wait()
-                .map_err(err("declaring queryable"))?;
-            queryables.push(q);
-        }
+        let (command_thread, command_tx) =
+            spawn_command_thread(system, dnm, &shared, commander, door)?;
+        let queryables =
+            declare_queryables(&session, system, dnm, &shared, &query_tx, &command_tx)?;
         let token = session
             .liveliness()
             .declare_token(keys::dnm(system, dnm))
             .wait()
-            .map_err(err("declaring liveliness token"))?;
-        let peer_watch = {
-            let system = system.to_string();
-            let me = dnm.to_string();
-            let shared = shared.clone();
-            session
-                .liveliness()
-                .declare_subscriber(keys::all_dnms(&system))
-                .history(true)
-                .callback(move |s| {
-                    let Some(name) = keys::dnm_of(&system, s.key_expr().as_str()) else {
-                        return;
-                    };
-                    if name == me {
-                        return;
-                    }
-                    let alive = s.kind() == SampleKind::Put;
-                    let Ok(mut peers) = shared.peers.lock() else {
-                        return;
-                    };
-                    if peers.get(&name).is_none_or(|(a, _)| *a != alive) {
-                        if alive {
-                            tracing::info!(dnm = %me, peer = %name, "DNM joined");
-                        } else {
-                            tracing::warn!(dnm = %me, peer = %name, "DNM lost");
-                        }
-                        peers.insert(name, (alive, Instant::now()));
-                    }
-                })
-                .wait()
-                .map_err(err("watching DNMs"))?
-        };
-
-        let egress = {
-            let session = session.clone();
-            Worker::spawn(
-                format!("egress-{dnm}"),
-                prefix,
-                EGRESS_EVENT,
-                move |control| egress_loop(&session, &control),
-            )?
-        };
-        let watch_worker = {
-            let session = session.clone();
-            let (system, dnm, p) = (system.to_string(), dnm.to_string(), prefix.to_string());
-            Worker::spawn(
-                format!("watch-{dnm}"),
-                prefix,
-                WATCH_EVENT,
-                move |control| watch_loop(&session, &system, &dnm, &p, &control),
-            )?
-        };
+            .map_err(zenoh_err("declaring liveliness token"))?;
+        let peer_watch = watch_peers(&session, system, dnm, &shared)?;
+        let (egress_worker, watch_worker) = start_workers(&session, system, dnm, prefix)?;
         Ok(Self {
             session,
             system: system.into(),
@@ -352,7 +216,7 @@ impl Bridge {
             ingress: BTreeMap::new(),
             prepared: Vec::new(),
             egress: Vec::new(),
-            egress_worker: egress,
+            egress_worker,
             watch: Vec::new(),
             watch_worker,
             declared_dnms: Vec::new(),
@@ -525,6 +389,197 @@ impl Bridge {
     }
 }
 
+/// Why a DNM could not go on Zenoh: which part of its bridge failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeStartError {
+    #[error(transparent)]
+    Config(#[from] DnmConfigError),
+    #[error("zenoh bridge node: {0}")]
+    Node(#[source] iceoryx2::node::NodeCreationFailure),
+    #[error("spawning the {what} thread: {source}")]
+    Thread {
+        what: &'static str,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{what}: {source}")]
+    Zenoh {
+        what: &'static str,
+        #[source]
+        source: zenoh::Error,
+    },
+    #[error(transparent)]
+    Worker(#[from] WorkerStartError),
+}
+
+fn zenoh_err(what: &'static str) -> impl FnOnce(zenoh::Error) -> BridgeStartError {
+    move |source| BridgeStartError::Zenoh { what, source }
+}
+
+fn thread_err(what: &'static str) -> impl FnOnce(std::io::Error) -> BridgeStartError {
+    move |source| BridgeStartError::Thread { what, source }
+}
+
+/// Where queryables hand the query thread their queries.
+type QueryQueue = SyncSender<(Target, Query)>;
+
+/// The query thread and the queue its queryables feed.
+fn spawn_query_thread(
+    session: &zenoh::Session,
+    system: &str,
+    dnm: &str,
+    prefix: &str,
+    shared: &Arc<Shared>,
+) -> Result<(JoinHandle<()>, QueryQueue), BridgeStartError> {
+    let (query_tx, query_rx) = mpsc::sync_channel::<(Target, Query)>(QUERY_QUEUE);
+    let shared = shared.clone();
+    let session = session.clone();
+    let (system, dnm, prefix) = (system.to_string(), dnm.to_string(), prefix.to_string());
+    let thread = std::thread::Builder::new()
+        .name(format!("zenoh-queries-{dnm}"))
+        .spawn(move || query_loop(&session, &system, &dnm, &prefix, &shared, &query_rx))
+        .map_err(thread_err("query"))?;
+    Ok((thread, query_tx))
+}
+
+/// The command thread and the queue its queryable (and the DNM's answers) feed.
+fn spawn_command_thread(
+    system: &str,
+    dnm: &str,
+    shared: &Arc<Shared>,
+    commander: Commander,
+    door: NetlistDoor,
+) -> Result<(JoinHandle<()>, SyncSender<CommandJob>), BridgeStartError> {
+    let (command_tx, command_rx) = mpsc::sync_channel::<CommandJob>(COMMAND_QUEUE * 2);
+    let shared = shared.clone();
+    let tx = command_tx.clone();
+    let (system, dnm) = (system.to_string(), dnm.to_string());
+    let thread = std::thread::Builder::new()
+        .name(format!("zenoh-commands-{dnm}"))
+        .spawn(move || command_loop(&system, &dnm, &shared, &commander, &door, &tx, &command_rx))
+        .map_err(thread_err("command"))?;
+    Ok((thread, command_tx))
+}
+
+/// The DNM's queryables: its state, netlist, wiring, modules and ports for the query thread,
+/// its commands for the command thread. Beyond their queues, queries are refused and counted.
+fn declare_queryables(
+    session: &zenoh::Session,
+    system: &str,
+    dnm: &str,
+    shared: &Arc<Shared>,
+    query_tx: &SyncSender<(Target, Query)>,
+    command_tx: &SyncSender<CommandJob>,
+) -> Result<Vec<Queryable<()>>, BridgeStartError> {
+    let mut queryables = Vec::new();
+    for (target, key) in [
+        (Target::Dnm, keys::dnm(system, dnm)),
+        (Target::Netlist, keys::netlist(system, dnm)),
+        (Target::Wiring, keys::wiring(system, dnm)),
+        (Target::Module, keys::module(system, dnm, "*")),
+        (Target::Port, keys::port(system, dnm, "*", "*")),
+    ] {
+        let tx = query_tx.clone();
+        let shared = shared.clone();
+        let q = session
+            .declare_queryable(key.clone())
+            .callback(move |q| {
+                if admit(&shared.queries_in_flight, QUERY_QUEUE, &shared.refused)
+                    && tx.try_send((target, q)).is_err()
+                {
+                    shared.queries_in_flight.fetch_sub(1, Ordering::Relaxed);
+                    shared.refused.fetch_add(1, Ordering::Relaxed);
+                }
+            })
+            .wait()
+            .map_err(zenoh_err("declaring queryable"))?;
+        queryables.push(q);
+    }
+    let tx = command_tx.clone();
+    let shared = shared.clone();
+    let q = session
+        .declare_queryable(keys::cmd(system, dnm))
+        .callback(move |q| {
+            if admit(&shared.commands_in_flight, COMMAND_QUEUE, &shared.refused)
+                && tx.try_send(CommandJob::Query(q)).is_err()
+            {
+                shared.commands_in_flight.fetch_sub(1, Ordering::Relaxed);
+                shared.refused.fetch_add(1, Ordering::Relaxed);
+            }
+        })
+        .wait()
+        .map_err(zenoh_err("declaring queryable"))?;
+    queryables.push(q);
+    Ok(queryables)
+}
+
+/// Follows the other DNMs of the system by their liveliness tokens.
+fn watch_peers(
+    session: &zenoh::Session,
+    system: &str,
+    dnm: &str,
+    shared: &Arc<Shared>,
+) -> Result<ZSubscriber<()>, BridgeStartError> {
+    let system = system.to_string();
+    let me = dnm.to_string();
+    let shared = shared.clone();
+    session
+        .liveliness()
+        .declare_subscriber(keys::all_dnms(&system))
+        .history(true)
+        .callback(move |s| {
+            let Some(name) = keys::dnm_of(&system, s.key_expr().as_str()) else {
+                return;
+            };
+            if name == me {
+                return;
+            }
+            let alive = s.kind() == SampleKind::Put;
+            let Ok(mut peers) = shared.peers.lock() else {
+                return;
+            };
+            if peers.get(&name).is_none_or(|(a, _)| *a != alive) {
+                if alive {
+                    tracing::info!(dnm = %me, peer = %name, "DNM joined");
+                } else {
+                    tracing::warn!(dnm = %me, peer = %name, "DNM lost");
+                }
+                peers.insert(name, (alive, Instant::now()));
+            }
+        })
+        .wait()
+        .map_err(zenoh_err("watching DNMs"))
+}
+
+/// The egress thread and the watch thread, each serving the set of ports it is sent.
+fn start_workers(
+    session: &zenoh::Session,
+    system: &str,
+    dnm: &str,
+    prefix: &str,
+) -> Result<(Worker<EgressRoute>, Worker<WatchPort>), BridgeStartError> {
+    let egress = {
+        let session = session.clone();
+        Worker::spawn(
+            format!("egress-{dnm}"),
+            prefix,
+            EGRESS_EVENT,
+            move |control| egress_loop(&session, &control),
+        )?
+    };
+    let watch = {
+        let session = session.clone();
+        let (system, dnm, p) = (system.to_string(), dnm.to_string(), prefix.to_string());
+        Worker::spawn(
+            format!("watch-{dnm}"),
+            prefix,
+            WATCH_EVENT,
+            move |control| watch_loop(&session, &system, &dnm, &p, &control),
+        )?
+    };
+    Ok((egress, watch))
+}
+
 impl Plugin for Bridge {
     fn name(&self) -> &'static str {
         "zenoh"
@@ -539,7 +594,7 @@ impl Plugin for Bridge {
         ctx: &Context<'_>,
         netlist: &Netlist,
         _revision: u64,
-    ) -> Result<(), String> {
+    ) -> Result<(), PluginPrepareError> {
         self.prepared.clear();
         for (service, key, message) in self.wanted_ingress(netlist) {
             if let Some(kept) = self.ingress.get(&service) {
@@ -548,7 +603,7 @@ impl Plugin for Bridge {
                     for s in self.prepared.drain(..) {
                         self.ingress.remove(&s);
                     }
-                    return Err(e);
+                    return Err(e.into());
                 }
                 continue;
             }
@@ -564,7 +619,7 @@ impl Plugin for Bridge {
                     for s in self.prepared.drain(..) {
                         self.ingress.remove(&s);
                     }
-                    return Err(e);
+                    return Err(e.into());
                 }
             }
         }
@@ -706,893 +761,6 @@ impl Drop for Bridge {
     }
 }
 
-/// Takes one slot of a bounded in-flight count; counts a refusal when none is left.
-fn admit(in_flight: &AtomicUsize, limit: usize, refused: &AtomicU64) -> bool {
-    let taken = in_flight
-        .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
-            (n < limit).then_some(n + 1)
-        })
-        .is_ok();
-    if !taken {
-        refused.fetch_add(1, Ordering::Relaxed);
-    }
-    taken
-}
-
-fn reply_json(query: &Query, key: String, body: &impl serde::Serialize) {
-    let bytes = serde_json::to_vec(body).unwrap_or_default();
-    if let Err(e) = query
-        .reply(key, bytes)
-        .encoding(Encoding::APPLICATION_JSON)
-        .wait()
-    {
-        tracing::debug!("zenoh reply: {e}");
-    }
-}
-
-/// A sample's header and a copy of its bytes.
-type LastSample = (PortHeader, Vec<u8>);
-
-/// The last sample of an output, kept for queries.
-struct Monitor {
-    subscriber: Subscriber<Svc, [u8], PortHeader>,
-    message: MessageType,
-    last: Option<LastSample>,
-}
-
-impl Monitor {
-    fn refresh(&mut self) {
-        while let Ok(Some(s)) = self.subscriber.receive() {
-            self.last = Some((*s.user_header(), s.payload().to_vec()));
-        }
-    }
-
-    fn json(&mut self) -> serde_json::Value {
-        self.refresh();
-        match &self.last {
-            None => serde_json::json!({ "schema": self.message.schema_name, "seq": null }),
-            Some((h, bytes)) => serde_json::json!({
-                "schema": self.message.schema_name,
-                "seq": h.seq,
-                "age_ms": dnm_module::protocol::monotonic_ns().saturating_sub(h.stamp_ns) / 1_000_000,
-                "value": dnm_netlist::values::decode(&self.message, bytes),
-            }),
-        }
-    }
-}
-
-/// Answers the DNM's queries from its snapshot and the last-value readers; keeps the module
-/// liveliness tokens in step with the running modules.
-fn query_loop(
-    session: &zenoh::Session,
-    system: &str,
-    dnm: &str,
-    prefix: &str,
-    shared: &Shared,
-    queries: &Receiver<(Target, Query)>,
-) {
-    let node = match dnm_config(prefix).and_then(|c| {
-        NodeBuilder::new()
-            .config(&c)
-            .create::<Svc>()
-            .map_err(|e| format!("{e:?}"))
-    }) {
-        Ok(n) => n,
-        Err(e) => {
-            tracing::error!(dnm, "query thread has no shared memory: {e}");
-            return;
-        }
-    };
-    let mut monitors: BTreeMap<String, Monitor> = BTreeMap::new();
-    let mut tokens: BTreeMap<String, LivelinessToken> = BTreeMap::new();
-    let mut last_snapshot: Option<Arc<Snapshot>> = None;
-    loop {
-        let job = queries.recv_timeout(Duration::from_millis(100));
-        if matches!(job, Err(mpsc::RecvTimeoutError::Disconnected))
-            || shared.stop.load(Ordering::Relaxed)
-        {
-            return;
-        }
-        // Outputs changed at a commit: readers follow.
-        if let Some(outputs) = shared.outputs.lock().ok().and_then(|mut o| o.take()) {
-            let wanted: BTreeMap<String, MessageType> = outputs.into_iter().collect();
-            monitors.retain(|s, m| wanted.get(s).is_some_and(|t| *t == m.message));
-            for (service, message) in wanted {
-                if monitors.contains_key(&service) {
-                    continue;
-                }
-                let sub = port_service(&node, &service, &message.payload)
-                    .map_err(err("port service"))
-                    .and_then(|p| p.subscriber_builder().create().map_err(dbg("monitor")));
-                match sub {
-                    Ok(subscriber) => {
-                        monitors.insert(
-                            service,
-                            Monitor {
-                                subscriber,
-                                message,
-                                last: None,
-                            },
-                        );
-                    }
-                    Err(e) => tracing::warn!(port = %service, "no last-value reader: {e}"),
-                }
-            }
-        }
-        let snapshot = shared.snapshot();
-        if snapshot.as_ref().map(Arc::as_ptr) != last_snapshot.as_ref().map(Arc::as_ptr) {
-            last_snapshot = snapshot.clone();
-            if let Some(s) = &snapshot {
-                sync_tokens(session, system, dnm, &mut tokens, &s.report);
-            }
-        }
-        let Ok((target, query)) = job else { continue };
-        answer(
-            system,
-            dnm,
-            target,
-            &query,
-            snapshot.as_deref(),
-            shared,
-            &mut monitors,
-        );
-        drop(query);
-        shared.queries_in_flight.fetch_sub(1, Ordering::Relaxed);
-        shared.answered.fetch_add(1, Ordering::Relaxed);
-    }
-}
-
-fn sync_tokens(
-    session: &zenoh::Session,
-    system: &str,
-    dnm: &str,
-    tokens: &mut BTreeMap<String, LivelinessToken>,
-    report: &DnmReport,
-) {
-    let running: BTreeSet<&str> = report
-        .modules
-        .iter()
-        .filter(|m| m.state == dnm_proto::ModuleRunState::Running)
-        .map(|m| m.name.as_str())
-        .collect();
-    tokens.retain(|m, _| running.contains(m.as_str()));
-    for m in running {
-        if tokens.contains_key(m) {
-            continue;
-        }
-        match session
-            .liveliness()
-            .declare_token(keys::module(system, dnm, m))
-            .wait()
-        {
-            Ok(t) => {
-                tokens.insert(m.to_string(), t);
-            }
-            Err(e) => tracing::warn!(module = m, "liveliness token: {e}"),
-        }
-    }
-}
-
-fn answer(
-    system: &str,
-    dnm: &str,
-    target: Target,
-    query: &Query,
-    snapshot: Option<&Snapshot>,
-    shared: &Shared,
-    monitors: &mut BTreeMap<String, Monitor>,
-) {
-    match target {
-        Target::Dnm => {
-            if let Some(s) = snapshot {
-                // `?brief`: only what a DNM is running, for the authority's checks across a
-                // slow link.
-                if query.parameters().contains_key("glance") {
-                    reply_json(
-                        query,
-                        keys::dnm(system, dnm),
-                        &dnm_proto::DnmGlance::of(&s.report),
-                    );
-                } else if query.parameters().contains_key("brief") {
-                    reply_json(
-                        query,
-                        keys::dnm(system, dnm),
-                        &dnm_proto::DnmBrief::of(&s.report),
-                    );
-                } else {
-                    reply_json(query, keys::dnm(system, dnm), &s.report);
-                }
-            }
-        }
-        Target::Netlist => {
-            if let Some(s) = snapshot {
-                reply_json(query, keys::netlist(system, dnm), &s.netlist);
-            }
-        }
-        Target::Wiring => {
-            // `?kinds`: every kind this DNM can run (ports, message types, parameters), for
-            // editors that compose netlists away from the rover.
-            if query.parameters().contains_key("kinds") {
-                let kinds = shared.kinds.lock().ok().and_then(|k| k.clone());
-                if let Some(k) = kinds {
-                    reply_json(query, keys::wiring(system, dnm), &*k);
-                }
-            } else if let Some(mut w) = shared.wiring.lock().ok().and_then(|w| w.clone()) {
-                // The task in force now (switches do not commit a new revision).
-                if let Some(s) = snapshot.filter(|s| s.report.revision == w.revision) {
-                    w.active_task = s.report.active_task.clone();
-                }
-                reply_json(query, keys::wiring(system, dnm), &w);
-            }
-        }
-        Target::Module => {
-            let Some(s) = snapshot else { return };
-            for m in &s.report.modules {
-                let key = keys::module(system, dnm, &m.name);
-                let matches = zenoh::key_expr::KeyExpr::try_from(key.as_str())
-                    .is_ok_and(|k| k.intersects(query.key_expr()));
-                if !matches {
-                    continue;
-                }
-                let mut outputs = serde_json::Map::new();
-                let prefix = format!("{}/", m.name);
-                for (service, monitor) in monitors.range_mut(prefix.clone()..) {
-                    let Some(port) = service.strip_prefix(&prefix) else {
-                        break;
-                    };
-                    outputs.insert(port.to_string(), monitor.json());
-                }
-                let mut v = serde_json::to_value(m).unwrap_or_default();
-                if let Some(o) = v.as_object_mut() {
-                    o.insert("dnm".into(), dnm.into());
-                    o.insert("outputs".into(), serde_json::Value::Object(outputs));
-                }
-                reply_json(query, key, &v);
-            }
-        }
-        Target::Port => {
-            for (service, m) in monitors.iter_mut() {
-                let Some((module, port)) = service.split_once('/') else {
-                    continue;
-                };
-                let key = keys::port(system, dnm, module, port);
-                let matches = zenoh::key_expr::KeyExpr::try_from(key.as_str())
-                    .is_ok_and(|k| k.intersects(query.key_expr()));
-                if !matches {
-                    continue;
-                }
-                m.refresh();
-                let Some((header, bytes)) = &m.last else {
-                    continue;
-                };
-                if let Err(e) = query
-                    .reply(key, bytes.clone())
-                    .encoding(encoding(&m.message))
-                    .attachment(keys::encode_header(&to_wire(header)).to_vec())
-                    .wait()
-                {
-                    tracing::debug!("zenoh reply: {e}");
-                }
-            }
-        }
-    }
-}
-
-/// Takes commands from Zenoh, hands switches and applies to the DNM, and replies when it
-/// answers. Status and netlist requests are answered from the snapshot.
-fn command_loop(
-    system: &str,
-    dnm: &str,
-    shared: &Shared,
-    commander: &Commander,
-    parse: &ParseNetlist,
-    jobs_tx: &SyncSender<CommandJob>,
-    jobs: &Receiver<CommandJob>,
-) {
-    let c = Commands {
-        system,
-        dnm,
-        shared,
-        commander,
-        parse,
-        jobs_tx,
-    };
-    loop {
-        match jobs.recv_timeout(Duration::from_millis(100)) {
-            Ok(CommandJob::Answer(query, response)) => c.finish(query, &response),
-            Ok(CommandJob::Query(query)) => c.take(query),
-            Err(mpsc::RecvTimeoutError::Timeout) if !shared.stop.load(Ordering::Relaxed) => {}
-            Err(_) => return,
-        }
-    }
-}
-
-/// What the command thread works with; one method per phase of a command and per request.
-struct Commands<'a> {
-    system: &'a str,
-    dnm: &'a str,
-    shared: &'a Shared,
-    commander: &'a Commander,
-    parse: &'a ParseNetlist,
-    jobs_tx: &'a SyncSender<CommandJob>,
-}
-
-/// A query's bytes as a command, or why they are none.
-fn read_command(query: &Query) -> Result<RemoteCommand, String> {
-    const EXAMPLE: &str = r#"{"client":"me","id":"42","cmd":"switch","task":"auto"}"#;
-    match query.payload().map(|p| p.to_bytes()) {
-        Some(b) => serde_json::from_slice(&b)
-            .map_err(|e| format!("bad command: {e}; send JSON such as {EXAMPLE}")),
-        None => Err(format!("empty command; send JSON such as {EXAMPLE}")),
-    }
-}
-
-impl Commands<'_> {
-    /// Answers a command's query (and frees its place).
-    fn finish(&self, query: Query, response: &Response) {
-        let key = keys::cmd(self.system, self.dnm);
-        let bytes = serde_json::to_vec(response).unwrap_or_default();
-        let sent = if response.ok {
-            query
-                .reply(key, bytes)
-                .encoding(Encoding::APPLICATION_JSON)
-                .wait()
-        } else {
-            query
-                .reply_err(bytes)
-                .encoding(Encoding::APPLICATION_JSON)
-                .wait()
-        };
-        if let Err(e) = sent {
-            tracing::debug!("zenoh reply: {e}");
-        }
-        self.shared
-            .commands_in_flight
-            .fetch_sub(1, Ordering::Relaxed);
-        self.shared.answered.fetch_add(1, Ordering::Relaxed);
-    }
-
-    /// Hands a command to the DNM; if it cannot take it, its query is answered here.
-    fn hand(&self, command: Command, slot: Arc<Mutex<Option<Query>>>) {
-        if let Err(e) = self.commander.send(command)
-            && let Some(q) = slot.lock().ok().and_then(|mut s| s.take())
-        {
-            self.finish(q, &Response::error(format!("DNM `{}`: {e}", self.dnm)));
-        }
-    }
-
-    /// Why a command must not come from its sender, if it must not: in a system commanded
-    /// through its authority, transactions, switches and applies come from it alone.
-    fn refusal(&self, cmd: &RemoteCommand) -> Option<String> {
-        let system = self.system;
-        let authority = self.shared.authority.get()?;
-        let from_authority = cmd.client.as_deref() == Some(&format!("authority-{authority}"));
-        if from_authority {
-            return None;
-        }
-        match cmd.request {
-            Request::Prepare { .. } | Request::Decide { .. } | Request::Adopt { .. } => {
-                Some(format!(
-                    "transactions of system `{system}` come from its authority, DNM `{authority}`"
-                ))
-            }
-            Request::Switch { .. } | Request::Apply { .. } => Some(format!(
-                "system `{system}` is commanded through its authority, DNM `{authority}`: \
-                 send switches and applies through a ground station (`dnm ground switch TASK`), \
-                 which has every DNM take them together"
-            )),
-            _ => None,
-        }
-    }
-
-    /// One command: read, checked against its sender, then handed on.
-    fn take(&self, query: Query) {
-        let cmd = match read_command(&query) {
-            Ok(c) => c,
-            Err(e) => return self.finish(query, &Response::error(e)),
-        };
-        if let Some(why) = self.refusal(&cmd) {
-            return self.finish(query, &Response::error(why));
-        }
-        let key = cmd.id.map(|id| CommandKey {
-            client: cmd.client.unwrap_or_default(),
-            id,
-        });
-        match cmd.request {
-            Request::Status | Request::Netlist => self.state(query, &cmd.request),
-            Request::Switch { task } => self.switch(query, task, key),
-            Request::Apply { file, text } => self.apply(query, &file, &text, key),
-            Request::Prepare {
-                txn,
-                revision,
-                task,
-                file,
-                text,
-            } => self.prepare(query, txn, revision, task, file, text),
-            Request::Decide {
-                txn,
-                commit,
-                at_unix_ns,
-                revision,
-                task,
-            } => self.decide(
-                query,
-                Decision {
-                    id: txn,
-                    commit,
-                    at_unix_ns,
-                    revision,
-                    task,
-                },
-            ),
-            Request::Adopt {
-                revision,
-                task,
-                file,
-                text,
-            } => self.adopt(query, revision, task, &file, &text),
-        }
-    }
-
-    /// The DNM's report or its netlist, from the latest snapshot.
-    fn state(&self, query: Query, request: &Request) {
-        let r = match (self.shared.snapshot(), request) {
-            (None, _) => Response::error(format!("DNM `{}` is starting", self.dnm)),
-            (Some(s), Request::Status) => Response {
-                ok: true,
-                dnms: vec![s.report.clone()],
-                ..Response::default()
-            },
-            (Some(s), _) => Response {
-                ok: true,
-                revision: Some(s.netlist.revision),
-                netlist: s.netlist.text.clone(),
-                ..Response::default()
-            },
-        };
-        self.finish(query, &r);
-    }
-
-    fn switch(&self, query: Query, task: String, key: Option<CommandKey>) {
-        let dnm = self.dnm.to_string();
-        let (reply, slot) = answer_slot(
-            self.jobs_tx.clone(),
-            query,
-            move |r: Result<dnm_proto::SwitchRecord, String>| match r {
-                Ok(s) => Response {
-                    ok: true,
-                    revision: Some(s.revision),
-                    switches: vec![s],
-                    ..Response::default()
-                },
-                Err(e) => Response::error(format!("DNM `{dnm}`: {e}")),
-            },
-        );
-        self.hand(Command::Switch { task, key, reply }, slot);
-    }
-
-    fn apply(&self, query: Query, file: &str, text: &str, key: Option<CommandKey>) {
-        let (system, dnm) = (self.system, self.dnm);
-        let applies = self.shared.applies_in_flight.clone();
-        if !admit(&applies, APPLIES_IN_FLIGHT, &self.shared.refused) {
-            return self.finish(
-                query,
-                &Response::error(format!(
-                    "DNM `{dnm}` is busy with {APPLIES_IN_FLIGHT} applies; send it again later (same id)"
-                )),
-            );
-        }
-        let release = {
-            let applies = applies.clone();
-            move || {
-                applies.fetch_sub(1, Ordering::AcqRel);
-            }
-        };
-        let netlist = match (self.parse)(Path::new(file), text) {
-            Err(e) => {
-                release();
-                return self.finish(
-                    query,
-                    &Response::error(format!("netlist refused, nothing changed:\n{e}")),
-                );
-            }
-            Ok(n) if n.system != system => {
-                release();
-                return self.finish(
-                    query,
-                    &Response::error(format!(
-                        "netlist is for system `{}`, this is `{system}`; nothing changed",
-                        n.system
-                    )),
-                );
-            }
-            Ok(n) => n,
-        };
-        let dnm_name = dnm.to_string();
-        let (reply, slot) = answer_slot(
-            self.jobs_tx.clone(),
-            query,
-            move |r: Result<u64, String>| {
-                release();
-                match r {
-                    Ok(revision) => Response {
-                        ok: true,
-                        revision: Some(revision),
-                        ..Response::default()
-                    },
-                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-                }
-            },
-        );
-        if let Err(e) = self.commander.send(Command::Apply {
-            netlist: Box::new(netlist),
-            key,
-            reply,
-        }) {
-            // The command (with its reply) came back unsent: free its apply slot here.
-            applies.fetch_sub(1, Ordering::AcqRel);
-            if let Some(q) = slot.lock().ok().and_then(|mut s| s.take()) {
-                self.finish(q, &Response::error(format!("DNM `{dnm}`: {e}")));
-            }
-        }
-    }
-
-    fn prepare(
-        &self,
-        query: Query,
-        txn: u64,
-        revision: u64,
-        task: Option<String>,
-        file: Option<String>,
-        text: Option<String>,
-    ) {
-        let dnm = self.dnm;
-        // A DNM whose clock is off would put the decision in force at the wrong moment.
-        let clock = self
-            .shared
-            .lease
-            .lock()
-            .ok()
-            .and_then(|l| l.clock_refusal(dnm));
-        if let Some(why) = clock {
-            tracing::warn!(dnm, txn, "transaction refused: {why}");
-            return self.finish(query, &Response::error(why));
-        }
-        let netlist = match text.map(|t| {
-            let file = file.unwrap_or_else(|| "netlist.toml".into());
-            parse_here(self.parse, self.system, &file, &t)
-        }) {
-            None => None,
-            Some(Ok(n)) => Some(Box::new(n)),
-            Some(Err(e)) => return self.finish(query, &Response::error(e)),
-        };
-        let dnm_name = dnm.to_string();
-        let (reply, slot) = answer_slot(
-            self.jobs_tx.clone(),
-            query,
-            move |r: Result<(), String>| match r {
-                Ok(()) => Response {
-                    ok: true,
-                    revision: Some(revision),
-                    ..Response::default()
-                },
-                Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-            },
-        );
-        let txn = Txn {
-            id: txn,
-            revision,
-            task,
-            netlist,
-        };
-        self.hand(Command::Prepare { txn, reply }, slot);
-    }
-
-    fn decide(&self, query: Query, decision: Decision) {
-        // A decision is sent shortly before its instant; one far ahead would keep the DNM
-        // waiting (and its supervision quiet) for nothing.
-        let now = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos() as u64);
-        if decision.commit && decision.at_unix_ns > now + MAX_DECISION_AHEAD.as_nanos() as u64 {
-            return self.finish(
-                query,
-                &Response::error(format!(
-                    "decision {} is for {:.0} s from now; at most {} s ahead is taken \
-                     (are the clocks synchronised?)",
-                    decision.id,
-                    (decision.at_unix_ns - now) as f64 / 1e9,
-                    MAX_DECISION_AHEAD.as_secs()
-                )),
-            );
-        }
-        let (dnm, revision) = (self.dnm.to_string(), decision.revision);
-        let (reply, slot) = answer_slot(
-            self.jobs_tx.clone(),
-            query,
-            move |r: Result<Option<dnm_proto::SwitchRecord>, String>| match r {
-                Ok(s) => Response {
-                    ok: true,
-                    revision: Some(revision),
-                    switches: s.into_iter().collect(),
-                    ..Response::default()
-                },
-                Err(e) => Response::error(format!("DNM `{dnm}`: {e}")),
-            },
-        );
-        self.hand(Command::Decide { decision, reply }, slot);
-    }
-
-    fn adopt(&self, query: Query, revision: u64, task: Option<String>, file: &str, text: &str) {
-        let netlist = match parse_here(self.parse, self.system, file, text) {
-            Ok(n) => n,
-            Err(e) => return self.finish(query, &Response::error(e)),
-        };
-        let dnm = self.dnm.to_string();
-        let (reply, slot) = answer_slot(
-            self.jobs_tx.clone(),
-            query,
-            move |r: Result<u64, String>| match r {
-                Ok(revision) => Response {
-                    ok: true,
-                    revision: Some(revision),
-                    ..Response::default()
-                },
-                Err(e) => Response::error(format!("DNM `{dnm}`: {e}")),
-            },
-        );
-        let adopt = Command::Adopt {
-            revision,
-            task,
-            netlist: Box::new(netlist),
-            reply,
-        };
-        self.hand(adopt, slot);
-    }
-}
-
-/// A netlist sent in a transaction, validated here and for this system.
-fn parse_here(
-    parse: &ParseNetlist,
-    system: &str,
-    file: &str,
-    text: &str,
-) -> Result<Netlist, String> {
-    match parse(Path::new(file), text) {
-        Ok(n) if n.system == system => Ok(n),
-        Ok(n) => Err(format!(
-            "netlist is for system `{}`, this is `{system}`",
-            n.system
-        )),
-        Err(e) => Err(format!("netlist refused:\n{e}")),
-    }
-}
-
-/// How far ahead of now a decided instant may be.
-const MAX_DECISION_AHEAD: Duration = Duration::from_secs(60);
-
-/// A reply for the DNM that hands the query back to the command thread with the response. The
-/// query waits in a slot, so it can be answered here if the DNM never takes the command.
-#[allow(clippy::type_complexity)]
-fn answer_slot<T: Send + 'static>(
-    tx: SyncSender<CommandJob>,
-    query: Query,
-    to_response: impl FnOnce(T) -> Response + Send + 'static,
-) -> (Reply<T>, Arc<Mutex<Option<Query>>>) {
-    let slot = Arc::new(Mutex::new(Some(query)));
-    let held = slot.clone();
-    let reply = Reply::new(move |v: T| {
-        if let Some(q) = held.lock().ok().and_then(|mut s| s.take()) {
-            // Never full: the channel has room for twice the commands admitted.
-            let _ = tx.try_send(CommandJob::Answer(q, to_response(v)));
-        }
-    });
-    (reply, slot)
-}
-
-#[derive(Debug, Default)]
-struct Counters {
-    messages: AtomicU64,
-    bytes: AtomicU64,
-    dropped: AtomicU64,
-}
-
-impl Counters {
-    fn count(&self, bytes: usize) {
-        self.messages.fetch_add(1, Ordering::Relaxed);
-        self.bytes.fetch_add(bytes as u64, Ordering::Relaxed);
-    }
-
-    fn report(&self, key: &str) -> RouteReport {
-        RouteReport {
-            key: key.to_string(),
-            messages: self.messages.load(Ordering::Relaxed),
-            bytes: self.bytes.load(Ordering::Relaxed),
-            dropped: self.dropped.load(Ordering::Relaxed),
-        }
-    }
-}
-
-/// An output this DNM publishes for other DNMs.
-#[derive(Debug, Clone)]
-struct EgressRoute {
-    service: String,
-    event: String,
-    key: String,
-    message: MessageType,
-    counters: Arc<Counters>,
-}
-
-/// A remote output mirrored into local shared memory.
-struct Ingress {
-    key: String,
-    message: MessageType,
-    counters: Arc<Counters>,
-    /// Subscribers (and listeners) its mirror port was made for.
-    slots: usize,
-    _subscriber: ZSubscriber<()>,
-}
-
-struct Mirror {
-    publisher: Publisher<TsSvc, [u8], PortHeader>,
-    notifier: Notifier<TsSvc>,
-    max_bytes: usize,
-    counters: Arc<Counters>,
-    _service: PubSubFactory<TsSvc, [u8], PortHeader>,
-}
-
-impl Mirror {
-    fn forward(&self, sample: &Sample) {
-        let payload = sample.payload().to_bytes();
-        if payload.len() > self.max_bytes {
-            self.counters.dropped.fetch_add(1, Ordering::Relaxed);
-            return;
-        }
-        let header = sample
-            .attachment()
-            .and_then(|a| keys::decode_header(&a.to_bytes()))
-            .map(from_wire)
-            .unwrap_or_default();
-        let sent = self
-            .publisher
-            .loan_slice_uninit(payload.len())
-            .map_err(|e| format!("{e:?}"))
-            .and_then(|s| {
-                let mut s = s.write_from_slice(&payload);
-                *s.user_header_mut() = header;
-                s.send().map_err(|e| format!("{e:?}"))
-            });
-        match sent {
-            Ok(_) => {
-                self.counters.count(payload.len());
-                let _ = self.notifier.notify();
-            }
-            Err(e) => {
-                self.counters.dropped.fetch_add(1, Ordering::Relaxed);
-                tracing::debug!("mirror send failed: {e}");
-            }
-        }
-    }
-}
-
-/// The message type of an output port.
-fn output_message(netlist: &Netlist, port: &dnm_netlist::PortRef) -> Option<MessageType> {
-    netlist
-        .kind_of(&port.module)
-        .and_then(|k| k.outputs.iter().find(|p| p.name == port.port))
-        .map(|p| p.message.clone())
-}
-
-/// An egress route with its ports open.
-struct OpenRoute {
-    subscriber: Subscriber<Svc, [u8], PortHeader>,
-    listener: Listener<Svc>,
-    publisher: zenoh::pubsub::Publisher<'static>,
-    counters: Arc<Counters>,
-}
-
-impl OpenRoute {
-    fn open(node: &Node<Svc>, session: &zenoh::Session, r: &EgressRoute) -> Result<Self, String> {
-        let subscriber = port_service(node, &r.service, &r.message.payload)
-            .map_err(err("port service"))?
-            .subscriber_builder()
-            .create()
-            .map_err(dbg("egress subscriber"))?;
-        let listener = event_service(node, &r.event)
-            .map_err(err("port event"))?
-            .listener_builder()
-            .create()
-            .map_err(dbg("egress listener"))?;
-        let publisher = session
-            .declare_publisher(r.key.clone())
-            .encoding(encoding(&r.message))
-            .priority(traffic_class(&r.message))
-            .congestion_control(CongestionControl::Drop)
-            .express(true)
-            .wait()
-            .map_err(err("declaring publisher"))?;
-        // What is already there was published before (or predates the route): skip it.
-        while let Ok(Some(_)) = subscriber.receive() {}
-        Ok(Self {
-            subscriber,
-            listener,
-            publisher,
-            counters: r.counters.clone(),
-        })
-    }
-
-    fn forward(&self) {
-        let _ = self.listener.try_wait(|_| ());
-        while let Ok(Some(s)) = self.subscriber.receive() {
-            let payload = s.payload();
-            let header = keys::encode_header(&to_wire(s.user_header()));
-            match self
-                .publisher
-                .put(payload.to_vec())
-                .attachment(header.to_vec())
-                .wait()
-            {
-                Ok(()) => self.counters.count(payload.len()),
-                Err(e) => {
-                    self.counters.dropped.fetch_add(1, Ordering::Relaxed);
-                    tracing::debug!("publish failed: {e}");
-                }
-            }
-        }
-    }
-}
-
-/// Forwards local samples of the routed outputs to Zenoh as they are sent. Reopens its ports
-/// when the DNM sends a new route set; returns when the DNM drops its sender.
-fn egress_loop(session: &zenoh::Session, control: &Control<EgressRoute>) -> Result<(), String> {
-    let mut wanted: Vec<EgressRoute> = Vec::new();
-    loop {
-        let open: Vec<OpenRoute> = wanted
-            .iter()
-            .filter_map(|r| match OpenRoute::open(&control.node, session, r) {
-                Ok(o) => Some(o),
-                Err(e) => {
-                    tracing::error!(key = %r.key, "cannot publish: {e}");
-                    None
-                }
-            })
-            .collect();
-        // Termination signals are the DNM thread's to take (iceoryx2 hands each to one waiter).
-        let waitset = WaitSetBuilder::new()
-            .signal_handling_mode(SignalHandlingMode::Disabled)
-            .create::<Svc>()
-            .map_err(dbg("egress waitset"))?;
-        let _control_guard = waitset
-            .attach_notification(&control.listener)
-            .map_err(dbg("attach"))?;
-        let mut guards = Vec::new();
-        for o in &open {
-            guards.push(
-                waitset
-                    .attach_notification(&o.listener)
-                    .map_err(dbg("attach"))?,
-            );
-        }
-        // Sets sent before the waitset was attached count too.
-        loop {
-            match control.newest() {
-                Sets::Closed => return Ok(()),
-                Sets::New(set) => {
-                    wanted = set;
-                    break;
-                }
-                Sets::Same => {}
-            }
-            waitset
-                .wait_and_process_once(|_| CallbackProgression::Continue)
-                .map_err(dbg("egress wait"))?;
-            for o in &open {
-                o.forward();
-            }
-        }
-    }
-}
-
 /// The newest netlist the running DNMs of `system` hold, if any answers within `timeout`.
 /// A DNM that (re)starts into a running system continues from it.
 pub(crate) fn newest_netlist_impl(
@@ -1618,22 +786,4 @@ pub(crate) fn newest_netlist_impl(
         }
     }
     best
-}
-
-/// Whether mirror port `service` on `dnm`, made for `slots` subscribers, holds the readers
-/// `netlist` gives it there beside the DNM's own subscribers.
-fn room(service: &str, dnm: &str, netlist: &Netlist, slots: usize) -> Result<(), String> {
-    let (module, port) = service.split_once('/').unwrap_or((service, ""));
-    let readers = netlist.readers(module, port, dnm);
-    let needed = readers + dnm_netlist::DNM_SUBSCRIBERS;
-    if needed <= slots {
-        return Ok(());
-    }
-    Err(format!(
-        "the mirror of remote output `{module}.{port}` on DNM `{dnm}` was made for {slots} \
-         subscribers and this netlist needs {needed} ({readers} readers here and {} of the \
-         DNM's own): remove its readers on `{dnm}` in one apply and add them back in the next, \
-         so that the mirror is made anew",
-        dnm_netlist::DNM_SUBSCRIBERS
-    ))
 }

@@ -15,11 +15,12 @@
 //! The beat also carries the authority's wall clock: each DNM measures its own clock's offset,
 //! reports it, and refuses transactions while it is beyond [`MAX_CLOCK_OFFSET`].
 
+use dnm_proto::clock::now_unix_ns;
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
-use dnm_core::{Command, Commander, Reply, SafeOrder, Snapshot};
+use dnm_core::{Command, Commander, DnmError, Reply, SafeOrder, Snapshot};
 use dnm_proto::LeaseReport;
 use dnm_proto::station::Beat;
 
@@ -43,12 +44,6 @@ const BURST: Duration = Duration::from_millis(50);
 
 /// Clock offsets kept (the largest is the best estimate: a beat's delay only lowers it).
 const OFFSETS: usize = 8;
-
-fn now_unix_ns() -> u64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
-}
 
 /// What the lease knows.
 #[derive(Debug, Default)]
@@ -212,7 +207,7 @@ pub(crate) fn lease_loop(
         drop(l);
         tracing::warn!(dnm, task = %order.task, epoch = ?order.epoch, "making the DNM safe: {}", order.reason);
         let name = dnm.to_string();
-        let reply = Reply::new(move |r: Result<(), String>| {
+        let reply = Reply::new(move |r: Result<(), DnmError>| {
             if let Err(e) = r {
                 tracing::error!(dnm = %name, "could not make the DNM safe: {e}");
             }

@@ -7,20 +7,24 @@
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! # let mut node: dnm_core::Dnm = unimplemented!();
 //! # let session: zenoh::Session = unimplemented!();
-//! # let parse: dnm_zenoh::ParseNetlist = unimplemented!();
+//! # let door: dnm_netlist::NetlistDoor = unimplemented!();
 //! let commander = node.commander()?;
-//! let bridge = dnm_zenoh::Bridge::new(session, "beetle", "rover", node.prefix(), commander, parse)?;
+//! let bridge = dnm_zenoh::Bridge::new(session, "beetle", "rover", node.prefix(), commander, door)?;
 //! node.add_plugin(Box::new(bridge));
 //! # Ok(()) }
 //! ```
 
 mod bridge;
+mod command;
+mod egress;
+mod ingress;
 pub mod lease;
+mod query;
 pub mod remote;
 mod watch;
 mod wire;
 
-pub use bridge::{Bridge, COMMAND_QUEUE, ParseNetlist, QUERY_QUEUE};
+pub use bridge::{Bridge, BridgeStartError, COMMAND_QUEUE, QUERY_QUEUE};
 pub use wire::encoding;
 
 /// The newest netlist the running DNMs of `system` hold, if any answers within `timeout`.

@@ -50,6 +50,22 @@ pub fn command_id() -> String {
     )
 }
 
+/// Why a request reached no DNM, or could not be sent. A DNM's own refusal is an answer (a
+/// [`Response`] that is not `ok`), not an error.
+#[derive(Debug, thiserror::Error)]
+pub enum RequestError {
+    #[error(
+        "no DNM of system `{0}` answered over Zenoh; check the endpoints (--connect) and that it runs"
+    )]
+    NoDnm(String),
+    #[error("transactions go to one DNM at a time, from the system's authority")]
+    Transaction,
+    #[error("Zenoh: {0}")]
+    Zenoh(#[source] zenoh::Error),
+    #[error("encoding the command: {0}")]
+    Encode(#[from] serde_json::Error),
+}
+
 /// Sends `req` to every DNM of `system` and merges their answers. Switches and applies carry
 /// one id and are re-sent to DNMs that did not answer, so each DNM applies them once.
 pub fn request(
@@ -57,7 +73,7 @@ pub fn request(
     system: &str,
     req: &Request,
     timeout: Duration,
-) -> Result<Response, String> {
+) -> Result<Response, RequestError> {
     match req {
         Request::Status => {
             let mut dnms = Vec::new();
@@ -67,7 +83,7 @@ pub fn request(
                 .consolidation(ConsolidationMode::None)
                 .timeout(timeout)
                 .wait()
-                .map_err(|e| e.to_string())?;
+                .map_err(RequestError::Zenoh)?;
             while let Ok(r) = replies.recv() {
                 if let Ok(s) = r.result() {
                     match serde_json::from_slice::<DnmReport>(&s.payload().to_bytes()) {
@@ -77,7 +93,7 @@ pub fn request(
                 }
             }
             if dnms.is_empty() {
-                return Err(no_dnms(system));
+                return Err(RequestError::NoDnm(system.to_string()));
             }
             Ok(merge(vec![Response {
                 ok: true,
@@ -86,8 +102,8 @@ pub fn request(
             }]))
         }
         Request::Netlist => {
-            let state =
-                crate::newest_netlist(session, system, timeout).ok_or_else(|| no_dnms(system))?;
+            let state = crate::newest_netlist(session, system, timeout)
+                .ok_or_else(|| RequestError::NoDnm(system.to_string()))?;
             Ok(Response {
                 ok: true,
                 revision: Some(state.revision),
@@ -97,15 +113,9 @@ pub fn request(
         }
         Request::Switch { .. } | Request::Apply { .. } => command(session, system, req, timeout),
         Request::Prepare { .. } | Request::Decide { .. } | Request::Adopt { .. } => {
-            Err("transactions go to one DNM at a time, from the system's authority".to_string())
+            Err(RequestError::Transaction)
         }
     }
-}
-
-fn no_dnms(system: &str) -> String {
-    format!(
-        "no DNM of system `{system}` answered over Zenoh; check the endpoints (--connect) and that it runs"
-    )
 }
 
 fn command(
@@ -113,17 +123,16 @@ fn command(
     system: &str,
     req: &Request,
     timeout: Duration,
-) -> Result<Response, String> {
+) -> Result<Response, RequestError> {
     let expected = alive_dnms(session, system, timeout);
     if expected.is_empty() {
-        return Err(no_dnms(system));
+        return Err(RequestError::NoDnm(system.to_string()));
     }
     let payload = serde_json::to_vec(&RemoteCommand::new(
         client_name(),
         command_id(),
         req.clone(),
-    ))
-    .map_err(|e| e.to_string())?;
+    ))?;
     let mut answers: std::collections::BTreeMap<String, Response> = Default::default();
     for _ in 0..ATTEMPTS {
         let missing: Vec<&String> = expected
@@ -141,7 +150,7 @@ fn command(
                 .consolidation(ConsolidationMode::None)
                 .timeout(timeout)
                 .wait()
-                .map_err(|e| e.to_string())?;
+                .map_err(RequestError::Zenoh)?;
             while let Ok(r) = replies.recv() {
                 let bytes = match r.result() {
                     Ok(s) => s.payload().to_bytes().into_owned(),

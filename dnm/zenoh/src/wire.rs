@@ -3,19 +3,13 @@
 
 use dnm_module::protocol::PortHeader;
 use dnm_netlist::MessageType;
+use dnm_proto::clock::now_unix_ns as unix_now_ns;
 use dnm_proto::keys::SampleHeader;
 use zenoh::qos::Priority;
 
 /// Zenoh encoding of a port: the message encoding with the schema name as its schema.
 pub fn encoding(message: &MessageType) -> String {
     format!("{};{}", message.encoding, message.schema_name)
-}
-
-/// Wall-clock time now, ns since the Unix epoch.
-fn unix_now_ns() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 /// Unix time minus CLOCK_MONOTONIC, ns, as last measured, and when (monotonic ns).

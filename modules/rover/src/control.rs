@@ -22,17 +22,56 @@ pub struct Segment {
     pub twist: Twist,
 }
 
+/// Why [`parse_script`] failed: a segment that is not `SECONDS:LINEAR,ANGULAR`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ScriptError {
+    /// The segment lacks the `:` or the `,`.
+    Shape { segment: String },
+    /// A number of the segment does not parse.
+    Number {
+        segment: String,
+        source: std::num::ParseFloatError,
+    },
+}
+
+impl std::fmt::Display for ScriptError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (ScriptError::Shape { segment } | ScriptError::Number { segment, .. }) = self;
+        write!(
+            f,
+            "segment `{segment}` is not `SECONDS:LINEAR,ANGULAR` (e.g. `4:0.5,0`)"
+        )
+    }
+}
+
+impl std::error::Error for ScriptError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            ScriptError::Shape { .. } => None,
+            ScriptError::Number { source, .. } => Some(source),
+        }
+    }
+}
+
 /// Parses `"SECONDS:LINEAR,ANGULAR; ..."`, e.g. `"4:0.5,0; 3:0.4,0.3"`.
-pub fn parse_script(text: &str) -> Result<Vec<Segment>, String> {
+pub fn parse_script(text: &str) -> Result<Vec<Segment>, ScriptError> {
     text.split(';')
         .map(str::trim)
         .filter(|s| !s.is_empty())
         .map(|seg| {
-            let fail =
-                || format!("segment `{seg}` is not `SECONDS:LINEAR,ANGULAR` (e.g. `4:0.5,0`)");
-            let (t, v) = seg.split_once(':').ok_or_else(fail)?;
-            let (l, a) = v.split_once(',').ok_or_else(fail)?;
-            let num = |s: &str| s.trim().parse::<f64>().map_err(|_| fail());
+            let shape = || ScriptError::Shape {
+                segment: seg.to_string(),
+            };
+            let (t, v) = seg.split_once(':').ok_or_else(shape)?;
+            let (l, a) = v.split_once(',').ok_or_else(shape)?;
+            let num = |s: &str| {
+                s.trim()
+                    .parse::<f64>()
+                    .map_err(|source| ScriptError::Number {
+                        segment: seg.to_string(),
+                        source,
+                    })
+            };
             Ok(Segment {
                 seconds: num(t)?,
                 twist: Twist {
@@ -88,7 +127,8 @@ impl Module for Joystick {
     fn new(setup: &mut Setup<'_>) -> Result<Self, ModuleError> {
         Ok(Self {
             twist: setup.output("twist")?,
-            script: parse_script(setup.param_str("script")?).map_err(|e| bad("script", e))?,
+            script: parse_script(setup.param_str("script")?)
+                .map_err(|e| bad("script", e.to_string()))?,
             looping: setup.param_bool("loop")?,
             start_ns: 0,
         })
@@ -273,18 +313,52 @@ impl Module for Odometer {
     }
 }
 
+/// Why [`parse_waypoints`] failed: a waypoint that is not `X,Y`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum WaypointsError {
+    /// The waypoint lacks the `,`.
+    Shape { waypoint: String },
+    /// A coordinate of the waypoint does not parse.
+    Number {
+        waypoint: String,
+        source: std::num::ParseFloatError,
+    },
+}
+
+impl std::fmt::Display for WaypointsError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (WaypointsError::Shape { waypoint } | WaypointsError::Number { waypoint, .. }) = self;
+        write!(f, "waypoint `{waypoint}` is not `X,Y` (metres, e.g. `4,2`)")
+    }
+}
+
+impl std::error::Error for WaypointsError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            WaypointsError::Shape { .. } => None,
+            WaypointsError::Number { source, .. } => Some(source),
+        }
+    }
+}
+
 /// Parses `"X,Y; X,Y; ..."`.
-pub fn parse_waypoints(text: &str) -> Result<Vec<(f64, f64)>, String> {
+pub fn parse_waypoints(text: &str) -> Result<Vec<(f64, f64)>, WaypointsError> {
     text.split(';')
         .map(str::trim)
         .filter(|s| !s.is_empty())
         .map(|wp| {
-            let fail = || format!("waypoint `{wp}` is not `X,Y` (metres, e.g. `4,2`)");
-            let (x, y) = wp.split_once(',').ok_or_else(fail)?;
-            Ok((
-                x.trim().parse().map_err(|_| fail())?,
-                y.trim().parse().map_err(|_| fail())?,
-            ))
+            let (x, y) = wp.split_once(',').ok_or_else(|| WaypointsError::Shape {
+                waypoint: wp.to_string(),
+            })?;
+            let num = |s: &str| {
+                s.trim()
+                    .parse::<f64>()
+                    .map_err(|source| WaypointsError::Number {
+                        waypoint: wp.to_string(),
+                        source,
+                    })
+            };
+            Ok((num(x)?, num(y)?))
         })
         .collect()
 }
@@ -336,7 +410,7 @@ impl Module for Autopilot {
             twist: setup.output("twist")?,
             progress: setup.output("progress")?,
             waypoints: parse_waypoints(setup.param_str("waypoints")?)
-                .map_err(|e| bad("waypoints", e))?,
+                .map_err(|e| bad("waypoints", e.to_string()))?,
             next: 0,
             tolerance: setup.param_f64("tolerance")?,
             max_speed: setup.param_f64("max_speed")?,
@@ -569,12 +643,58 @@ mod tests {
         assert!(
             parse_script("2:fast")
                 .unwrap_err()
+                .to_string()
                 .contains("SECONDS:LINEAR,ANGULAR")
         );
-        assert!(parse_waypoints("1,2; x,3").unwrap_err().contains("`x,3`"));
+        assert!(
+            parse_waypoints("1,2; x,3")
+                .unwrap_err()
+                .to_string()
+                .contains("`x,3`")
+        );
         assert_eq!(
             parse_waypoints("1,2;3,4").unwrap(),
             [(1.0, 2.0), (3.0, 4.0)]
+        );
+    }
+
+    #[test]
+    fn parse_errors_name_the_bad_part_and_keep_the_number_error() {
+        use std::error::Error;
+        let shape = parse_script("1:0,0; 2").unwrap_err();
+        assert_eq!(
+            shape,
+            ScriptError::Shape {
+                segment: "2".into()
+            }
+        );
+        assert_eq!(
+            shape.to_string(),
+            "segment `2` is not `SECONDS:LINEAR,ANGULAR` (e.g. `4:0.5,0`)"
+        );
+        assert!(shape.source().is_none());
+        let number = parse_script("1:0,x").unwrap_err();
+        assert!(matches!(&number, ScriptError::Number { segment, .. } if segment == "1:0,x"));
+        assert_eq!(
+            number.to_string(),
+            "segment `1:0,x` is not `SECONDS:LINEAR,ANGULAR` (e.g. `4:0.5,0`)"
+        );
+        assert!(number.source().is_some());
+
+        let shape = parse_waypoints("1,2; 3").unwrap_err();
+        assert_eq!(
+            shape.to_string(),
+            "waypoint `3` is not `X,Y` (metres, e.g. `4,2`)"
+        );
+        assert!(shape.source().is_none());
+        let number = parse_waypoints("1,y").unwrap_err();
+        assert!(matches!(&number, WaypointsError::Number { waypoint, .. } if waypoint == "1,y"));
+        assert!(number.source().is_some());
+        // A module given a bad parameter reports the same text.
+        let err = bad("waypoints", number.to_string());
+        assert_eq!(
+            err.to_string(),
+            "parameter `waypoints`: waypoint `1,y` is not `X,Y` (metres, e.g. `4,2`)"
         );
     }
 

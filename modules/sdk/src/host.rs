@@ -7,8 +7,10 @@ use std::process::ExitCode;
 
 use dnm_netlist::KindSpec;
 
+use crate::author::{Module, ModuleError};
+use crate::offline::make;
+use crate::process::run;
 use crate::protocol::Launch;
-use crate::runtime::{Module, ModuleError, run};
 
 /// A registered kind: its spec and how to run it.
 #[derive(Debug, Clone, Copy)]
@@ -34,7 +36,7 @@ impl Registry {
         self.kinds.push(Registration {
             spec: M::kind,
             run: run::<M>,
-            make: crate::runtime::make::<M>,
+            make: make::<M>,
         });
         self
     }

@@ -29,16 +29,20 @@
 //! }
 //! ```
 
+mod author;
 mod host;
 mod kind;
 pub mod msg;
+mod offline;
+mod process;
 pub mod protocol;
-mod runtime;
+mod services;
 
+pub use author::{BytesInput, BytesOutput, Input, Io, Module, ModuleError, Output, Setup};
 pub use host::{Registration, Registry, host_main};
 pub use kind::Kind;
-pub use runtime::{
-    BytesInput, BytesOutput, Input, Io, Module, ModuleError, Offline, Output, Setup, Stepper,
+pub use offline::{Offline, Stepper};
+pub use services::{
     TaskWatch, event_service, event_service_for, plan_service_factory, port_service,
     port_service_for, status_service_factory,
 };

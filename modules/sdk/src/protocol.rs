@@ -119,11 +119,33 @@ pub fn status_service(module: &str) -> String {
     format!("_dnm/status/{module}")
 }
 
+/// Why [`dnm_config`] failed.
+#[derive(Debug, thiserror::Error)]
+pub enum DnmConfigError {
+    /// The prefix is not a valid iceoryx2 file name.
+    #[error("bad shared-memory prefix `{prefix}`: {source:?}")]
+    Prefix {
+        prefix: String,
+        #[source]
+        source: SemanticStringError,
+    },
+}
+
+/// The message, for callers that report errors as strings.
+impl From<DnmConfigError> for String {
+    fn from(e: DnmConfigError) -> Self {
+        e.to_string()
+    }
+}
+
 /// The iceoryx2 configuration of one DNM's namespace.
-pub fn dnm_config(prefix: &str) -> Result<Config, String> {
+pub fn dnm_config(prefix: &str) -> Result<Config, DnmConfigError> {
     let mut config = Config::default();
-    config.global.prefix = FileName::new(prefix.as_bytes())
-        .map_err(|e| format!("bad shared-memory prefix `{prefix}`: {e:?}"))?;
+    config.global.prefix =
+        FileName::new(prefix.as_bytes()).map_err(|source| DnmConfigError::Prefix {
+            prefix: prefix.to_string(),
+            source,
+        })?;
     Ok(config)
 }
 
@@ -237,4 +259,30 @@ pub fn monotonic_ns() -> u64 {
     // SAFETY: `ts` is a valid, writable timespec and CLOCK_MONOTONIC is always supported.
     unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
     (ts.tv_sec as u64) * 1_000_000_000 + ts.tv_nsec as u64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_dnm_prefix_makes_a_config_and_a_bad_one_says_why() {
+        let config = dnm_config(&dnm_prefix("sys", "main")).unwrap();
+        assert_eq!(config.global.prefix.as_bytes(), b"dnm_sys_main_");
+        let err = dnm_config("a/b").unwrap_err();
+        assert!(matches!(&err, DnmConfigError::Prefix { prefix, .. } if prefix == "a/b"));
+        assert!(std::error::Error::source(&err).is_some());
+        let message = err.to_string();
+        assert!(
+            message.starts_with("bad shared-memory prefix `a/b`: "),
+            "{message}"
+        );
+        assert_eq!(String::from(err), message);
+    }
+
+    #[test]
+    fn a_task_word_splits_into_revision_and_slot() {
+        assert_eq!(split_task_word(task_word(7, 3)), (7, 3));
+        assert_eq!(split_task_word(task_word(1, NO_TASK)), (1, NO_TASK));
+    }
 }

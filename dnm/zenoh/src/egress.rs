@@ -1,0 +1,192 @@
+//! Egress: local outputs that a remote input needs, forwarded from shared memory to Zenoh by
+//! the egress thread, and the room a port's service has for its readers.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use dnm_core::worker::{Control, Sets, dbg, err};
+use dnm_module::protocol::PortHeader;
+use dnm_module::{event_service, port_service};
+use dnm_netlist::{MessageType, Netlist};
+
+use crate::bridge::Svc;
+use crate::wire::{encoding, to_wire, traffic_class};
+use dnm_proto::RouteReport;
+use dnm_proto::keys;
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use zenoh::Wait;
+use zenoh::qos::CongestionControl;
+
+/// Event service that wakes a DNM's egress thread after its set of routes changed.
+pub(crate) const EGRESS_EVENT: &str = "_dnm/egress";
+
+#[derive(Debug, Default)]
+pub(crate) struct Counters {
+    pub(crate) messages: AtomicU64,
+    pub(crate) bytes: AtomicU64,
+    pub(crate) dropped: AtomicU64,
+}
+
+impl Counters {
+    pub(crate) fn count(&self, bytes: usize) {
+        self.messages.fetch_add(1, Ordering::Relaxed);
+        self.bytes.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    pub(crate) fn report(&self, key: &str) -> RouteReport {
+        RouteReport {
+            key: key.to_string(),
+            messages: self.messages.load(Ordering::Relaxed),
+            bytes: self.bytes.load(Ordering::Relaxed),
+            dropped: self.dropped.load(Ordering::Relaxed),
+        }
+    }
+}
+
+/// An output this DNM publishes for other DNMs.
+#[derive(Debug, Clone)]
+pub(crate) struct EgressRoute {
+    pub(crate) service: String,
+    pub(crate) event: String,
+    pub(crate) key: String,
+    pub(crate) message: MessageType,
+    pub(crate) counters: Arc<Counters>,
+}
+
+/// An egress route with its ports open.
+pub(crate) struct OpenRoute {
+    pub(crate) subscriber: Subscriber<Svc, [u8], PortHeader>,
+    pub(crate) listener: Listener<Svc>,
+    pub(crate) publisher: zenoh::pubsub::Publisher<'static>,
+    pub(crate) counters: Arc<Counters>,
+}
+
+impl OpenRoute {
+    fn open(node: &Node<Svc>, session: &zenoh::Session, r: &EgressRoute) -> Result<Self, String> {
+        let subscriber = port_service(node, &r.service, &r.message.payload)
+            .map_err(err("port service"))?
+            .subscriber_builder()
+            .create()
+            .map_err(dbg("egress subscriber"))?;
+        let listener = event_service(node, &r.event)
+            .map_err(err("port event"))?
+            .listener_builder()
+            .create()
+            .map_err(dbg("egress listener"))?;
+        let publisher = session
+            .declare_publisher(r.key.clone())
+            .encoding(encoding(&r.message))
+            .priority(traffic_class(&r.message))
+            .congestion_control(CongestionControl::Drop)
+            .express(true)
+            .wait()
+            .map_err(err("declaring publisher"))?;
+        // What is already there was published before (or predates the route): skip it.
+        while let Ok(Some(_)) = subscriber.receive() {}
+        Ok(Self {
+            subscriber,
+            listener,
+            publisher,
+            counters: r.counters.clone(),
+        })
+    }
+
+    fn forward(&self) {
+        let _ = self.listener.try_wait(|_| ());
+        while let Ok(Some(s)) = self.subscriber.receive() {
+            let payload = s.payload();
+            let header = keys::encode_header(&to_wire(s.user_header()));
+            match self
+                .publisher
+                .put(payload.to_vec())
+                .attachment(header.to_vec())
+                .wait()
+            {
+                Ok(()) => self.counters.count(payload.len()),
+                Err(e) => {
+                    self.counters.dropped.fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!("publish failed: {e}");
+                }
+            }
+        }
+    }
+}
+
+/// Forwards local samples of the routed outputs to Zenoh as they are sent. Reopens its ports
+/// when the DNM sends a new route set; returns when the DNM drops its sender.
+pub(crate) fn egress_loop(
+    session: &zenoh::Session,
+    control: &Control<EgressRoute>,
+) -> Result<(), String> {
+    let mut wanted: Vec<EgressRoute> = Vec::new();
+    loop {
+        let open: Vec<OpenRoute> = wanted
+            .iter()
+            .filter_map(|r| match OpenRoute::open(&control.node, session, r) {
+                Ok(o) => Some(o),
+                Err(e) => {
+                    tracing::error!(key = %r.key, "cannot publish: {e}");
+                    None
+                }
+            })
+            .collect();
+        // Termination signals are the DNM thread's to take (iceoryx2 hands each to one waiter).
+        let waitset = WaitSetBuilder::new()
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<Svc>()
+            .map_err(dbg("egress waitset"))?;
+        let _control_guard = waitset
+            .attach_notification(&control.listener)
+            .map_err(dbg("attach"))?;
+        let mut guards = Vec::new();
+        for o in &open {
+            guards.push(
+                waitset
+                    .attach_notification(&o.listener)
+                    .map_err(dbg("attach"))?,
+            );
+        }
+        // Sets sent before the waitset was attached count too.
+        loop {
+            match control.newest() {
+                Sets::Closed => return Ok(()),
+                Sets::New(set) => {
+                    wanted = set;
+                    break;
+                }
+                Sets::Same => {}
+            }
+            waitset
+                .wait_and_process_once(|_| CallbackProgression::Continue)
+                .map_err(dbg("egress wait"))?;
+            for o in &open {
+                o.forward();
+            }
+        }
+    }
+}
+
+/// Whether mirror port `service` on `dnm`, made for `slots` subscribers, holds the readers
+/// `netlist` gives it there beside the DNM's own subscribers.
+pub(crate) fn room(
+    service: &str,
+    dnm: &str,
+    netlist: &Netlist,
+    slots: usize,
+) -> Result<(), String> {
+    let (module, port) = service.split_once('/').unwrap_or((service, ""));
+    let readers = netlist.readers(module, port, dnm);
+    let needed = readers + dnm_netlist::DNM_SUBSCRIBERS;
+    if needed <= slots {
+        return Ok(());
+    }
+    Err(format!(
+        "the mirror of remote output `{module}.{port}` on DNM `{dnm}` was made for {slots} \
+         subscribers and this netlist needs {needed} ({readers} readers here and {} of the \
+         DNM's own): remove its readers on `{dnm}` in one apply and add them back in the next, \
+         so that the mirror is made anew",
+        dnm_netlist::DNM_SUBSCRIBERS
+    ))
+}
