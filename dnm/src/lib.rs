@@ -270,7 +270,10 @@ mod describe_tests {
         let flood = script("flood", "yes");
         let e = describe_exec(&flood).unwrap_err();
         assert!(
-            matches!(e, DescribeError::Timeout(_) | DescribeError::TooMuchOutput(_)),
+            matches!(
+                e,
+                DescribeError::Timeout(_) | DescribeError::TooMuchOutput(_)
+            ),
             "{e}"
         );
     }

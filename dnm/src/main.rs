@@ -573,14 +573,8 @@ fn replay(
     } else {
         dnm::replay::Pace::Rate(rate)
     };
-    let r = dnm::replay::replay(
-        file,
-        system,
-        only,
-        pace,
-        &dnm::parse_recorded_netlist,
-    )
-    .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+    let r = dnm::replay::replay(file, system, only, pace, &dnm::parse_recorded_netlist)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
     if json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {

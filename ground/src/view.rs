@@ -243,9 +243,7 @@ impl SystemView {
     /// 10 Hz, camera frames at 1 Hz: what a radio link can carry).
     pub fn watch(&self, module: &str, port: &str, since: u64) -> Result<WatchReply, WatchError> {
         let live = self.live();
-        let wiring = live
-            .wiring
-            .ok_or(WatchError::NoWiring)?;
+        let wiring = live.wiring.ok_or(WatchError::NoWiring)?;
         let m = wiring
             .module(module)
             .ok_or_else(|| WatchError::NoModule(module.to_string()))?;
@@ -265,7 +263,11 @@ impl SystemView {
             })?;
         let key = (m.dnm.clone(), module.to_string(), port.to_string());
         let watch = {
-            let mut watches = self.inner.watches.lock().map_err(|_| WatchError::Poisoned)?;
+            let mut watches = self
+                .inner
+                .watches
+                .lock()
+                .map_err(|_| WatchError::Poisoned)?;
             match watches.get(&key) {
                 Some(w) if w.message == p.message => w.clone(),
                 _ => {

@@ -24,7 +24,10 @@ mod tests {
     fn counts_from_the_epoch_and_never_wraps() {
         assert_eq!(unix_ns(UNIX_EPOCH + Duration::from_nanos(42)), 42);
         assert_eq!(unix_ns(UNIX_EPOCH - Duration::from_secs(1)), 0);
-        assert_eq!(unix_ns(UNIX_EPOCH + Duration::from_secs(600 * 365 * 86_400)), u64::MAX);
+        assert_eq!(
+            unix_ns(UNIX_EPOCH + Duration::from_secs(600 * 365 * 86_400)),
+            u64::MAX
+        );
         assert!(now_unix_ns() > 1_700_000_000_000_000_000);
     }
 }
