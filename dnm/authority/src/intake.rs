@@ -1,0 +1,141 @@
+//! Stations: their uplinks taken (who sent what, what the station already knows is final, each
+//! command stored before it is acknowledged) and answered, and the rover's state published for
+//! them.
+
+use crate::*;
+
+pub(crate) fn intake_loop(s: &Shared, rx: &mpsc::Receiver<Query>) {
+    loop {
+        let q = match rx.recv_timeout(Duration::from_millis(200)) {
+            Ok(q) => q,
+            Err(mpsc::RecvTimeoutError::Timeout) if !s.stop.load(Ordering::Relaxed) => continue,
+            Err(_) => return,
+        };
+        let answer = take_uplink(s, &q);
+        let bytes = serde_json::to_vec(&answer).unwrap_or_default();
+        if let Err(e) = q.reply(q.key_expr().clone(), bytes).wait() {
+            tracing::debug!("answering a station: {e}");
+        }
+    }
+}
+
+pub(crate) fn take_uplink(s: &Shared, q: &Query) -> Downlink {
+    let rover = || s.rover.lock().map(|r| r.clone()).unwrap_or_default();
+    let refuse = |e: String| Downlink {
+        at_unix_ns: now_unix_ns(),
+        outcomes: Vec::new(),
+        rover: rover(),
+        error: Some(e),
+    };
+    let Some(payload) = q.payload() else {
+        return refuse(
+            "empty uplink; send JSON {\"station\":\"ground-1\",\"commands\":[...]}".into(),
+        );
+    };
+    let up: Uplink = match serde_json::from_slice(&payload.to_bytes()) {
+        Ok(u) => u,
+        Err(e) => {
+            return refuse(format!(
+                "unreadable uplink ({e}); send JSON {{\"station\":\"ground-1\",\"commands\":[{{\"seq\":1,\"id\":\"…\",\"order\":{{\"cmd\":\"switch\",\"task\":\"auto\"}}}}]}}"
+            ));
+        }
+    };
+    if up.station.is_empty()
+        || up.station.len() > 64
+        || up.station.contains(['\0', '/', '*', '$', '?', '#'])
+    {
+        return refuse(format!(
+            "station name `{}` is not usable: 1 to 64 characters, no `/`, `*`, `$`, `?`, `#`",
+            up.station
+        ));
+    }
+    // A station speaks only for itself: its name is the key's (which the access control binds
+    // to its certificate), the outbox's epoch after a `.`.
+    let keyed = keys::station_of(&s.system, q.key_expr().as_str()).unwrap_or_default();
+    if up.station != keyed && !up.station.starts_with(&format!("{keyed}.")) {
+        tracing::warn!(
+            key = %q.key_expr(),
+            station = %up.station,
+            "uplink refused: a station speaks only for itself"
+        );
+        return refuse(format!(
+            "uplink of station `{}` on the key of station `{keyed}`: a station sends on \
+             {} only",
+            up.station,
+            keys::authority_station(&s.system, "<its own name>")
+        ));
+    }
+    if up.commands.len() > MAX_UPLINK_COMMANDS {
+        return refuse(format!(
+            "{} commands in one uplink: send at most {MAX_UPLINK_COMMANDS} at a time",
+            up.commands.len()
+        ));
+    }
+    match s.store.admits(&up.station) {
+        Ok(true) => {}
+        Ok(false) => {
+            return refuse(format!(
+                "the rover keeps a record of at most {} stations; `{}` is not one of them",
+                store::MAX_STATIONS,
+                up.station
+            ));
+        }
+        Err(e) => return refuse(format!("the rover could not read its store: {e}")),
+    }
+    if let Ok(mut c) = s.contact.lock() {
+        *c = Instant::now();
+    }
+    if !s.heard.swap(true, Ordering::Relaxed) {
+        s.wake();
+    }
+    match s
+        .store
+        .intake(&up.station, &up.commands, up.pending_from, &up.waiting)
+    {
+        Ok(outcomes) => {
+            if outcomes.iter().any(|o| o.fate == Fate::Acknowledged) {
+                s.wake();
+            }
+            Downlink {
+                at_unix_ns: now_unix_ns(),
+                outcomes,
+                rover: rover(),
+                error: None,
+            }
+        }
+        Err(e) => {
+            tracing::error!("taking commands of `{}`: {e}", up.station);
+            refuse(format!("the rover could not store the commands: {e}"))
+        }
+    }
+}
+
+pub(crate) fn publish_rover(s: &Shared, core: &Core) {
+    let scheduled = s
+        .store
+        .timers()
+        .unwrap_or_default()
+        .into_iter()
+        .map(|t| (t.station, t.seq, t.at_unix_ns))
+        .collect();
+    let events = core
+        .state
+        .events
+        .iter()
+        .rev()
+        .take(STATE_EVENTS)
+        .rev()
+        .cloned()
+        .collect();
+    if let Ok(mut r) = s.rover.lock() {
+        *r = RoverState {
+            authority: s.name.clone(),
+            revision: core.state.revision,
+            task: core.state.task.clone(),
+            events,
+            scheduled,
+            last_safing: core.state.last_safing.clone(),
+            safe: core.state.safe,
+        };
+    }
+}
