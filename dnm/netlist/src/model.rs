@@ -1,16 +1,14 @@
-//! Reading a netlist file into a validated [`Netlist`]; the checks themselves are in
-//! `validate.rs`.
+//! The netlist model: a validated [`Netlist`], its DNMs, modules, tasks and links. Reading
+//! and validating a file (`Netlist::load`, `Netlist::parse`) is in `validate.rs`.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fmt;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use petgraph::stable_graph::{NodeIndex, StableDiGraph};
 use serde::{Deserialize, Serialize};
 
-use crate::error::{NetlistError, Reporter};
 use crate::spec::{Catalog, KindSpec, ParamValue};
-use crate::validate::{RawNetlist, validate};
 
 /// The DNM that hosts modules which name none, when the netlist declares no DNM at all.
 pub const DEFAULT_DNM: &str = "local";
@@ -176,53 +174,6 @@ pub struct Netlist {
 }
 
 impl Netlist {
-    /// Reads and validates a netlist file.
-    pub fn load(
-        path: impl AsRef<Path>,
-        catalog: &Catalog,
-        describe: &mut crate::error::Describe<'_>,
-    ) -> Result<Self, NetlistError> {
-        let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|e| NetlistError {
-            file: path.to_path_buf(),
-            diagnostics: vec![crate::Diagnostic {
-                field: "file".into(),
-                message: format!("cannot read: {e}"),
-                help: Some("check the path".into()),
-                location: None,
-            }],
-        })?;
-        Self::parse(path, &text, catalog, describe)
-    }
-
-    /// Validates netlist text. `file` names it in errors; relative `exec` paths of declared
-    /// kinds resolve against its folder. `describe` asks an executable for its kind.
-    pub fn parse(
-        file: &Path,
-        text: &str,
-        catalog: &Catalog,
-        describe: &mut crate::error::Describe<'_>,
-    ) -> Result<Self, NetlistError> {
-        let mut r = Reporter::new(file, text);
-        let raw: RawNetlist = match toml::from_str(text) {
-            Ok(raw) => raw,
-            Err(e) => {
-                let message = e.message().to_string();
-                let help = if message.contains("missing field `system`") {
-                    Some("add a `[system]` table with `name = \"...\"`".to_string())
-                } else {
-                    Some("fix the TOML syntax or field name at this position".to_string())
-                };
-                r.error(e.span(), "toml", message, help);
-                r.finish()?;
-                unreachable!("finish reports the error above")
-            }
-        };
-        let netlist = validate(file, text, raw, catalog, describe, &mut r);
-        r.finish()?;
-        Ok(netlist)
-    }
-
     /// The module graph (nodes: modules; edges: distinct links across all tasks).
     pub fn graph(&self) -> &ModuleGraph {
         &self.graph

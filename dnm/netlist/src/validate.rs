@@ -10,12 +10,61 @@ use petgraph::stable_graph::NodeIndex;
 use serde::Deserialize;
 use toml::Spanned;
 
-use crate::error::{Reporter, suggest};
+use crate::error::{NetlistError, Reporter, suggest};
 use crate::model::{
     Connection, DEFAULT_DNM, DnmDecl, Link, LinkLoss, MAX_HUNG_AFTER_MS, MAX_LINK_LOSS_MS,
     MAX_NAME_LEN, MAX_RATE_HZ, MIN_HUNG_AFTER_MS, MIN_LINK_LOSS_MS, MIN_RATE_HZ, Module,
     ModuleGraph, ModuleNode, Netlist, PortRef, RestartMode, RestartPolicy, Task, parse_duration_ms,
 };
+
+impl Netlist {
+    /// Reads and validates a netlist file.
+    pub fn load(
+        path: impl AsRef<Path>,
+        catalog: &Catalog,
+        describe: &mut crate::error::Describe<'_>,
+    ) -> Result<Self, NetlistError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path).map_err(|e| NetlistError {
+            file: path.to_path_buf(),
+            diagnostics: vec![crate::Diagnostic {
+                field: "file".into(),
+                message: format!("cannot read: {e}"),
+                help: Some("check the path".into()),
+                location: None,
+            }],
+        })?;
+        Self::parse(path, &text, catalog, describe)
+    }
+
+    /// Validates netlist text. `file` names it in errors; relative `exec` paths of declared
+    /// kinds resolve against its folder. `describe` asks an executable for its kind.
+    pub fn parse(
+        file: &Path,
+        text: &str,
+        catalog: &Catalog,
+        describe: &mut crate::error::Describe<'_>,
+    ) -> Result<Self, NetlistError> {
+        let mut r = Reporter::new(file, text);
+        let raw: RawNetlist = match toml::from_str(text) {
+            Ok(raw) => raw,
+            Err(e) => {
+                let message = e.message().to_string();
+                let help = if message.contains("missing field `system`") {
+                    Some("add a `[system]` table with `name = \"...\"`".to_string())
+                } else {
+                    Some("fix the TOML syntax or field name at this position".to_string())
+                };
+                r.error(e.span(), "toml", message, help);
+                r.finish()?;
+                unreachable!("finish reports the error above")
+            }
+        };
+        let netlist = validate(file, text, raw, catalog, describe, &mut r);
+        r.finish()?;
+        Ok(netlist)
+    }
+}
 use crate::spec::{Catalog, KindSource, KindSpec, ParamValue};
 
 // ---------------------------------------------------------------------------------------------

@@ -7,34 +7,8 @@ use std::sync::Arc;
 
 use dnm_netlist::{MessageType, Payload};
 
+pub use crate::standard::DecodeError;
 use crate::standard::{Cdr, StandardMapping};
-
-/// Why a recorded message could not be read back into its port's bytes (the recording is
-/// damaged, or was not written by this recorder).
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum DecodeError {
-    #[error("message shorter than its CDR header")]
-    ShortHeader,
-    #[error("CDR byte sequence runs past the message")]
-    SequencePastEnd,
-    #[error("not little-endian CDR")]
-    NotLittleEndian,
-    #[error("the image message ends early")]
-    ImageEndsEarly,
-    /// `encoding` as the message spells it (with its terminating NUL).
-    #[error("image encoding {encoding} is not rgb8")]
-    NotRgb8 { encoding: String },
-    #[error("big-endian CDR is not read")]
-    BigEndian,
-    #[error("not CDR (no little-endian encapsulation header)")]
-    NotCdr,
-    #[error("the message ends early")]
-    EndsEarly,
-    #[error("a list longer than the message")]
-    ListTooLong,
-    #[error("expected {expected} element(s) in the list")]
-    ListCount { expected: u32 },
-}
 
 /// Why a recorded message did not become a sample of its port.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

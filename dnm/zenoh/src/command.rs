@@ -10,8 +10,8 @@ use std::time::Duration;
 use dnm_core::{Command, CommandKey, Commander, Decision, DnmError, Reply, Txn};
 use dnm_netlist::NetlistDoor;
 
-use crate::bridge::{APPLIES_IN_FLIGHT, Shared};
 use crate::query::admit;
+use crate::shared::{APPLIES_IN_FLIGHT, Shared};
 use dnm_proto::keys;
 use dnm_proto::{RemoteCommand, Request, Response};
 use zenoh::Wait;

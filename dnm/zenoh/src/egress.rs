@@ -9,7 +9,7 @@ use dnm_module::protocol::PortHeader;
 use dnm_module::{event_service, port_service};
 use dnm_netlist::{MessageType, Netlist};
 
-use crate::bridge::Svc;
+use crate::shared::Svc;
 use crate::wire::{encoding, to_wire, traffic_class};
 use dnm_proto::RouteReport;
 use dnm_proto::keys;

@@ -7,8 +7,8 @@ use std::sync::atomic::Ordering;
 use dnm_module::protocol::PortHeader;
 use dnm_netlist::{MessageType, Netlist};
 
-use crate::bridge::TsSvc;
 use crate::egress::Counters;
+use crate::shared::TsSvc;
 use crate::wire::from_wire;
 use dnm_proto::keys;
 use iceoryx2::port::notifier::Notifier;

@@ -21,10 +21,12 @@ mod ingress;
 pub mod lease;
 mod query;
 pub mod remote;
+mod shared;
 mod watch;
 mod wire;
 
-pub use bridge::{Bridge, BridgeStartError, COMMAND_QUEUE, QUERY_QUEUE};
+pub use bridge::{Bridge, BridgeStartError};
+pub use shared::{COMMAND_QUEUE, QUERY_QUEUE};
 pub use wire::encoding;
 
 /// The newest netlist the running DNMs of `system` hold, if any answers within `timeout`.

@@ -14,7 +14,7 @@ use dnm_module::port_service;
 use dnm_module::protocol::{PortHeader, dnm_config};
 use dnm_netlist::MessageType;
 
-use crate::bridge::{Shared, Svc};
+use crate::shared::{Shared, Svc};
 use crate::wire::{encoding, to_wire};
 use dnm_proto::keys;
 use iceoryx2::port::subscriber::Subscriber;

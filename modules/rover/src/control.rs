@@ -23,34 +23,18 @@ pub struct Segment {
 }
 
 /// Why [`parse_script`] failed: a segment that is not `SECONDS:LINEAR,ANGULAR`.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ScriptError {
     /// The segment lacks the `:` or the `,`.
+    #[error("segment `{segment}` is not `SECONDS:LINEAR,ANGULAR` (e.g. `4:0.5,0`)")]
     Shape { segment: String },
     /// A number of the segment does not parse.
+    #[error("segment `{segment}` is not `SECONDS:LINEAR,ANGULAR` (e.g. `4:0.5,0`)")]
     Number {
         segment: String,
+        #[source]
         source: std::num::ParseFloatError,
     },
-}
-
-impl std::fmt::Display for ScriptError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let (ScriptError::Shape { segment } | ScriptError::Number { segment, .. }) = self;
-        write!(
-            f,
-            "segment `{segment}` is not `SECONDS:LINEAR,ANGULAR` (e.g. `4:0.5,0`)"
-        )
-    }
-}
-
-impl std::error::Error for ScriptError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            ScriptError::Shape { .. } => None,
-            ScriptError::Number { source, .. } => Some(source),
-        }
-    }
 }
 
 /// Parses `"SECONDS:LINEAR,ANGULAR; ..."`, e.g. `"4:0.5,0; 3:0.4,0.3"`.
@@ -314,31 +298,18 @@ impl Module for Odometer {
 }
 
 /// Why [`parse_waypoints`] failed: a waypoint that is not `X,Y`.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum WaypointsError {
     /// The waypoint lacks the `,`.
+    #[error("waypoint `{waypoint}` is not `X,Y` (metres, e.g. `4,2`)")]
     Shape { waypoint: String },
     /// A coordinate of the waypoint does not parse.
+    #[error("waypoint `{waypoint}` is not `X,Y` (metres, e.g. `4,2`)")]
     Number {
         waypoint: String,
+        #[source]
         source: std::num::ParseFloatError,
     },
-}
-
-impl std::fmt::Display for WaypointsError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let (WaypointsError::Shape { waypoint } | WaypointsError::Number { waypoint, .. }) = self;
-        write!(f, "waypoint `{waypoint}` is not `X,Y` (metres, e.g. `4,2`)")
-    }
-}
-
-impl std::error::Error for WaypointsError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            WaypointsError::Shape { .. } => None,
-            WaypointsError::Number { source, .. } => Some(source),
-        }
-    }
 }
 
 /// Parses `"X,Y; X,Y; ..."`.

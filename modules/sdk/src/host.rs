@@ -7,10 +7,10 @@ use std::process::ExitCode;
 
 use dnm_netlist::KindSpec;
 
-use crate::author::{Module, ModuleError};
-use crate::offline::make;
-use crate::process::run;
 use crate::protocol::Launch;
+use crate::runtime::author::{Module, ModuleError};
+use crate::runtime::offline::make;
+use crate::runtime::process::run;
 
 /// A registered kind: its spec and how to run it.
 #[derive(Debug, Clone, Copy)]

@@ -29,20 +29,17 @@
 //! }
 //! ```
 
-mod author;
 mod host;
 mod kind;
 pub mod msg;
-mod offline;
-mod process;
 pub mod protocol;
-mod services;
+mod runtime;
 
-pub use author::{BytesInput, BytesOutput, Input, Io, Module, ModuleError, Output, Setup};
 pub use host::{Registration, Registry, host_main};
 pub use kind::Kind;
-pub use offline::{Offline, Stepper};
-pub use services::{
+pub use runtime::author::{BytesInput, BytesOutput, Input, Io, Module, ModuleError, Output, Setup};
+pub use runtime::offline::{Offline, Stepper};
+pub use runtime::services::{
     TaskWatch, event_service, event_service_for, plan_service_factory, port_service,
     port_service_for, status_service_factory,
 };

@@ -5,7 +5,7 @@ use dnm_netlist::Payload;
 use iceoryx2::prelude::*;
 use iceoryx2::service::port_factory::blackboard::PortFactory as BlackboardFactory;
 
-use crate::author::{ModuleError, ipc};
+use super::author::{ModuleError, ipc};
 use crate::protocol::*;
 
 pub(crate) type Svc = ipc::Service;

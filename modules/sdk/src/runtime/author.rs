@@ -7,9 +7,9 @@ use std::marker::PhantomData;
 
 use dnm_netlist::{KindSpec, ParamValue, Payload};
 
+use super::offline::Offline;
+use super::process::Shm;
 use crate::msg::Message;
-use crate::offline::Offline;
-use crate::process::Shm;
 use crate::protocol::{PortHeader, split_task_word};
 
 /// An error inside a module or its connection to the DNM.

@@ -2,7 +2,7 @@
 
 use dnm_netlist::KindSpec;
 
-use crate::author::{Io, Module, ModuleError, Ports, Setup};
+use super::author::{Io, Module, ModuleError, Ports, Setup};
 use crate::protocol::PortHeader;
 
 /// A module stepped without a DNM or shared memory: its inputs handed in, what it writes

@@ -13,11 +13,11 @@ use iceoryx2::sample::Sample;
 use iceoryx2::sample_mut::SampleMut;
 use iceoryx2::waitset::{WaitSet, WaitSetGuard, WaitSetRunResult};
 
-use crate::author::{Io, Module, ModuleError, Ports, Setup, ipc};
-use crate::protocol::*;
-use crate::services::{
+use super::author::{Io, Module, ModuleError, Ports, Setup, ipc};
+use super::services::{
     Svc, TaskWatch, event_service, plan_service_factory, port_service, status_service_factory,
 };
+use crate::protocol::*;
 
 type PortPublisher = Publisher<Svc, [u8], PortHeader>;
 type PortSubscriber = Subscriber<Svc, [u8], PortHeader>;
