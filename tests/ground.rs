@@ -301,6 +301,8 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
     let before = running(&session);
     let (station, api) = rig.station();
 
+    // The netlists among them come in through the authority's `NetlistDoor::accept`
+    // (`dnm/netlist/src/door.rs`), as every netlist from outside does.
     let bad = [
         (
             Order::Switch {

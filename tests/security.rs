@@ -430,7 +430,9 @@ fn only_the_operator_commands_a_secured_system() {
     let computer_a = s.session("computer-a");
     assert!(forged_reaches_relay(&s, &computer_a, &operator));
 
-    // An apply from the operator naming a program as a module kind runs nothing.
+    // An apply from the operator naming a program as a module kind runs nothing: it comes in
+    // through `NetlistDoor::accept` (`dnm/netlist/src/door.rs`), the one way a netlist from
+    // outside enters a DNM or the authority.
     let text = netlist_template().replace("SYSTEM", &s.system);
     let evil = format!(
         "{text}\n[[module]]\nname = \"x\"\nkind = \"evil\"\ndnm = \"a\"\n\n[kind.evil]\nexec = \"/usr/bin/touch\"\n"

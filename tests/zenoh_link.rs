@@ -489,7 +489,8 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
     let new_revision = rev(&r[0].1);
 
     // An apply from the network that names a program as a module kind runs nothing: only
-    // executables installed in the module folder may be named, and none is set here.
+    // executables installed in the module folder may be named, and none is set here. It comes
+    // in through `NetlistDoor::accept` (`dnm/netlist/src/door.rs`).
     let evil = format!(
         "{text}\n[[module]]\nname = \"x\"\nkind = \"evil\"\ndnm = \"a\"\n\n[kind.evil]\nexec = \"/usr/bin/touch\"\n"
     );
