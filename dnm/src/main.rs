@@ -342,7 +342,7 @@ fn main() -> ExitCode {
     match run(cli) {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", dnm_router::error_report(&e));
             ExitCode::FAILURE
         }
     }

@@ -82,7 +82,7 @@ fn main() -> ExitCode {
     match main_inner() {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", dnm_router::error_report(&e));
             ExitCode::FAILURE
         }
     }

@@ -149,6 +149,20 @@ fn wait_for(set: &libc::sigset_t) {
     unsafe { libc::sigwait(set, &mut sig) };
 }
 
+/// An error and its causes on one line, as the command-line programs print it: each cause
+/// added unless the message before it already says it (many errors quote their cause).
+pub fn error_report(e: &anyhow::Error) -> String {
+    let mut out = e.to_string();
+    for cause in e.chain().skip(1) {
+        let c = cause.to_string();
+        if !out.contains(&c) {
+            out.push_str(": ");
+            out.push_str(&c);
+        }
+    }
+    out
+}
+
 /// Logging for processes that admit others over Zenoh: the usual log on standard error, and
 /// every access Zenoh's access control refuses, written as `access refused: …` (at most
 /// [`REFUSALS_PER_WINDOW`] lines per ten seconds, then a count of those left out).
@@ -268,4 +282,22 @@ fn refused(m: &str) -> bool {
     }
     CACHING.with(|c| *c.borrow_mut() = None);
     m.contains("is unauthorized")
+}
+
+#[cfg(test)]
+mod report_tests {
+    use super::error_report;
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("opening the store: {0}")]
+    struct Quoting(#[source] std::io::Error);
+
+    #[test]
+    fn a_cause_the_message_already_quotes_is_said_once() {
+        let io = || std::io::Error::other("disk full");
+        let e = anyhow::Error::new(Quoting(io())).context("starting");
+        assert_eq!(error_report(&e), "starting: opening the store: disk full");
+        let e = anyhow::Error::new(io()).context("starting");
+        assert_eq!(error_report(&e), "starting: disk full");
+    }
 }

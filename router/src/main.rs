@@ -41,7 +41,7 @@ fn main() -> ExitCode {
     match run_router(&options) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", dnm_router::error_report(&e));
             ExitCode::FAILURE
         }
     }

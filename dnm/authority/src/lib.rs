@@ -70,14 +70,44 @@ use store::{DecisionRecord, Finish, State, Store, Timer};
 use transaction::*;
 use worker::*;
 
+/// Why the authority could not start or go on. Nothing it decided is lost: its store keeps it.
 #[derive(Debug, thiserror::Error)]
 pub enum AuthorityError {
+    /// The store (redb) failed.
     #[error("the authority's store: {0}")]
-    Store(String),
+    Store(#[source] redb::Error),
+    #[error("the authority's store at {path}: {source}")]
+    StoreOpen {
+        path: PathBuf,
+        #[source]
+        source: redb::Error,
+    },
+    #[error("the authority's store: creating its folder {path}: {source}")]
+    StoreFolder {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A record in the store does not read back (written by another version, or damaged).
+    #[error("the authority's store holds a record that does not read back: {0}")]
+    Record(#[source] serde_json::Error),
+    /// The store's tables disagree with each other.
+    #[error("the authority's store: {0}")]
+    Inconsistent(String),
+    #[error("the authority's state lock is poisoned")]
+    Poisoned,
     #[error("Zenoh: {0}")]
-    Zenoh(String),
-    #[error("{0}")]
-    Netlist(String),
+    Zenoh(#[source] zenoh::Error),
+    #[error("spawning {name}: {source}")]
+    Thread {
+        name: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the netlist names no authority DNM")]
+    NoAuthority,
+    #[error("the decided netlist no longer validates: {}", .0.in_transaction())]
+    DecidedNetlist(#[source] AcceptError),
 }
 
 /// How the authority works.
@@ -228,7 +258,7 @@ impl Authority {
     ) -> Result<Self, AuthorityError> {
         let name = netlist
             .authority()
-            .ok_or_else(|| AuthorityError::Netlist("the netlist names no authority DNM".into()))?
+            .ok_or(AuthorityError::NoAuthority)?
             .to_string();
         let system = netlist.system.clone();
         let store = Store::open(&options.db)?;
@@ -285,9 +315,9 @@ impl Authority {
                 s
             }
         };
-        let current = door.accept(&state.file, &state.text).map_err(|e| {
-            AuthorityError::Netlist(format!("the decided netlist no longer validates: {e}"))
-        })?;
+        let current = door
+            .accept(&state.file, &state.text)
+            .map_err(AuthorityError::DecidedNetlist)?;
         let digest = format!("{:016x}", current.digest());
         let contact = last_contact(&store);
         let shared = Arc::new(Shared {
@@ -329,12 +359,15 @@ impl Authority {
                 }
             })
             .wait()
-            .map_err(|e| AuthorityError::Zenoh(e.to_string()))?;
+            .map_err(AuthorityError::Zenoh)?;
         let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
             std::thread::Builder::new()
                 .name(name.into())
                 .spawn(f)
-                .map_err(|e| AuthorityError::Zenoh(format!("spawning {name}: {e}")))
+                .map_err(|source| AuthorityError::Thread {
+                    name: name.to_string(),
+                    source,
+                })
         };
         let publisher = safing::beat_publisher(&session, &system)?;
         let threads = vec![

@@ -243,5 +243,5 @@ pub(crate) fn beat_publisher(
         .congestion_control(CongestionControl::Drop)
         .express(true)
         .wait()
-        .map_err(|e| AuthorityError::Zenoh(e.to_string()))
+        .map_err(AuthorityError::Zenoh)
 }

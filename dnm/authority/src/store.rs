@@ -56,8 +56,14 @@ fn split(key: &str) -> Option<(String, u64)> {
     Some((s.to_string(), n.parse().ok()?))
 }
 
-fn db<E: std::fmt::Display>(e: E) -> AuthorityError {
-    AuthorityError::Store(e.to_string())
+/// A failure of the store's database.
+fn db<E: Into<redb::Error>>(e: E) -> AuthorityError {
+    AuthorityError::Store(e.into())
+}
+
+/// A record that does not encode or read back.
+fn rec(e: serde_json::Error) -> AuthorityError {
+    AuthorityError::Record(e)
 }
 
 /// One decision, as the DNMs are told it.
@@ -312,7 +318,7 @@ impl<'t> Taking<'t> {
 
     /// The next command: into the inbox in arrival order, or refused at once beyond a bound.
     fn take(&mut self, c: &Sent) -> Result<(), AuthorityError> {
-        let bytes = serde_json::to_vec(c).map_err(db)?;
+        let bytes = serde_json::to_vec(c).map_err(rec)?;
         let k = key(self.station, c.seq);
         self.taken.received = c.seq;
         let refusal = if bytes.len() > MAX_COMMAND_BYTES {
@@ -331,7 +337,7 @@ impl<'t> Taking<'t> {
             None
         };
         if let Some(reason) = refusal {
-            let fate = serde_json::to_vec(&(&c.id, Fate::Refused { reason })).map_err(db)?;
+            let fate = serde_json::to_vec(&(&c.id, Fate::Refused { reason })).map_err(rec)?;
             self.fates.insert(k.as_str(), fate.as_slice()).map_err(db)?;
             return Ok(());
         }
@@ -351,11 +357,11 @@ impl<'t> Taking<'t> {
     fn close(self, tx: &redb::WriteTransaction) -> Result<Taken, AuthorityError> {
         let Self { station, taken, .. } = self;
         let mut meta = tx.open_table(META).map_err(db)?;
-        let bytes = serde_json::to_vec(&taken.received).map_err(db)?;
+        let bytes = serde_json::to_vec(&taken.received).map_err(rec)?;
         meta.insert(format!("recv\0{station}").as_str(), bytes.as_slice())
             .map_err(db)?;
         let now = dnm_proto::clock::now_unix_ns();
-        let bytes = serde_json::to_vec(&now).map_err(db)?;
+        let bytes = serde_json::to_vec(&now).map_err(rec)?;
         meta.insert("contact", bytes.as_slice()).map_err(db)?;
         Ok(taken)
     }
@@ -369,11 +375,15 @@ pub(crate) struct Store {
 impl Store {
     pub(crate) fn open(path: &Path) -> Result<Self, AuthorityError> {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir)
-                .map_err(|e| AuthorityError::Store(format!("creating {}: {e}", dir.display())))?;
+            std::fs::create_dir_all(dir).map_err(|source| AuthorityError::StoreFolder {
+                path: dir.to_path_buf(),
+                source,
+            })?;
         }
-        let database = Database::create(path)
-            .map_err(|e| AuthorityError::Store(format!("{}: {e}", path.display())))?;
+        let database = Database::create(path).map_err(|e| AuthorityError::StoreOpen {
+            path: path.to_path_buf(),
+            source: e.into(),
+        })?;
         let tx = database.begin_write().map_err(db)?;
         for t in [META, INBOX, FATES, TIMERS] {
             tx.open_table(t).map_err(db)?;
@@ -391,7 +401,7 @@ impl Store {
         let Some(v) = t.get(name).map_err(db)? else {
             return Ok(None);
         };
-        serde_json::from_slice(v.value()).map(Some).map_err(db)
+        serde_json::from_slice(v.value()).map(Some).map_err(rec)
     }
 
     pub(crate) fn state(&self) -> Result<Option<State>, AuthorityError> {
@@ -521,10 +531,10 @@ impl Store {
         for seq in seqs {
             let k = key(station, seq);
             if let Some(v) = fates.get(k.as_str()).map_err(db)? {
-                let (id, fate): (String, Fate) = serde_json::from_slice(v.value()).map_err(db)?;
+                let (id, fate): (String, Fate) = serde_json::from_slice(v.value()).map_err(rec)?;
                 out.push(Outcome { seq, id, fate });
             } else if let Some(v) = inbox.get(k.as_str()).map_err(db)? {
-                let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
+                let sent: Sent = serde_json::from_slice(v.value()).map_err(rec)?;
                 out.push(Outcome {
                     seq,
                     id: sent.id,
@@ -563,7 +573,7 @@ impl Store {
         let Some(v) = fates.get(key(station, seq).as_str()).map_err(db)? else {
             return Ok(None);
         };
-        let (_, fate): (String, Fate) = serde_json::from_slice(v.value()).map_err(db)?;
+        let (_, fate): (String, Fate) = serde_json::from_slice(v.value()).map_err(rec)?;
         Ok(Some(fate))
     }
 
@@ -591,14 +601,14 @@ impl Store {
             return Ok(None);
         };
         let Some(v) = inbox.get(k.as_str()).map_err(db)? else {
-            return Err(AuthorityError::Store(format!(
+            return Err(AuthorityError::Inconsistent(format!(
                 "inbox key {k:?} in the arrival order but not in the inbox"
             )));
         };
         let Some((station, _)) = split(&k) else {
-            return Err(AuthorityError::Store(format!("bad inbox key {k:?}")));
+            return Err(AuthorityError::Inconsistent(format!("bad inbox key {k:?}")));
         };
-        let sent: Sent = serde_json::from_slice(v.value()).map_err(db)?;
+        let sent: Sent = serde_json::from_slice(v.value()).map_err(rec)?;
         Ok(Some((station, sent)))
     }
 
@@ -609,7 +619,7 @@ impl Store {
         let Some(v) = t.get(txn).map_err(db)? else {
             return Ok(None);
         };
-        serde_json::from_slice(v.value()).map(Some).map_err(db)
+        serde_json::from_slice(v.value()).map(Some).map_err(rec)
     }
 
     /// (station, seq) of every time-tagged switch a cancel in the inbox targets.
@@ -639,7 +649,7 @@ impl Store {
         let mut out = Vec::new();
         for row in t.iter().map_err(db)? {
             let (_, v) = row.map_err(db)?;
-            out.push(serde_json::from_slice(v.value()).map_err(db)?);
+            out.push(serde_json::from_slice(v.value()).map_err(rec)?);
         }
         Ok(out)
     }
@@ -650,7 +660,7 @@ impl Store {
         let Some(v) = t.get(key(station, seq).as_str()).map_err(db)? else {
             return Ok(None);
         };
-        serde_json::from_slice(v.value()).map(Some).map_err(db)
+        serde_json::from_slice(v.value()).map(Some).map_err(rec)
     }
 
     /// Writes everything `f` names in one durable transaction.
@@ -659,7 +669,7 @@ impl Store {
         {
             let mut fates = tx.open_table(FATES).map_err(db)?;
             for (station, seq, id, fate) in &f.fates {
-                let bytes = serde_json::to_vec(&(id, fate)).map_err(db)?;
+                let bytes = serde_json::to_vec(&(id, fate)).map_err(rec)?;
                 fates
                     .insert(key(station, *seq).as_str(), bytes.as_slice())
                     .map_err(db)?;
@@ -679,7 +689,7 @@ impl Store {
             }
             let mut timers = tx.open_table(TIMERS).map_err(db)?;
             if let Some(t) = &f.timer_add {
-                let bytes = serde_json::to_vec(t).map_err(db)?;
+                let bytes = serde_json::to_vec(t).map_err(rec)?;
                 timers
                     .insert(key(&t.station, t.seq).as_str(), bytes.as_slice())
                     .map_err(db)?;
@@ -692,7 +702,7 @@ impl Store {
             }
             if let Some(d) = f.decision {
                 let mut t = tx.open_table(DECISIONS).map_err(db)?;
-                let bytes = serde_json::to_vec(d).map_err(db)?;
+                let bytes = serde_json::to_vec(d).map_err(rec)?;
                 t.insert(d.txn, bytes.as_slice()).map_err(db)?;
                 if ReadableTableMetadata::len(&t).map_err(db)? > DECISIONS_STORED {
                     t.pop_first().map_err(db)?;
@@ -700,7 +710,7 @@ impl Store {
             }
             if let Some(state) = f.state {
                 let mut meta = tx.open_table(META).map_err(db)?;
-                let bytes = serde_json::to_vec(state).map_err(db)?;
+                let bytes = serde_json::to_vec(state).map_err(rec)?;
                 meta.insert("state", bytes.as_slice()).map_err(db)?;
             }
         }

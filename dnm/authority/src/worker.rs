@@ -133,11 +133,7 @@ pub(crate) fn work_once(
     s: &Shared,
     gate: &mut Option<(String, Instant)>,
 ) -> Result<bool, AuthorityError> {
-    let lock = || {
-        s.core
-            .lock()
-            .map_err(|_| AuthorityError::Store("the authority's state lock is poisoned".into()))
-    };
+    let lock = || s.core.lock().map_err(|_| AuthorityError::Poisoned);
     let (job, snapshot) = {
         let core = lock()?;
         let Some(job) = next_job(s, &core)? else {

@@ -57,7 +57,7 @@ pub enum DnmError {
         used_for: &'static str,
     },
     /// A transaction is held until its decision: nothing else is prepared or adopted meanwhile.
-    #[error("DNM `{dnm}` holds transaction {txn} {until}")]
+    #[error("DNM `{dnm}` holds transaction {txn}{until}")]
     Holding {
         dnm: String,
         txn: u64,

@@ -79,7 +79,7 @@ impl Dnm {
             return reply.send(Err(DnmError::Holding {
                 dnm: self.name.clone(),
                 txn: other,
-                until: "until its decision",
+                until: " until its decision",
             }));
         }
         if self.stopping_all {

@@ -33,6 +33,19 @@ pub enum AcceptError {
     OtherSystem { netlist: String, here: String },
 }
 
+impl AcceptError {
+    /// The refusal in a transaction's words (no "nothing changed": the transaction says what
+    /// happens to it).
+    pub fn in_transaction(&self) -> String {
+        match self {
+            AcceptError::Invalid(e) => format!("netlist refused:\n{e}"),
+            AcceptError::OtherSystem { netlist, here } => {
+                format!("netlist is for system `{netlist}`, this is `{here}`")
+            }
+        }
+    }
+}
+
 /// Takes netlists from outside for one system (see the module documentation).
 #[derive(Clone)]
 pub struct NetlistDoor {

@@ -297,7 +297,7 @@ impl Commands<'_> {
         }) {
             None => None,
             Some(Ok(n)) => Some(Box::new(n)),
-            Some(Err(e)) => return self.finish(query, &Response::error(e.to_string())),
+            Some(Err(e)) => return self.finish(query, &Response::error(e.in_transaction())),
         };
         let dnm_name = dnm.to_string();
         let (reply, slot) = answer_slot(
@@ -357,7 +357,7 @@ impl Commands<'_> {
     fn adopt(&self, query: Query, revision: u64, task: Option<String>, file: &str, text: &str) {
         let netlist = match self.door.accept(file, text) {
             Ok(n) => n,
-            Err(e) => return self.finish(query, &Response::error(e.to_string())),
+            Err(e) => return self.finish(query, &Response::error(e.in_transaction())),
         };
         let dnm = self.dnm.to_string();
         let (reply, slot) = answer_slot(
