@@ -290,3 +290,124 @@ mod describe_tests {
         assert!(e.to_string().contains("not run for a recording"), "{e}");
     }
 }
+
+#[cfg(test)]
+mod sequence_tests {
+    #![allow(clippy::unwrap_used)]
+    use dnm_netlist::sequence::{OnTimeout, Step};
+    use dnm_netlist::{NetlistError, Sequence};
+
+    fn beetle() -> dnm_netlist::Netlist {
+        super::load_netlist(std::path::Path::new("../configs/beetle.toml")).unwrap()
+    }
+
+    fn errors(text: &str) -> NetlistError {
+        Sequence::parse("bad.toml".as_ref(), text, &beetle()).unwrap_err()
+    }
+
+    /// The one diagnostic a sequence gives: (line, column, field, message).
+    fn only(e: &NetlistError) -> (usize, usize, &str, &str) {
+        assert_eq!(e.diagnostics.len(), 1, "{e}");
+        let d = &e.diagnostics[0];
+        let (line, col) = d.location.unwrap();
+        (line, col, d.field.as_str(), d.message.as_str())
+    }
+
+    const HEAD: &str = "[sequence]\nname = \"s\"\n";
+
+    #[test]
+    fn beetle_explores_by_sequence() {
+        let s = Sequence::load("../configs/sequences/explore.toml".as_ref(), &beetle()).unwrap();
+        assert_eq!(s.name, "explore");
+        assert_eq!(s.guards.len(), 1);
+        assert_eq!(s.steps.len(), 5);
+        assert!(matches!(
+            &s.steps[1],
+            Step::WaitUntil {
+                timeout_ms: 180_000,
+                on_timeout: OnTimeout::Safe,
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn an_unknown_field_is_named_with_the_fields_there_are() {
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nwait_until = \"odometry.odom.speed > 1\"\ntimeout = \"1m\"\n"
+        ));
+        let (line, col, field, message) = only(&e);
+        assert_eq!((line, col, field), (4, 15, "step[0].wait_until"));
+        assert!(message.contains("has no field `speed`"), "{message}");
+        assert!(
+            e.diagnostics[0]
+                .help
+                .as_deref()
+                .unwrap()
+                .contains("distance")
+        );
+    }
+
+    #[test]
+    fn a_comparison_with_the_wrong_type_is_refused() {
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nend_if = \"battery.state.charge == true\"\n"
+        ));
+        assert!(only(&e).3.contains("is a number"), "{e}");
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nend_if = \"camera.image.width > 3\"\n"
+        ));
+        assert!(only(&e).3.contains("not a fixed-size message"), "{e}");
+    }
+
+    #[test]
+    fn an_unknown_task_module_or_port_is_refused() {
+        let e = errors(&format!("{HEAD}[[step]]\nswitch = \"nowhere\"\n"));
+        assert_eq!(only(&e).3, "unknown task `nowhere`");
+        let e = errors(&format!("{HEAD}[[step]]\nend_if = \"ghost.odom.x > 1\"\n"));
+        assert_eq!(only(&e).3, "unknown module `ghost`");
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nend_if = \"odometry.pose.x > 1\"\n"
+        ));
+        assert!(only(&e).3.contains("has no output `pose`"), "{e}");
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nedit = {{ remove = \"ghost\" }}\n"
+        ));
+        assert_eq!(only(&e).3, "unknown module `ghost`");
+    }
+
+    #[test]
+    fn a_step_after_an_unconditional_end_never_runs() {
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nend = true\n\n[[step]]\nswitch = \"auto\"\n"
+        ));
+        let (line, _, field, message) = only(&e);
+        assert_eq!((line, field), (6, "step[1]"));
+        assert!(
+            message.contains("ends unconditionally at step[0]"),
+            "{message}"
+        );
+        // A conditional end is not the end.
+        let ok = format!(
+            "{HEAD}[[step]]\nend_if = \"odometry.odom.distance > 2\"\n\n[[step]]\nswitch = \"auto\"\n"
+        );
+        Sequence::parse("ok.toml".as_ref(), &ok, &beetle()).unwrap();
+    }
+
+    #[test]
+    fn a_wait_until_needs_a_timeout_and_a_step_does_one_thing() {
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nwait_until = \"odometry.odom.distance > 2\"\n"
+        ));
+        assert!(only(&e).3.contains("needs a `timeout`"), "{e}");
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nswitch = \"auto\"\nwait = \"1s\"\n"
+        ));
+        assert_eq!(only(&e).3, "a step does exactly one thing");
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nswitch = \"auto\"\nsay = \"hi\"\n"
+        ));
+        assert_eq!(only(&e).2, "toml");
+        assert!(e.to_string().contains("1 error in sequence"), "{e}");
+    }
+}

@@ -119,6 +119,9 @@ enum Cmd {
     /// Validate a netlist and print a summary; exits non-zero listing every error.
     Check {
         netlist: PathBuf,
+        /// Also check these onboard sequences against the netlist.
+        #[arg(long = "sequence")]
+        sequences: Vec<PathBuf>,
         #[arg(long)]
         json: bool,
     },
@@ -351,7 +354,11 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let z = &cli.zenoh;
     match cli.command {
-        Cmd::Check { netlist, json } => check(&netlist, json),
+        Cmd::Check {
+            netlist,
+            sequences,
+            json,
+        } => check(&netlist, &sequences, json),
         Cmd::Monitor { args } => monitor_cmd::run(&z.options(), &args),
         Cmd::Ground { cmd } => ground_cmd::run(&z.options(), cmd),
         Cmd::Certs { cmd } => certs::run(cmd),
@@ -712,81 +719,114 @@ fn check_module(
     })
 }
 
-fn check(path: &Path, json: bool) -> anyhow::Result<ExitCode> {
-    match dnm::load_netlist(path) {
-        Ok(n) => {
-            if json {
-                let summary = serde_json::json!({
-                    "ok": true,
-                    "system": n.system,
-                    "dnms": n.dnms,
-                    "modules": n.modules,
-                    "tasks": n.tasks,
-                    "initial_task": n.initial_task(),
-                });
-                println!("{}", serde_json::to_string_pretty(&summary)?);
-            } else {
-                println!("{}: system `{}` is valid", path.display(), n.system);
-                for d in &n.dnms {
-                    let mods: Vec<&str> = n.modules_on(&d.name).map(|m| m.name.as_str()).collect();
-                    println!(
-                        "  DNM {}{}: {}",
-                        d.name,
-                        d.parent
-                            .as_ref()
-                            .map(|p| format!(" (under {p})"))
-                            .unwrap_or_default(),
-                        mods.join(", ")
-                    );
-                }
-                for (l, a, b) in dnm::crossing_links(&n) {
-                    println!(
-                        "  route: `{l}` crosses DNMs {a} -> {b} over Zenoh key {}",
-                        dnm::keys::port(&n.system, &a, &l.from.module, &l.from.port)
-                    );
-                }
-                for t in n.tasks.values() {
-                    let mark = if Some(t.name.as_str()) == n.initial_task() {
-                        " (initial)"
-                    } else {
-                        ""
-                    };
-                    println!("  task {}{mark}: {} links", t.name, t.links.len());
-                    for l in &t.links {
-                        println!("    {l}");
-                    }
-                }
-            }
-            Ok(ExitCode::SUCCESS)
-        }
-        Err(e) => {
-            if json {
-                let diags: Vec<_> = e
-                    .diagnostics
-                    .iter()
-                    .map(|d| {
-                        serde_json::json!({
-                            "file": e.file.display().to_string(),
-                            "line": d.location.map(|l| l.0),
-                            "column": d.location.map(|l| l.1),
-                            "field": d.field,
-                            "message": d.message,
-                            "help": d.help,
-                        })
-                    })
-                    .collect();
-                println!(
-                    "{}",
-                    serde_json::to_string_pretty(
-                        &serde_json::json!({"ok": false, "errors": diags})
-                    )?
-                );
-            } else {
-                eprint!("{e}");
-            }
-            Ok(ExitCode::FAILURE)
+fn check(path: &Path, sequences: &[PathBuf], json: bool) -> anyhow::Result<ExitCode> {
+    let n = match dnm::load_netlist(path) {
+        Ok(n) => n,
+        Err(e) => return invalid(&e, json),
+    };
+    let mut checked = Vec::new();
+    for s in sequences {
+        match dnm_netlist::Sequence::load(s, &n) {
+            Ok(q) => checked.push(q),
+            Err(e) => return invalid(&e, json),
         }
     }
+    if json {
+        let sequences: Vec<_> = checked
+            .iter()
+            .map(|q| {
+                serde_json::json!({
+                    "file": q.file.display().to_string(),
+                    "name": q.name,
+                    "guards": q.guards,
+                    "steps": q.steps,
+                })
+            })
+            .collect();
+        let summary = serde_json::json!({
+            "ok": true,
+            "system": n.system,
+            "dnms": n.dnms,
+            "modules": n.modules,
+            "tasks": n.tasks,
+            "initial_task": n.initial_task(),
+            "sequences": sequences,
+        });
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    print_netlist(path, &n);
+    for q in &checked {
+        println!(
+            "  sequence `{}` ({}): {} steps, {} guards, valid",
+            q.name,
+            q.file.display(),
+            q.steps.len(),
+            q.guards.len()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `dnm check`'s summary of a valid netlist.
+fn print_netlist(path: &Path, n: &dnm_netlist::Netlist) {
+    println!("{}: system `{}` is valid", path.display(), n.system);
+    for d in &n.dnms {
+        let mods: Vec<&str> = n.modules_on(&d.name).map(|m| m.name.as_str()).collect();
+        println!(
+            "  DNM {}{}: {}",
+            d.name,
+            d.parent
+                .as_ref()
+                .map(|p| format!(" (under {p})"))
+                .unwrap_or_default(),
+            mods.join(", ")
+        );
+    }
+    for (l, a, b) in dnm::crossing_links(n) {
+        println!(
+            "  route: `{l}` crosses DNMs {a} -> {b} over Zenoh key {}",
+            dnm::keys::port(&n.system, &a, &l.from.module, &l.from.port)
+        );
+    }
+    for t in n.tasks.values() {
+        let mark = if Some(t.name.as_str()) == n.initial_task() {
+            " (initial)"
+        } else {
+            ""
+        };
+        println!("  task {}{mark}: {} links", t.name, t.links.len());
+        for l in &t.links {
+            println!("    {l}");
+        }
+    }
+}
+
+/// `dnm check`'s report of an invalid netlist or sequence: every error, located.
+fn invalid(e: &dnm_netlist::NetlistError, json: bool) -> anyhow::Result<ExitCode> {
+    if json {
+        let diags: Vec<_> = e
+            .diagnostics
+            .iter()
+            .map(|d| {
+                serde_json::json!({
+                    "file": e.file.display().to_string(),
+                    "line": d.location.map(|l| l.0),
+                    "column": d.location.map(|l| l.1),
+                    "field": d.field,
+                    "message": d.message,
+                    "help": d.help,
+                })
+            })
+            .collect();
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({"ok": false, "errors": diags}))?
+        );
+    } else {
+        eprint!("{e}");
+    }
+    Ok(ExitCode::FAILURE)
 }
 
 fn answer(r: &Response, json: bool, human: impl Fn(&Response)) -> anyhow::Result<ExitCode> {

@@ -21,6 +21,8 @@ pub struct Diagnostic {
 pub struct NetlistError {
     pub file: PathBuf,
     pub diagnostics: Vec<Diagnostic>,
+    /// What the file is: `"netlist"`, or `"sequence"` for an onboard sequence.
+    pub document: &'static str,
 }
 
 impl fmt::Display for NetlistError {
@@ -28,9 +30,10 @@ impl fmt::Display for NetlistError {
         let n = self.diagnostics.len();
         writeln!(
             f,
-            "{}: {n} error{} in netlist",
+            "{}: {n} error{} in {}",
             self.file.display(),
-            if n == 1 { "" } else { "s" }
+            if n == 1 { "" } else { "s" },
+            self.document
         )?;
         for d in &self.diagnostics {
             match d.location {
@@ -124,6 +127,7 @@ impl<'a> Reporter<'a> {
             Err(NetlistError {
                 file: self.file.to_path_buf(),
                 diagnostics: self.diagnostics,
+                document: "netlist",
             })
         }
     }

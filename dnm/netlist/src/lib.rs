@@ -18,6 +18,7 @@
 mod door;
 mod error;
 mod model;
+pub mod sequence;
 pub mod spec;
 mod validate;
 pub mod values;
@@ -30,6 +31,7 @@ pub use model::{
     MIN_HUNG_AFTER_MS, MIN_RATE_HZ, Module, ModuleGraph, ModuleNode, Netlist, PortRef, RestartMode,
     RestartPolicy, Task, parse_duration_ms,
 };
+pub use sequence::Sequence;
 pub use spec::{
     Catalog, CatalogEntry, DNM_SUBSCRIBERS, KindSource, KindSpec, LARGE_PAYLOAD_BYTES, MAX_READERS,
     MIN_LARGE_SUBSCRIBERS, MIN_SUBSCRIBERS, MessageType, POD_ENCODING, ParamKind, ParamSpec,

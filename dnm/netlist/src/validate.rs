@@ -33,6 +33,7 @@ impl Netlist {
                 help: Some("check the path".into()),
                 location: None,
             }],
+            document: "netlist",
         })?;
         Self::parse(path, &text, catalog, describe)
     }
