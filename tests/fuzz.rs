@@ -425,6 +425,23 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
             let _ = dnm::parse_recorded_netlist(file, &t);
         });
     }
+    // Sequences, checked against Beetle-One's netlist.
+    let beetle = dnm::load_netlist(&repo("configs/beetle.toml")).unwrap();
+    let explore = std::fs::read_to_string(repo("configs/sequences/explore.toml")).unwrap();
+    let sequences = [explore.clone().into_bytes()];
+    for n in 0..1500 * rounds() {
+        let input = if rng.below(2) == 0 {
+            mutate_toml(&mut rng, &explore)
+                .map(String::into_bytes)
+                .unwrap_or_else(|| explore.clone().into_bytes())
+        } else {
+            mutate(&mut rng, &sequences[0], &sequences)
+        };
+        must_not_panic("sequence", n, &input, |b| {
+            let t = String::from_utf8_lossy(b);
+            let _ = dnm_netlist::Sequence::parse(Path::new("fuzzed-sequence.toml"), &t, &beetle);
+        });
+    }
     for n in 0..3000 * rounds() {
         let c = &corpus[rng.below(corpus.len())];
         let input = mutate(&mut rng, c, &corpus);
