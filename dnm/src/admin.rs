@@ -13,6 +13,7 @@ use std::sync::Arc;
 
 use std::time::Duration;
 
+use dnm_core::answer::{apply_answer, first_refusal_or_all, switch_answer};
 use dnm_core::{Command, Commander, Reply};
 
 pub use dnm_proto::{Request, Response, merge};
@@ -283,21 +284,12 @@ fn dispatch(req: Request, system: &str, dnms: &[Commander]) -> Response {
                 reply,
             });
             match results {
-                Ok(results) => {
-                    let mut switches = Vec::new();
-                    for (name, r) in results {
-                        match r {
-                            Ok(s) => switches.push(s),
-                            Err(e) => return Response::error(format!("DNM `{name}`: {e}")),
-                        }
-                    }
-                    Response {
-                        ok: true,
-                        revision: switches.first().map(|s| s.revision),
-                        switches,
-                        ..Response::default()
-                    }
-                }
+                Ok(results) => first_refusal_or_all(
+                    results
+                        .into_iter()
+                        .map(|(name, r)| switch_answer(&name, r))
+                        .collect(),
+                ),
                 Err(e) => Response::error(e),
             }
         }
@@ -318,20 +310,12 @@ fn dispatch(req: Request, system: &str, dnms: &[Commander]) -> Response {
                 reply,
             });
             match results {
-                Ok(results) => {
-                    let mut revision = None;
-                    for (name, r) in results {
-                        match r {
-                            Ok(rev) => revision = Some(rev),
-                            Err(e) => return Response::error(format!("DNM `{name}`: {e}")),
-                        }
-                    }
-                    Response {
-                        ok: true,
-                        revision,
-                        ..Response::default()
-                    }
-                }
+                Ok(results) => first_refusal_or_all(
+                    results
+                        .into_iter()
+                        .map(|(name, r)| apply_answer(&name, r))
+                        .collect(),
+                ),
                 Err(e) => Response::error(e),
             }
         }

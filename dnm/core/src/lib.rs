@@ -25,6 +25,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod answer;
 mod apply;
 mod command;
 mod error;

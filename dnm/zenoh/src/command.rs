@@ -7,6 +7,7 @@ use std::sync::mpsc::{self, Receiver, SyncSender};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use dnm_core::answer::{apply_answer, switch_answer};
 use dnm_core::{Command, CommandKey, Commander, Decision, DnmError, Reply, Txn};
 use dnm_netlist::NetlistDoor;
 
@@ -204,15 +205,7 @@ impl Commands<'_> {
         let (reply, slot) = answer_slot(
             self.jobs_tx.clone(),
             query,
-            move |r: Result<dnm_proto::SwitchRecord, DnmError>| match r {
-                Ok(s) => Response {
-                    ok: true,
-                    revision: Some(s.revision),
-                    switches: vec![s],
-                    ..Response::default()
-                },
-                Err(e) => Response::error(format!("DNM `{dnm}`: {e}")),
-            },
+            move |r: Result<dnm_proto::SwitchRecord, DnmError>| switch_answer(&dnm, r),
         );
         self.hand(Command::Switch { task, key, reply }, slot);
     }
@@ -247,14 +240,7 @@ impl Commands<'_> {
             query,
             move |r: Result<u64, DnmError>| {
                 release();
-                match r {
-                    Ok(revision) => Response {
-                        ok: true,
-                        revision: Some(revision),
-                        ..Response::default()
-                    },
-                    Err(e) => Response::error(format!("DNM `{dnm_name}`: {e}")),
-                }
+                apply_answer(&dnm_name, r)
             },
         );
         if let Err(e) = self.commander.send(Command::Apply {
