@@ -692,53 +692,49 @@ impl Check<'_, '_> {
             );
             return false;
         };
-        let problem = match (count, f.index) {
-            (Some(_), None) => Some(format!(
-                "`{f}` is an array of {}: compare one element, e.g. `{f}[0]`",
-                count.unwrap_or_default()
-            )),
-            (None, Some(_)) => Some(format!("`{}` is not an array", f.field)),
-            (Some(n), Some(i)) if i >= n => Some(format!("`{f}` is past the end: it has {n}")),
-            _ => None,
-        };
-        let problem = problem.or_else(|| match (ty, &cmp.literal) {
-            ("bool", Literal::Bool(_)) => None,
-            ("bool", _) => Some(format!(
-                "`{f}` is true or false: compare it with `true` or `false`"
-            )),
-            (_, Literal::Number(_)) if ty != "bool" => None,
-            (_, Literal::Bool(_)) => Some(format!(
-                "`{f}` is a number ({ty}): compare it with a number"
-            )),
-            (_, Literal::Text(t)) => Some(format!(
-                "`{t}` is text: `{f}` is {} and compares only with {}",
-                if ty == "bool" {
-                    "true or false"
-                } else {
-                    "a number"
-                },
-                if ty == "bool" {
-                    "`true` or `false`"
-                } else {
-                    "a number"
-                }
-            )),
-            _ => None,
-        });
-        if let Some(p) = problem {
+        if let Some(p) = type_problem(f, ty, count, cmp) {
             self.r.error(Some(span), field, p, None);
             return false;
         }
-        if (cmp.op != Op::Eq && cmp.op != Op::Ne) && ty == "bool" {
-            self.r.error(
-                Some(span),
-                field,
-                format!("`{f}` is true or false: compare it with `==` or `!=`"),
-                None,
-            );
-            return false;
-        }
         true
+    }
+}
+
+/// What is wrong with comparing field `f` (of type `ty`, an array of `count` if it is one) as
+/// `cmp` does, if anything.
+fn type_problem(f: &FieldRef, ty: &str, count: Option<usize>, cmp: &Comparison) -> Option<String> {
+    let shape = match (count, f.index) {
+        (Some(n), None) => Some(format!(
+            "`{f}` is an array of {n}: compare one element, e.g. `{f}[0]`"
+        )),
+        (None, Some(_)) => Some(format!("`{}` is not an array", f.field)),
+        (Some(n), Some(i)) if i >= n => Some(format!("`{f}` is past the end: it has {n}")),
+        _ => None,
+    };
+    if shape.is_some() {
+        return shape;
+    }
+    let boolean = ty == "bool";
+    match &cmp.literal {
+        Literal::Bool(_) if !boolean => Some(format!(
+            "`{f}` is a number ({ty}): compare it with a number"
+        )),
+        Literal::Number(_) if boolean => Some(format!(
+            "`{f}` is true or false: compare it with `true` or `false`"
+        )),
+        Literal::Text(t) => Some(format!(
+            "`{t}` is text: `{f}` is {} and compares only with {}",
+            if boolean { "true or false" } else { "a number" },
+            if boolean {
+                "`true` or `false`"
+            } else {
+                "a number"
+            }
+        )),
+        _ if boolean && cmp.op != Op::Eq && cmp.op != Op::Ne => Some(format!(
+            "`{f}` is true or false: compare it with `==` or `!=`"
+        )),
+        _ => None,
     }
 }
 
