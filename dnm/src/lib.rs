@@ -395,6 +395,23 @@ mod sequence_tests {
     }
 
     #[test]
+    fn a_condition_in_a_multi_line_or_escaped_string_is_located_at_its_start() {
+        let e = errors(&format!("{HEAD}[[step]]\nend_if = \"\"\"'é'?\"\"\"\n"));
+        let (line, col, _, _) = only(&e);
+        assert_eq!((line, col), (4, 10));
+        let e = errors(&format!("{HEAD}[[step]]\nend_if = \"\\t\\t'é'?\"\n"));
+        assert_eq!(only(&e).0, 4);
+    }
+
+    #[test]
+    fn an_edit_names_only_what_it_uses() {
+        let e = errors(&format!(
+            "{HEAD}[[step]]\nedit = {{ remove = \"camera\", params = [\"fov_deg=40\"] }}\n"
+        ));
+        assert_eq!(only(&e).3, "this edit does not use params");
+    }
+
+    #[test]
     fn a_wait_until_needs_a_timeout_and_a_step_does_one_thing() {
         let e = errors(&format!(
             "{HEAD}[[step]]\nwait_until = \"odometry.odom.distance > 2\"\n"

@@ -725,11 +725,26 @@ fn check(path: &Path, sequences: &[PathBuf], json: bool) -> anyhow::Result<ExitC
         Err(e) => return invalid(&e, json),
     };
     let mut checked = Vec::new();
+    let mut refused: Option<dnm_netlist::NetlistError> = None;
     for s in sequences {
         match dnm_netlist::Sequence::load(s, &n) {
             Ok(q) => checked.push(q),
-            Err(e) => return invalid(&e, json),
+            // Every sequence is checked; their errors are reported together.
+            Err(e) => match &mut refused {
+                None => refused = Some(e),
+                Some(all) => {
+                    let file = e.file.display().to_string();
+                    all.diagnostics
+                        .extend(e.diagnostics.into_iter().map(|mut d| {
+                            d.field = format!("{file}: {}", d.field);
+                            d
+                        }));
+                }
+            },
         }
+    }
+    if let Some(e) = refused {
+        return invalid(&e, json);
     }
     if json {
         let sequences: Vec<_> = checked
@@ -758,11 +773,13 @@ fn check(path: &Path, sequences: &[PathBuf], json: bool) -> anyhow::Result<ExitC
     print_netlist(path, &n);
     for q in &checked {
         println!(
-            "  sequence `{}` ({}): {} steps, {} guards, valid",
+            "  sequence `{}` ({}): {} step{}, {} guard{}, valid",
             q.name,
             q.file.display(),
             q.steps.len(),
-            q.guards.len()
+            if q.steps.len() == 1 { "" } else { "s" },
+            q.guards.len(),
+            if q.guards.len() == 1 { "" } else { "s" }
         );
     }
     Ok(ExitCode::SUCCESS)

@@ -116,6 +116,11 @@ impl<'a> Reporter<'a> {
         });
     }
 
+    /// The source text being checked.
+    pub(crate) fn text(&self) -> &'a str {
+        self.text
+    }
+
     pub(crate) fn has_errors(&self) -> bool {
         !self.diagnostics.is_empty()
     }
@@ -135,7 +140,11 @@ impl<'a> Reporter<'a> {
 
 /// 1-based line and column of a byte offset.
 pub(crate) fn line_col(text: &str, offset: usize) -> (usize, usize) {
-    let offset = offset.min(text.len());
+    let mut offset = offset.min(text.len());
+    // A span computed into the middle of a character points at the character.
+    while !text.is_char_boundary(offset) {
+        offset -= 1;
+    }
     let before = &text[..offset];
     let line = before.matches('\n').count() + 1;
     let col = before.rfind('\n').map_or(before.chars().count(), |nl| {

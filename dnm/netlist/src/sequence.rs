@@ -7,7 +7,7 @@
 //! name = "explore"
 //!
 //! [[guard]]                                  # checked for as long as the sequence runs
-//! abort_if = "battery.state.soc < 0.2"
+//! abort_if = "battery.state.charge < 0.2"
 //! task = "teleop"                            # switched to when it fires; the sequence aborts
 //!
 //! [[step]]
@@ -232,7 +232,9 @@ impl Sequence {
 
     /// Checks sequence text against `netlist`: every task, module, port and field it names
     /// exists, every compared field is numeric (or boolean, compared with `true`/`false`), and
-    /// every step can be reached. `file` names it in errors.
+    /// no step follows an unconditional `end`. Steps are checked against `netlist` as it is:
+    /// a module a step adds or removes is not seen by the steps after it. `file` names it in
+    /// errors.
     pub fn parse(file: &Path, text: &str, netlist: &Netlist) -> Result<Self, NetlistError> {
         let mut r = Reporter::new(file, text);
         let raw: RawSequence = match toml::from_str(text) {
@@ -395,11 +397,16 @@ impl Check<'_, '_> {
             raw.end.is_some(),
             raw.end_if.is_some(),
         ];
-        if actions.iter().filter(|a| **a).count() != 1 {
+        let count = actions.iter().filter(|a| **a).count();
+        if count != 1 {
             self.r.error(
                 Some(s.span()),
                 field,
-                "a step does exactly one thing",
+                if count == 0 {
+                    "a step does nothing"
+                } else {
+                    "a step does exactly one thing"
+                },
                 Some(
                     "give it one of `switch`, `edit`, `apply`, `wait`, `at`, `wait_until`, \
                      `end`, `end_if`"
@@ -409,9 +416,14 @@ impl Check<'_, '_> {
             return None;
         }
         if raw.wait_until.is_none() && (raw.timeout.is_some() || raw.on_timeout.is_some()) {
+            let key = if raw.timeout.is_some() {
+                "timeout"
+            } else {
+                "on_timeout"
+            };
             self.r.error(
                 Some(s.span()),
-                format!("{field}.timeout"),
+                format!("{field}.{key}"),
                 "only a `wait_until` step has a timeout",
                 None,
             );
@@ -538,6 +550,19 @@ impl Check<'_, '_> {
             );
             return None;
         }
+        let unused = unused_keys(raw);
+        if !unused.is_empty() {
+            self.r.error(
+                Some(e.span()),
+                field,
+                format!("this edit does not use {}", unused.join(", ")),
+                Some(
+                    "remove them: a replace takes `kind` and `params`, a remove only the name"
+                        .into(),
+                ),
+            );
+            return None;
+        }
         let known_module = |check: &mut Self, name: &str| {
             if check.netlist.module(name).is_some() {
                 return true;
@@ -613,11 +638,11 @@ impl Check<'_, '_> {
 
     /// A condition, parsed and checked against the netlist; errors point at its text.
     fn condition(&mut self, c: &Spanned<String>, field: &str) -> Option<Condition> {
-        let span = c.span();
         match parse_condition(c.get_ref()) {
             Err(e) => {
+                let at = self.inner(c, e.at);
                 self.r.error(
-                    Some(inner(&span, e.at)),
+                    Some(at),
                     field,
                     e.message,
                     Some(
@@ -631,11 +656,27 @@ impl Check<'_, '_> {
             Ok(parsed) => {
                 let mut ok = true;
                 for (cmp, at) in &parsed.comparisons {
-                    ok &= self.comparison(cmp, inner(&span, *at), field);
+                    let at = self.inner(c, *at);
+                    ok &= self.comparison(cmp, at, field);
                 }
                 ok.then_some(parsed.condition)
             }
         }
+    }
+
+    /// The span of byte `at` of a condition's text: exact when the file spells the string as
+    /// it reads (one quote, no escapes), else the string's start.
+    fn inner(&self, c: &Spanned<String>, at: usize) -> Range<usize> {
+        let span = c.span();
+        let text = c.get_ref();
+        let raw = self
+            .r
+            .text()
+            .get(span.start + 1..span.end.saturating_sub(1));
+        if raw == Some(text.as_str()) && at <= text.len() {
+            return span.start + 1 + at..span.end;
+        }
+        span
     }
 
     /// Whether a comparison names an output field that exists and has the literal's type.
@@ -715,6 +756,11 @@ fn type_problem(f: &FieldRef, ty: &str, count: Option<usize>, cmp: &Comparison) 
         return shape;
     }
     let boolean = ty == "bool";
+    if !boolean && !NUMERIC.contains(&ty) {
+        return Some(format!(
+            "`{f}` is a {ty}, not a number: it cannot be compared"
+        ));
+    }
     match &cmp.literal {
         Literal::Bool(_) if !boolean => Some(format!(
             "`{f}` is a number ({ty}): compare it with a number"
@@ -738,16 +784,35 @@ fn type_problem(f: &FieldRef, ty: &str, count: Option<usize>, cmp: &Comparison) 
     }
 }
 
-/// The span of the character `at` of a TOML string's value (its opening quote is one
-/// character; a string with escapes is pointed at from its start).
-fn inner(span: &Range<usize>, at: usize) -> Range<usize> {
-    let start = (span.start + 1 + at)
-        .min(span.end.saturating_sub(1))
-        .max(span.start);
-    start..span.end
+/// Keys an edit gives that its kind of edit does not use: a replace takes `kind` and
+/// `params`, a remove only the name.
+fn unused_keys(raw: &RawEdit) -> Vec<&'static str> {
+    let given = [
+        ("kind", raw.kind.is_some()),
+        ("dnm", raw.dnm.is_some()),
+        ("params", !raw.params.is_empty()),
+        ("links", !raw.links.is_empty()),
+    ];
+    let used: &[&str] = match (&raw.add, &raw.replace) {
+        (Some(_), _) => &["kind", "dnm", "params", "links"],
+        (None, Some(_)) => &["kind", "params"],
+        (None, None) => &[],
+    };
+    given
+        .into_iter()
+        .filter(|(k, set)| *set && !used.contains(k))
+        .map(|(k, _)| k)
+        .collect()
 }
 
-/// A fixed-size message's fields: (type, name, array length).
+/// The field types a comparison reads as numbers.
+const NUMERIC: [&str; 12] = [
+    "int8", "uint8", "byte", "char", "int16", "uint16", "int32", "uint32", "int64", "uint64",
+    "float32", "float64",
+];
+
+/// A fixed-size message's fields: (type, name, array length). Constants (`int32 X = 5`) are
+/// not fields.
 fn pod_fields(message: &MessageType) -> Option<Vec<(&str, &str, Option<usize>)>> {
     if message.encoding != POD_ENCODING {
         return None;
@@ -756,6 +821,9 @@ fn pod_fields(message: &MessageType) -> Option<Vec<(&str, &str, Option<usize>)>>
     for line in message.schema.lines() {
         let line = line.split('#').next().unwrap_or("").trim();
         if line.is_empty() {
+            continue;
+        }
+        if line.contains('=') {
             continue;
         }
         let mut parts = line.split_whitespace();
@@ -820,7 +888,7 @@ fn tokens(text: &str) -> Result<Vec<(Token, usize)>, ConditionError> {
     if text.len() > MAX_CONDITION {
         return err(
             0,
-            format!("a condition of at most {MAX_CONDITION} characters"),
+            format!("the condition is longer than {MAX_CONDITION} bytes; split it into steps"),
         );
     }
     let b = text.as_bytes();
@@ -870,14 +938,19 @@ fn tokens(text: &str) -> Result<Vec<(Token, usize)>, ConditionError> {
         } else if c.is_ascii_alphabetic() || c == '_' {
             while i < b.len()
                 && ((b[i] as char).is_ascii_alphanumeric()
-                    || matches!(b[i], b'_' | b'.' | b'[' | b']'))
+                    || matches!(b[i], b'_' | b'-' | b'.' | b'[' | b']'))
             {
                 i += 1;
             }
             out.push((Token::Word(text[start..i].to_string()), start));
         } else {
             let ch = text[i..].chars().next().unwrap_or(c);
-            return err(start, format!("unexpected `{ch}`"));
+            let hint = if ch == '=' {
+                " (compare with `==`)"
+            } else {
+                ""
+            };
+            return err(start, format!("unexpected `{ch}`{hint}"));
         }
     }
     Ok(out)
@@ -1023,7 +1096,8 @@ fn field_ref(word: &str) -> Option<FieldRef> {
     };
     let name_ok = |s: &str| {
         !s.is_empty()
-            && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+            && s.chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
             && !s.starts_with(|c: char| c.is_ascii_digit())
     };
     (name_ok(module) && name_ok(port) && name_ok(field)).then(|| FieldRef {
@@ -1068,6 +1142,14 @@ mod tests {
         assert!(!c.holds(&values(Some(4.9))));
         assert!(!c.holds(&values(None)));
         assert_eq!(c.fields().len(), 2);
+    }
+
+    #[test]
+    fn names_may_hold_dashes_and_a_lone_equals_sign_is_explained() {
+        let p = parse_condition("wheel_left-2.state.x > -1").unwrap();
+        assert_eq!(p.comparisons[0].0.field.module, "wheel_left-2");
+        let e = parse_condition("a.b.c = 1").unwrap_err();
+        assert!(e.message.contains("`==`"), "{e:?}");
     }
 
     #[test]
