@@ -297,3 +297,117 @@ fn the_cycle_check_finds_a_cycle() {
         "{found:?}"
     );
 }
+
+/// Every `.rs` file of the workspace's crates (their `src/`), test modules left out.
+fn sources() -> Vec<(PathBuf, String)> {
+    let root = workspace();
+    let mut out = Vec::new();
+    let mut dirs: Vec<PathBuf> = [
+        "dnm",
+        "dnm/proto",
+        "dnm/core",
+        "dnm/zenoh",
+        "dnm/record",
+        "dnm/netlist",
+        "dnm/place",
+        "modules/sdk",
+        "modules/std",
+        "modules/rover",
+        "modules/host",
+        "router",
+        "ground",
+        "dnm/authority",
+        "monitor",
+    ]
+    .iter()
+    .map(|c| root.join(c).join("src"))
+    .collect();
+    while let Some(dir) = dirs.pop() {
+        for e in std::fs::read_dir(&dir).unwrap().filter_map(Result::ok) {
+            let path = e.path();
+            if path.is_dir() {
+                dirs.push(path);
+            } else if path.extension().is_some_and(|x| x == "rs") {
+                let text = std::fs::read_to_string(&path).unwrap();
+                let text = text
+                    .split("#[cfg(test)]")
+                    .next()
+                    .unwrap_or_default()
+                    .to_string();
+                out.push((path, text));
+            }
+        }
+    }
+    out
+}
+
+/// Long loops are named phases: no function outside tests is over 150 lines (from its `fn`
+/// line to its closing brace; `scripts/function-lengths` counts the same way and prints the
+/// whole table).
+#[test]
+fn no_function_is_over_150_lines() {
+    let mut long = Vec::new();
+    for (path, text) in sources() {
+        let lines: Vec<&str> = text.lines().collect();
+        for (i, line) in lines.iter().enumerate() {
+            let t = line.trim_start();
+            let t = t
+                .strip_prefix("pub ")
+                .or_else(|| t.strip_prefix("pub(crate) "))
+                .unwrap_or(t);
+            let t = t.strip_prefix("async ").unwrap_or(t);
+            if !t.starts_with("fn ") {
+                continue;
+            }
+            // From the `fn` line to the brace that closes its body (a declaration has none).
+            let (mut depth, mut opened) = (0i64, false);
+            for (j, l) in lines.iter().enumerate().skip(i) {
+                let code = l.split("//").next().unwrap_or_default();
+                for c in code.chars() {
+                    match c {
+                        '{' => (depth, opened) = (depth + 1, true),
+                        '}' => depth -= 1,
+                        ';' if !opened && depth == 0 => break,
+                        _ => {}
+                    }
+                }
+                if !opened && code.trim_end().ends_with(';') {
+                    break;
+                }
+                if opened && depth == 0 {
+                    if j - i + 1 > 150 {
+                        long.push(format!(
+                            "{}:{} ({} lines)",
+                            path.display(),
+                            i + 1,
+                            j - i + 1
+                        ));
+                    }
+                    break;
+                }
+            }
+        }
+    }
+    assert!(long.is_empty(), "split these into named phases: {long:#?}");
+}
+
+/// Errors callers can match: no public function of a library returns `Result<_, String>`.
+#[test]
+fn no_public_function_returns_a_string_error() {
+    let mut found = Vec::new();
+    for (path, text) in sources() {
+        let mut rest = text.as_str();
+        while let Some(i) = rest.find("pub fn ") {
+            let sig = &rest[i..];
+            let end = sig.find(['{', ';']).unwrap_or(sig.len());
+            let sig: String = sig[..end].split_whitespace().collect::<Vec<_>>().join(" ");
+            if let Some(r) = sig.find("Result<")
+                && sig[r..].trim_end().ends_with(", String>")
+            {
+                found.push(format!("{}: {sig}", path.display()));
+            }
+            rest = &rest[i + 7..];
+        }
+    }
+    assert!(found.is_empty(), "give these an error type: {found:#?}");
+}

@@ -25,6 +25,22 @@ pub struct NetlistError {
     pub document: &'static str,
 }
 
+impl NetlistError {
+    /// `file` (a `document`: "netlist" or "sequence") could not be read.
+    pub(crate) fn unreadable(file: &Path, e: &std::io::Error, document: &'static str) -> Self {
+        NetlistError {
+            file: file.to_path_buf(),
+            diagnostics: vec![Diagnostic {
+                field: "file".into(),
+                message: format!("cannot read: {e}"),
+                help: Some("check the path".into()),
+                location: None,
+            }],
+            document,
+        }
+    }
+}
+
 impl fmt::Display for NetlistError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let n = self.diagnostics.len();

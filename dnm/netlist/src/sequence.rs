@@ -217,16 +217,8 @@ impl Condition {
 impl Sequence {
     /// Reads and checks a sequence file against `netlist`.
     pub fn load(path: &Path, netlist: &Netlist) -> Result<Self, NetlistError> {
-        let text = std::fs::read_to_string(path).map_err(|e| NetlistError {
-            file: path.to_path_buf(),
-            diagnostics: vec![crate::Diagnostic {
-                field: "file".into(),
-                message: format!("cannot read: {e}"),
-                help: Some("check the path".into()),
-                location: None,
-            }],
-            document: "sequence",
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| NetlistError::unreadable(path, &e, "sequence"))?;
         Self::parse(path, &text, netlist)
     }
 

@@ -25,16 +25,8 @@ impl Netlist {
         describe: &mut crate::error::Describe<'_>,
     ) -> Result<Self, NetlistError> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|e| NetlistError {
-            file: path.to_path_buf(),
-            diagnostics: vec![crate::Diagnostic {
-                field: "file".into(),
-                message: format!("cannot read: {e}"),
-                help: Some("check the path".into()),
-                location: None,
-            }],
-            document: "netlist",
-        })?;
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| NetlistError::unreadable(path, &e, "netlist"))?;
         Self::parse(path, &text, catalog, describe)
     }
 

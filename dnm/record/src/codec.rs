@@ -226,8 +226,9 @@ mod tests {
         const SCHEMA: &'static str = "uint8[] data";
     }
 
-    #[test]
-    fn decode_reads_back_what_encode_wrote() {
+    /// One message of each encoding the recorder writes: raw bytes, an RGB8 image (2×4 pixels),
+    /// a fixed-size message, JSON.
+    fn samples() -> Vec<(MessageType, Vec<u8>)> {
         let mut image = vec![9u8; 12 + 2 * 3 * 4];
         image[..12].copy_from_slice(&[4, 0, 0, 0, 2, 0, 0, 0, 12, 0, 0, 0]);
         let image_type = MessageType {
@@ -238,14 +239,34 @@ mod tests {
             encoding: "application/json".into(),
             ..Frame::message_type(64)
         };
-        for (message, bytes) in [
+        vec![
             (Frame::message_type(100), vec![7u8; 100]),
             (image_type, image),
             (Tick::message_type(), vec![1u8; 16]),
             (json_type, br#"{"a":1}"#.to_vec()),
-        ] {
+        ]
+    }
+
+    #[test]
+    fn decode_reads_back_what_encode_wrote() {
+        for (message, bytes) in samples() {
             let stored = encode(&message, "cam", 1_700_000_000_123_456_789, &bytes);
             assert_eq!(decode(&message, &stored), Ok(bytes), "{}", message.encoding);
+        }
+    }
+
+    #[test]
+    fn a_reused_buffer_encodes_like_a_new_one() {
+        // A buffer that held a longer message before.
+        let mut buf = vec![0xee; 4096];
+        for (message, bytes) in samples() {
+            encode_into(&mut buf, &message, "cam", 1_700_000_000_123_456_789, &bytes);
+            assert_eq!(
+                buf,
+                encode(&message, "cam", 1_700_000_000_123_456_789, &bytes),
+                "{}",
+                message.encoding
+            );
         }
     }
 

@@ -1313,45 +1313,6 @@ mod tests {
     }
 
     #[test]
-    fn a_reused_buffer_encodes_like_a_new_one() {
-        use dnm_module::msg::BytesMessage;
-        struct Frame;
-        impl BytesMessage for Frame {
-            const SCHEMA_NAME: &'static str = "test/Frame";
-            const ENCODING: &'static str = "application/octet-stream";
-            const SCHEMA: &'static str = "uint8[] data";
-        }
-        let mut image = vec![0u8; 12 + 2 * 3 * 4];
-        image[0] = 4; // width
-        image[4] = 2; // height
-        image[8] = 12; // step
-        let image_type = MessageType {
-            encoding: "dnm-image-rgb8".into(),
-            ..Frame::message_type(image.len())
-        };
-        let json_type = MessageType {
-            encoding: "application/json".into(),
-            ..Frame::message_type(64)
-        };
-        // A buffer that held a longer message before.
-        let mut buf = vec![0xee; 4096];
-        for (message, bytes) in [
-            (Frame::message_type(100), vec![7u8; 100]),
-            (image_type, image),
-            (Tick::message_type(), vec![1u8; 16]),
-            (json_type, br#"{"a":1}"#.to_vec()),
-        ] {
-            encode_into(&mut buf, &message, "cam", 1_700_000_000_123_456_789, &bytes);
-            assert_eq!(
-                buf,
-                encode(&message, "cam", 1_700_000_000_123_456_789, &bytes),
-                "{}",
-                message.encoding
-            );
-        }
-    }
-
-    #[test]
     fn rotation_counts_the_bytes_on_disk_not_the_uncompressed_ones() {
         // 40 frames of 64 KiB of one colour are 2.5 MiB before compression and a few KiB on
         // disk: with rotation at 1 MiB they fit one file.
