@@ -8,7 +8,7 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use clap::Subcommand;
 use dnm_ground::{Entry, LinkStatus, Station, StationOptions};
-use dnm_proto::station::{ModuleEdit, Order};
+use dnm_proto::station::{ModuleEdit, Order, SequenceAction, SequenceStatus};
 
 /// The station's API unless `--url` or `$DNM_GROUND_URL` says otherwise.
 pub const DEFAULT_URL: &str = "http://127.0.0.1:7480";
@@ -80,12 +80,54 @@ pub enum GroundCmd {
         #[command(flatten)]
         common: Common,
     },
+    /// Onboard sequences: upload one, start, pause, resume or cancel it.
+    #[command(subcommand)]
+    Sequence(SequenceCmd),
     /// The link, the rover's state and the last commands.
     Status {
         #[arg(long)]
         url: Option<String>,
         #[arg(long)]
         json: bool,
+    },
+}
+
+/// What `dnm ground sequence` does.
+#[derive(Subcommand, Debug)]
+pub enum SequenceCmd {
+    /// Store a sequence file on the rover (checked there against the netlist in force; with
+    /// `--check NETLIST`, here first). The netlists its `apply` steps name go with it.
+    Upload {
+        file: PathBuf,
+        /// Check it against this netlist before sending it.
+        #[arg(long)]
+        check: Option<PathBuf>,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Run a stored sequence from its first step.
+    Start {
+        name: String,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Hold it before its next step (waits stop counting; guards still watch).
+    Pause {
+        name: String,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Go on from where it was paused.
+    Resume {
+        name: String,
+        #[command(flatten)]
+        common: Common,
+    },
+    /// Stop it where it is; the rover stays in its task.
+    Cancel {
+        name: String,
+        #[command(flatten)]
+        common: Common,
     },
 }
 
@@ -216,6 +258,16 @@ fn describe(e: &Entry) -> String {
             ModuleEdit::Remove { name } => format!("remove module `{name}`"),
         },
         Order::Cancel { seq } => format!("cancel command {seq}"),
+        Order::Sequence { name, action } => {
+            let verb = match action {
+                SequenceAction::Upload { .. } => "upload",
+                SequenceAction::Start => "start",
+                SequenceAction::Pause => "pause",
+                SequenceAction::Resume => "resume",
+                SequenceAction::Cancel => "cancel",
+            };
+            format!("{verb} sequence `{name}`")
+        }
     };
     let fate = match &e.fate {
         Some(Fate::Applied {
@@ -233,9 +285,35 @@ fn describe(e: &Entry) -> String {
         }
         Some(Fate::Cancelled { target }) => format!("done: command {target} will not run"),
         Some(Fate::CancelledBy { by }) => format!("cancelled by command {by}"),
+        Some(Fate::Done { detail, .. }) => format!("done: {detail}"),
         _ => format!("{:?}", e.state).to_lowercase(),
     };
     format!("#{:<4} {what:<36} {fate}", e.seq)
+}
+
+fn print_sequence(q: &SequenceStatus) {
+    let state = serde_json::to_value(q.state)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_string))
+        .unwrap_or_default();
+    let at = if q.step < q.steps {
+        format!("step {}/{}: {}", q.step + 1, q.steps, q.doing)
+    } else {
+        format!("{} steps", q.steps)
+    };
+    println!("sequence `{}` {state}, {at}", q.name);
+    if !q.why.is_empty() {
+        println!("  {}", q.why);
+    }
+    for e in q.history.iter().rev().take(5).rev() {
+        let step = e.step.map_or(String::new(), |s| format!(" step {}", s + 1));
+        println!(
+            "  {} {}{step}: {}",
+            e.what,
+            e.at_unix_ns as f64 / 1e9,
+            e.detail
+        );
+    }
 }
 
 fn print_link(l: &LinkStatus) {
@@ -270,6 +348,9 @@ fn print_link(l: &LinkStatus) {
         }
         for e in &r.events {
             println!("  event {}: {}", e.what, e.detail);
+        }
+        for q in &r.sequences {
+            print_sequence(q);
         }
     }
     if let Some(o) = l.rover_clock_offset_ms {
@@ -397,6 +478,28 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             &common,
         ),
         GroundCmd::Cancel { seq, common } => submit(&Order::Cancel { seq }, &common),
+        GroundCmd::Sequence(cmd) => {
+            let (order, common) = match cmd {
+                SequenceCmd::Upload {
+                    file,
+                    check,
+                    common,
+                } => (sequence_upload(&file, check.as_deref())?, common),
+                SequenceCmd::Start { name, common } => {
+                    (sequence(name, SequenceAction::Start), common)
+                }
+                SequenceCmd::Pause { name, common } => {
+                    (sequence(name, SequenceAction::Pause), common)
+                }
+                SequenceCmd::Resume { name, common } => {
+                    (sequence(name, SequenceAction::Resume), common)
+                }
+                SequenceCmd::Cancel { name, common } => {
+                    (sequence(name, SequenceAction::Cancel), common)
+                }
+            };
+            submit(&order, &common)
+        }
         GroundCmd::Status { url: u, json } => {
             let base = url(&u);
             let link: LinkStatus = serde_json::from_str(&get(&format!("{base}/link"))?)?;
@@ -417,6 +520,61 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// The upload of the sequence in `file`, with the netlists its `apply` steps name (read
+/// beside it); checked against `check` first if given.
+fn sequence_upload(
+    file: &std::path::Path,
+    check: Option<&std::path::Path>,
+) -> anyhow::Result<Order> {
+    let text = std::fs::read_to_string(file)
+        .with_context(|| format!("reading the sequence {}", file.display()))?;
+    if let Some(n) = check {
+        let netlist = dnm::load_netlist(n)?;
+        dnm_netlist::Sequence::parse(file, &text, &netlist)?;
+    }
+    let raw: toml::Value = toml::from_str(&text).with_context(|| {
+        format!(
+            "{} is not TOML (`dnm check NETLIST --sequence FILE` says where)",
+            file.display()
+        )
+    })?;
+    let name = raw
+        .get("sequence")
+        .and_then(|s| s.get("name"))
+        .and_then(|n| n.as_str())
+        .with_context(|| format!("{}: no `[sequence] name = \"...\"`", file.display()))?
+        .to_string();
+    let mut netlists = std::collections::BTreeMap::new();
+    let steps = raw
+        .get("step")
+        .and_then(|s| s.as_array())
+        .cloned()
+        .unwrap_or_default();
+    for f in steps.iter().filter_map(|s| s.get("apply")?.as_str()) {
+        let path = file.parent().unwrap_or(std::path::Path::new(".")).join(f);
+        let t = std::fs::read_to_string(&path).with_context(|| {
+            format!(
+                "{}: a step applies {f}, read as {}",
+                file.display(),
+                path.display()
+            )
+        })?;
+        netlists.insert(f.to_string(), t);
+    }
+    Ok(Order::Sequence {
+        name,
+        action: SequenceAction::Upload {
+            file: file.display().to_string(),
+            text,
+            netlists,
+        },
+    })
+}
+
+fn sequence(name: String, action: SequenceAction) -> Order {
+    Order::Sequence { name, action }
 }
 
 /// Blocks until SIGINT or SIGTERM.

@@ -748,7 +748,9 @@ fn take_downlink(s: &Shared, d: Downlink, rtt: Duration) {
             Fate::Acknowledged => CommandState::Acknowledged,
             Fate::OutOfOrder { .. } => CommandState::Sent,
             Fate::Scheduled { .. } => CommandState::Scheduled,
-            Fate::Applied { .. } | Fate::Cancelled { .. } => CommandState::Applied,
+            Fate::Applied { .. } | Fate::Done { .. } | Fate::Cancelled { .. } => {
+                CommandState::Applied
+            }
             Fate::CancelledBy { .. } => CommandState::Cancelled,
             Fate::Refused { .. } => CommandState::Refused,
         };

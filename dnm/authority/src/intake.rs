@@ -136,6 +136,20 @@ pub(crate) fn publish_rover(s: &Shared, core: &Core) {
             scheduled,
             last_safing: core.state.last_safing.clone(),
             safe: core.state.safe,
+            sequences: sequence::statuses(core),
         };
     }
+    if let Ok(mut d) = s.deferring.lock() {
+        // A sequence that just ended with no station heard: the beat goes on saying so until
+        // the worker has made the rover safe (its next job), so no DNM makes itself safe on
+        // its own in between.
+        let silent = s.contact.lock().map(|c| c.elapsed()).unwrap_or_default();
+        let loss_due =
+            core.netlist.on_link_loss.as_ref().is_some_and(|l| {
+                !core.state.link_lost && silent >= Duration::from_millis(l.after_ms)
+            });
+        *d = sequence::defers_link_loss(core).or_else(|| d.take().filter(|_| loss_due));
+    }
+    s.sequencer
+        .arm(sequence::active(core).and_then(|r| sequencer::Armed::of(r, &core.netlist)));
 }

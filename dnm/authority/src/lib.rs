@@ -42,6 +42,8 @@ mod edit;
 mod intake;
 mod reconcile;
 mod safing;
+mod sequence;
+mod sequencer;
 mod store;
 mod transaction;
 mod worker;
@@ -152,6 +154,8 @@ pub(crate) struct Core {
     state: State,
     netlist: Netlist,
     digest: String,
+    /// The onboard sequences stored, by name.
+    sequences: BTreeMap<String, sequence::SequenceRun>,
 }
 
 /// What the lead of a decision must cover, as measured: a round trip to the slowest DNM and
@@ -209,6 +213,9 @@ pub(crate) struct Shared {
     dnms_heard: Mutex<BTreeMap<String, Instant>>,
     /// Time tags' instants on the monotonic clock.
     tag_clock: Mutex<BTreeMap<(String, u64), Instant>>,
+    /// The sequence running whose end loss of signal waits for (the beat says it).
+    deferring: Mutex<Option<String>>,
+    sequencer: sequencer::Sequencer,
     stop: AtomicBool,
 }
 
@@ -320,6 +327,8 @@ impl Authority {
             .map_err(AuthorityError::DecidedNetlist)?;
         let digest = format!("{:016x}", current.digest());
         let contact = last_contact(&store);
+        let mut sequences = store.sequences()?;
+        sequence::resume_after_restart(&store, &mut sequences);
         let shared = Arc::new(Shared {
             timing: Mutex::new(Timing::default()),
             system: system.clone(),
@@ -332,6 +341,7 @@ impl Authority {
                 state,
                 netlist: current,
                 digest,
+                sequences,
             }),
             rover: Mutex::new(RoverState::default()),
             // A restarted authority counts the ground's silence from the last uplink it took,
@@ -342,6 +352,8 @@ impl Authority {
             beat: (Mutex::new(false), Condvar::new()),
             tag_clock: Mutex::new(BTreeMap::new()),
             dnms_heard: Mutex::new(BTreeMap::new()),
+            deferring: Mutex::new(None),
+            sequencer: sequencer::Sequencer::default(),
             stop: AtomicBool::new(false),
         });
         if let Ok(core) = shared.core.lock() {
@@ -382,6 +394,10 @@ impl Authority {
             spawn("authority-worker", {
                 let s = shared.clone();
                 Box::new(move || worker_loop(&s))
+            })?,
+            spawn("authority-sequencer", {
+                let s = shared.clone();
+                Box::new(move || sequencer::sequencer_loop(&s))
             })?,
             spawn("authority-reconcile", {
                 let s = shared.clone();

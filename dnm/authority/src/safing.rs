@@ -56,6 +56,7 @@ pub(crate) fn make_safe(
         revision: core.state.revision,
         task: core.state.task.clone(),
     });
+    let aborted = crate::sequence::abort_for_safing(core, &safing.reason);
     let timers = s.store.timers()?;
     let refusal = refusal(&safing);
     let fates = timers
@@ -75,6 +76,7 @@ pub(crate) fn make_safe(
         fates,
         timers_remove: timers.iter().map(|t| (t.station.as_str(), t.seq)).collect(),
         state: Some(&core.state),
+        sequence: aborted.as_ref(),
         ..Finish::default()
     })?;
     tracing::warn!(
@@ -215,6 +217,7 @@ pub(crate) fn beat_loop(s: &Shared, publisher: &zenoh::pubsub::Publisher<'_>) {
                     .map(|c| c.elapsed().as_millis() as u64)
                     .unwrap_or(0),
                 safing: rover.last_safing.filter(|_| rover.safe),
+                sequence: s.deferring.lock().ok().and_then(|d| d.clone()),
             }
         };
         if let Ok(bytes) = serde_json::to_vec(&beat)

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use dnm_proto::station::{Fate, Outcome, RoverEvent, Safing, Sent};
 
 use crate::AuthorityError;
+use crate::sequence::SequenceRun;
 
 const META: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("meta");
 /// Commands taken and not finished, by `station \0 seq`.
@@ -24,6 +25,8 @@ const ARRIVALS: TableDefinition<'_, u64, &str> = TableDefinition::new("arrivals"
 const ARRIVAL_OF: TableDefinition<'_, &str, u64> = TableDefinition::new("arrival_of");
 /// Every decision, by transaction id: a DNM cut off for long still learns its own.
 const DECISIONS: TableDefinition<'_, u64, &[u8]> = TableDefinition::new("decisions");
+/// Onboard sequences and where each stands, by name.
+const SEQUENCES: TableDefinition<'_, &str, &[u8]> = TableDefinition::new("sequences");
 
 /// Fates in one answer to a station that does not say which it waits for.
 pub(crate) const ANSWER_FATES: usize = 32;
@@ -163,6 +166,8 @@ pub(crate) struct Finish<'a> {
     pub(crate) timers_remove: Vec<(&'a str, u64)>,
     pub(crate) state: Option<&'a State>,
     pub(crate) decision: Option<&'a DecisionRecord>,
+    /// A sequence's progress, stored with the decision its step led to.
+    pub(crate) sequence: Option<&'a SequenceRun>,
 }
 
 /// What one intake took: the last number taken, the first command out of order (its number,
@@ -391,8 +396,32 @@ impl Store {
         tx.open_table(ARRIVALS).map_err(db)?;
         tx.open_table(ARRIVAL_OF).map_err(db)?;
         tx.open_table(DECISIONS).map_err(db)?;
+        tx.open_table(SEQUENCES).map_err(db)?;
         tx.commit().map_err(db)?;
         Ok(Self { db: database })
+    }
+
+    /// The sequences stored, by name.
+    pub(crate) fn sequences(
+        &self,
+    ) -> Result<std::collections::BTreeMap<String, SequenceRun>, AuthorityError> {
+        let rx = self.db.begin_read().map_err(db)?;
+        let t = rx.open_table(SEQUENCES).map_err(db)?;
+        let mut out = std::collections::BTreeMap::new();
+        for row in t.iter().map_err(db)? {
+            let (k, v) = row.map_err(db)?;
+            let run: SequenceRun = serde_json::from_slice(v.value()).map_err(rec)?;
+            out.insert(k.value().to_string(), run);
+        }
+        Ok(out)
+    }
+
+    /// Stores one sequence's progress.
+    pub(crate) fn save_sequence(&self, run: &SequenceRun) -> Result<(), AuthorityError> {
+        self.finish(Finish {
+            sequence: Some(run),
+            ..Finish::default()
+        })
     }
 
     fn meta<T: for<'de> Deserialize<'de>>(&self, name: &str) -> Result<Option<T>, AuthorityError> {
@@ -707,6 +736,11 @@ impl Store {
                 if ReadableTableMetadata::len(&t).map_err(db)? > DECISIONS_STORED {
                     t.pop_first().map_err(db)?;
                 }
+            }
+            if let Some(run) = f.sequence {
+                let mut t = tx.open_table(SEQUENCES).map_err(db)?;
+                let bytes = serde_json::to_vec(run).map_err(rec)?;
+                t.insert(run.name.as_str(), bytes.as_slice()).map_err(db)?;
             }
             if let Some(state) = f.state {
                 let mut meta = tx.open_table(META).map_err(db)?;

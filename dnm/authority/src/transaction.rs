@@ -5,18 +5,15 @@ use crate::*;
 
 /// Runs one transaction on every DNM of the rover: prepare everywhere, decide (stored with
 /// the command's fate in one write), then put in force at one instant everywhere.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn transact(
     s: &Shared,
     core: &mut Core,
     netlist: Option<Netlist>,
     task: Option<String>,
     at: Option<u64>,
-    cmd: Option<(String, u64, String)>,
-    timer_remove: Option<(String, u64)>,
+    origin: Origin,
 ) -> Fate {
-    let origin = Origin { cmd, timer_remove };
-    let finish = |core: &Core, fate: &Fate| origin.record(s, core, fate);
+    let finish = |core: &mut Core, fate: &Fate| origin.record(s, core, fate);
     let target = netlist.as_ref().unwrap_or(&core.netlist);
     let participants: Vec<String> = target
         .dnms
@@ -95,6 +92,7 @@ pub(crate) fn transact(
         core.state.clone(),
         core.netlist.clone(),
         core.digest.clone(),
+        core.sequences.clone(),
     );
     let removal = netlist
         .as_ref()
@@ -122,7 +120,7 @@ pub(crate) fn transact(
     }
     if let Err(e) = stored {
         // Not decided after all: drop it everywhere.
-        (core.state, core.netlist, core.digest) = before;
+        (core.state, core.netlist, core.digest, core.sequences) = before;
         let abort = DecisionRecord {
             commit: false,
             ..decision
@@ -156,17 +154,33 @@ pub(crate) fn transact(
     fate
 }
 
-/// The command (or time tag) a transaction runs for: its fate is stored with the decision.
+/// The command, time tag or sequence step a transaction runs for: its fate is stored with the
+/// decision.
 pub(crate) struct Origin {
     /// (station, seq, id).
     pub(crate) cmd: Option<(String, u64, String)>,
     /// The time tag it takes out, if it is one.
     pub(crate) timer_remove: Option<(String, u64)>,
+    /// The sequence step (or guard) it runs, if it is one.
+    pub(crate) step: Option<crate::sequence::StepOrigin>,
 }
 
 impl Origin {
-    /// Stores `fate` with the state and its newest decision, in one write.
-    fn record(&self, s: &Shared, core: &Core, fate: &Fate) -> Result<(), AuthorityError> {
+    /// A station's command.
+    pub(crate) fn command(station: &str, sent: &Sent) -> Self {
+        Self {
+            cmd: Some((station.to_string(), sent.seq, sent.id.clone())),
+            timer_remove: None,
+            step: None,
+        }
+    }
+
+    /// Stores `fate` with the state, its newest decision and the sequence it moves on, in one
+    /// write.
+    fn record(&self, s: &Shared, core: &mut Core, fate: &Fate) -> Result<(), AuthorityError> {
+        if let Some(step) = &self.step {
+            step.advance(core, fate);
+        }
         let fates = self
             .cmd
             .iter()
@@ -183,6 +197,10 @@ impl Origin {
             timers_remove: Vec::new(),
             state: Some(&core.state),
             decision: core.state.decisions.last(),
+            sequence: self
+                .step
+                .as_ref()
+                .and_then(|st| core.sequences.get(st.name())),
         });
         if let Err(e) = &r {
             tracing::error!("storing a decision: {e}");

@@ -28,6 +28,10 @@ pub(crate) enum Job {
     },
     Timer(Timer),
     Command(String, Sent),
+    /// A sequence's step that is a transaction or its end: (name, run, step).
+    Step((String, u64, usize)),
+    /// What the sequencer found due.
+    Due(sequence::Due),
 }
 
 impl Job {
@@ -37,6 +41,8 @@ impl Job {
             Job::LinkLoss { .. } => "link-loss".into(),
             Job::Timer(t) => format!("timer {} {}", t.station, t.seq),
             Job::Command(st, c) => format!("command {st} {}", c.seq),
+            Job::Step((name, run, step)) => format!("sequence {name} {run} step {step}"),
+            Job::Due(d) => format!("sequence {} {} due {:?}", d.name, d.run, d.what),
         }
     }
 
@@ -47,7 +53,9 @@ impl Job {
             // Safing is no transaction: DNMs that cannot be reached make themselves safe.
             Job::LinkLoss { .. } => false,
             Job::Timer(_) => true,
-            Job::Command(_, c) => !matches!(c.order, Order::Cancel { .. }),
+            Job::Command(_, c) => !matches!(c.order, Order::Cancel { .. } | Order::Sequence { .. }),
+            Job::Step(_) => true,
+            Job::Due(d) => d.transacts(),
         }
     }
 }
@@ -58,12 +66,21 @@ pub(crate) fn next_job(s: &Shared, core: &Core) -> Result<Option<Job>, Authority
     }
     if let Some(l) = &core.netlist.on_link_loss {
         let silent = s.contact.lock().map(|c| c.elapsed()).unwrap_or_default();
-        if silent >= Duration::from_millis(l.after_ms) && !core.state.link_lost {
+        // A sequence running goes on through the silence unless the netlist says otherwise;
+        // the rover is made safe once it ends.
+        if silent >= Duration::from_millis(l.after_ms)
+            && !core.state.link_lost
+            && sequence::defers_link_loss(core).is_none()
+        {
             return Ok(Some(Job::LinkLoss {
                 task: l.task.clone(),
                 silent,
             }));
         }
+    }
+    // What a sequence's conditions or waits made due (a guard first).
+    if let Some(d) = s.sequencer.peek() {
+        return Ok(Some(Job::Due(d)));
     }
     // Time-tagged switches whose time has come (prepared a little ahead).
     let margin = tag_margin(s);
@@ -86,6 +103,9 @@ pub(crate) fn next_job(s: &Shared, core: &Core) -> Result<Option<Job>, Authority
     };
     if let Some(t) = timer.as_ref().filter(|t| is_due(t, margin)) {
         return Ok(Some(Job::Timer(t.clone())));
+    }
+    if let Some(step) = sequence::next_step(core) {
+        return Ok(Some(Job::Step(step)));
     }
     let Some((station, sent)) = s.store.next_command()? else {
         return Ok(None);
@@ -194,18 +214,26 @@ pub(crate) fn work_once(
             })?;
         }
         Job::Timer(t) => {
-            let cmd = (t.station.clone(), t.seq, t.id.clone());
+            let origin = Origin {
+                cmd: Some((t.station.clone(), t.seq, t.id.clone())),
+                timer_remove: Some((t.station.clone(), t.seq)),
+                step: None,
+            };
             transact(
                 s,
                 core,
                 None,
                 Some(t.task.clone()),
                 Some(t.at_unix_ns),
-                Some(cmd),
-                Some((t.station.clone(), t.seq)),
+                origin,
             );
         }
         Job::Command(station, sent) => run_command(s, core, &station, sent)?,
+        Job::Step(step) => sequence::run_step(s, core, step)?,
+        Job::Due(due) => {
+            s.sequencer.done(&due);
+            sequence::apply_due(s, core, due)?;
+        }
     }
     publish_rover(s, core);
     Ok(true)
@@ -296,7 +324,7 @@ pub(crate) fn run_command(
     station: &str,
     sent: Sent,
 ) -> Result<(), AuthorityError> {
-    let cmd = Some((station.to_string(), sent.seq, sent.id.clone()));
+    let origin = Origin::command(station, &sent);
     if let Some(reason) = safing::stale(core, sent.safings_seen) {
         return refuse(s, station, &sent, reason);
     }
@@ -360,13 +388,13 @@ pub(crate) fn run_command(
                     ..Finish::default()
                 });
             }
-            transact(s, core, None, Some(task.clone()), *at_unix_ns, cmd, None);
+            transact(s, core, None, Some(task.clone()), *at_unix_ns, origin);
             Ok(())
         }
         Order::Apply { file, text } => match s.door.accept(file, text) {
             Err(e) => refuse(s, station, &sent, e.to_string()),
             Ok(n) => {
-                transact(s, core, Some(n), None, None, cmd, None);
+                transact(s, core, Some(n), None, None, origin);
                 Ok(())
             }
         },
@@ -385,11 +413,12 @@ pub(crate) fn run_command(
             match edited {
                 Err(e) => refuse(s, station, &sent, e),
                 Ok(n) => {
-                    transact(s, core, Some(n), None, None, cmd, None);
+                    transact(s, core, Some(n), None, None, origin);
                     Ok(())
                 }
             }
         }
+        Order::Sequence { name, action } => sequence::order(s, core, station, &sent, name, action),
         Order::Cancel { seq } => {
             if let Some(t) = s.store.timer(station, *seq)? {
                 tracing::info!(station, seq, "time-tagged switch cancelled");

@@ -63,11 +63,17 @@ pub struct DnmDecl {
 }
 
 /// What the rover does when no ground station has been heard for a while:
-/// `on_link_loss = { after = "5s", task = "safe" }`.
+/// `on_link_loss = { after = "5s", task = "safe" }`, and what it does to an onboard sequence
+/// running (`sequences = "run"`, the default, or `"stop"`).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct LinkLoss {
     pub after_ms: u64,
     pub task: String,
+    /// `sequences = "stop"`: loss of signal makes the rover safe even while a sequence runs,
+    /// and stops it. By default a sequence running goes on through the silence (it is what the
+    /// operators planned for it) and the rover is made safe only once it ends.
+    #[serde(default)]
+    pub stop_sequences: bool,
 }
 
 /// A module instance.

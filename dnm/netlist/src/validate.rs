@@ -91,6 +91,7 @@ struct RawSystem {
 struct RawLinkLoss {
     after: Spanned<String>,
     task: Spanned<String>,
+    sequences: Option<Spanned<String>>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -550,9 +551,27 @@ impl Validation<'_, '_> {
             );
             return None;
         }
+        let stop_sequences = match l.sequences.as_ref().map(|s| (s, s.get_ref().as_str())) {
+            None | Some((_, "run")) => false,
+            Some((_, "stop")) => true,
+            Some((s, other)) => {
+                self.r.error(
+                    span_of(s),
+                    "system.on_link_loss.sequences",
+                    format!("`{other}` is not what loss of signal can do to a sequence"),
+                    Some(
+                        "use `sequences = \"run\"` (the default: a running sequence goes on) or \
+                         `\"stop\"` (the rover is made safe and the sequence stops)"
+                            .into(),
+                    ),
+                );
+                return None;
+            }
+        };
         Some(LinkLoss {
             after_ms: after_ms?,
             task: l.task.get_ref().clone(),
+            stop_sequences,
         })
     }
 

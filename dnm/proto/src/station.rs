@@ -28,6 +28,34 @@ pub enum Order {
     Module { edit: ModuleEdit },
     /// Cancel this station's time-tagged command `seq` before it runs.
     Cancel { seq: u64 },
+    /// Upload, start, pause, resume or cancel the onboard sequence `name`.
+    Sequence {
+        name: String,
+        action: SequenceAction,
+    },
+}
+
+/// What an [`Order::Sequence`] does to a sequence stored on the rover.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "do", rename_all = "snake_case")]
+pub enum SequenceAction {
+    /// Stores (or replaces, when it is not running) the sequence: its TOML `text`, checked
+    /// against the netlist in force; `file` names it in errors. `netlists` are the files its
+    /// `apply` steps name (as written in the sequence) and their text.
+    Upload {
+        file: String,
+        text: String,
+        #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+        netlists: std::collections::BTreeMap<String, String>,
+    },
+    /// Runs it from its first step (checked again against the netlist in force).
+    Start,
+    /// Holds it before its next step; waits and conditions stop counting.
+    Pause,
+    /// Goes on from where it was paused.
+    Resume,
+    /// Stops it where it is (the rover stays in its task).
+    Cancel,
 }
 
 /// How late after its time a time-tagged switch may still run unless it says otherwise: a
@@ -116,6 +144,9 @@ pub enum Fate {
     CancelledBy { by: u64 },
     /// Not run; nothing changed on the rover.
     Refused { reason: String },
+    /// Taken by the rover without changing what its DNMs run (a sequence stored, started,
+    /// paused...): `detail` says what it did.
+    Done { at_unix_ns: u64, detail: String },
 }
 
 impl Fate {
@@ -124,6 +155,7 @@ impl Fate {
         matches!(
             self,
             Fate::Applied { .. }
+                | Fate::Done { .. }
                 | Fate::Cancelled { .. }
                 | Fate::CancelledBy { .. }
                 | Fate::Refused { .. }
@@ -186,6 +218,10 @@ pub struct Beat {
     /// The safing in force (the rover is on its task and no command ran since), if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub safing: Option<Safing>,
+    /// The onboard sequence running, if one: loss of signal does not make the rover safe
+    /// while it runs (the operators planned for the silence), so a DNM does not either.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sequence: Option<String>,
 }
 
 /// The rover as its authority sees it.
@@ -208,6 +244,63 @@ pub struct RoverState {
     /// Whether the rover is still in that safing (no command has run since).
     #[serde(default)]
     pub safe: bool,
+    /// The sequences stored on the rover, by name.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sequences: Vec<SequenceStatus>,
+}
+
+/// Where a sequence stored on the rover stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SequenceState {
+    /// Stored, not started (or stored again since it last ran).
+    Stored,
+    Running,
+    Paused,
+    /// Went through its last step (or an `end`).
+    Finished,
+    /// Stopped before its end: cancelled, a guard fired, a timeout, a refused step, a safing.
+    Aborted,
+}
+
+/// A sequence stored on the rover, as stations see it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SequenceStatus {
+    pub name: String,
+    /// The file it was uploaded from.
+    pub file: String,
+    pub state: SequenceState,
+    /// The step it is on (0-based; `steps` once it went through all of them).
+    pub step: usize,
+    pub steps: usize,
+    /// The current step, in words (`wait_until autopilot.progress.reached >= 3`).
+    #[serde(default)]
+    pub doing: String,
+    /// Why it waits, or why it stopped, in words.
+    #[serde(default)]
+    pub why: String,
+    /// Rover time the current step began, ns since the Unix epoch.
+    pub step_since_unix_ns: u64,
+    /// Its history, oldest first (the last ones).
+    #[serde(default)]
+    pub history: Vec<SequenceEvent>,
+}
+
+/// Something that happened to a sequence on the rover.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SequenceEvent {
+    /// Rover time, ns since the Unix epoch.
+    pub at_unix_ns: u64,
+    pub sequence: String,
+    /// How many times the sequence was started (1 for its first run).
+    pub run: u64,
+    /// `stored`, `started`, `step_started`, `step_done`, `condition_met`, `timed_out`,
+    /// `guard_fired`, `paused`, `resumed`, `finished`, `aborted`, `resumed_after_restart`.
+    pub what: String,
+    /// The step it concerns, if one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step: Option<usize>,
+    pub detail: String,
 }
 
 /// What the authority answers an [`Uplink`].
@@ -244,6 +337,10 @@ mod tests {
             Fate::CancelledBy { by: 9 },
             Fate::Refused {
                 reason: "no".into(),
+            },
+            Fate::Done {
+                at_unix_ns: 1,
+                detail: "sequence `explore` stored".into(),
             },
         ];
         for fate in fates {

@@ -146,7 +146,9 @@ impl Lease {
                     });
                 }
                 let silent = Duration::from_millis(beat.ground_silent_ms);
-                (silent >= *after + GRACE && safed.is_none()).then(|| SafeOrder {
+                // A sequence running goes on through the silence (the authority makes the
+                // rover safe when it ends).
+                (silent >= *after + GRACE && safed.is_none() && beat.sequence.is_none()).then(|| SafeOrder {
                     task: task.clone(),
                     epoch: None,
                     reason: format!(
@@ -250,6 +252,7 @@ mod tests {
             task: Some("auto".into()),
             ground_silent_ms,
             safing,
+            sequence: None,
         }
     }
 
