@@ -90,11 +90,27 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
         s["final_heading_error_deg"].as_f64().unwrap() < 5.0,
         "{s:#}"
     );
-    // teleop -> auto -> teleop through the ground station, on the rover's three DNMs at one
-    // instant (the ground's DNM, across the radio, follows); a module replaced in between.
+    // teleop -> auto -> teleop by the exploration sequence, run on board by the authority, on
+    // the rover's three DNMs at one instant (the ground's DNM, across the radio, follows); the
+    // camera replaced in between.
     let switches = s["switches"].as_array().unwrap();
     let tos: Vec<&str> = switches.iter().map(|w| w["to"].as_str().unwrap()).collect();
     assert_eq!(tos, ["auto", "teleop"]);
+    assert!(switches.iter().all(|w| w["by"] == "sequence"), "{s:#}");
+    assert_eq!(s["sequence"]["name"], "explore", "{s:#}");
+    assert_eq!(s["sequence"]["state"], "finished", "{s:#}");
+    let events: Vec<&str> = s["sequence"]["events"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e.as_str().unwrap())
+        .collect();
+    assert!(
+        events
+            .iter()
+            .any(|e| e.starts_with("condition_met step 2: autopilot.progress.reached >= 3 held")),
+        "{events:#?}"
+    );
     for w in switches {
         assert_eq!(w["per_dnm_ns"].as_array().unwrap().len(), 3, "{w}");
         assert!(w["command_to_switch_ms"].as_f64().unwrap() > 0.0, "{w}");
@@ -166,6 +182,31 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
         .filter_map(|f| f["channels"]["/rover/odometry/odom"].as_u64())
         .sum();
     assert!(odom > 100, "{manifest:#}");
+    // The sequence's events are in the authority DNM's files, read back with the mcap crate.
+    let mut said: Vec<String> = Vec::new();
+    for f in manifest["files"].as_array().unwrap() {
+        let bytes = std::fs::read(session.join(f["name"].as_str().unwrap())).unwrap();
+        for m in mcap::MessageStream::new(&bytes).unwrap() {
+            let m = m.unwrap();
+            if m.channel.topic == "/rover/_sequences" {
+                let e: Value = serde_json::from_slice(&m.data).unwrap();
+                assert_eq!(e["sequence"], "explore", "{e}");
+                said.push(e["what"].as_str().unwrap().to_string());
+            }
+        }
+    }
+    for what in [
+        "started",
+        "step_started",
+        "condition_met",
+        "step_done",
+        "finished",
+    ] {
+        assert!(
+            said.iter().any(|w| w == what),
+            "{what} not recorded: {said:?}"
+        );
+    }
     let span_s = (manifest["end_unix_ns"].as_u64().unwrap()
         - manifest["start_unix_ns"].as_u64().unwrap()) as f64
         / 1e9;

@@ -249,8 +249,11 @@ switch = "a"
     assert!(q.why.contains("switched to `c`"), "{}", q.why);
     // From the sample that crossed the limit to the switch in force.
     let fired = q.history.iter().find(|e| e.what == "guard_fired").unwrap();
-    let sent = number_after(&fired.detail, "sent at ").unwrap();
-    let in_force = number_after(&q.why, "in force at ").unwrap();
+    let sent = fired.sample_unix_ns.unwrap();
+    let aborted = q.history.iter().find(|e| e.what == "aborted").unwrap();
+    let in_force = aborted.in_force.as_ref().unwrap();
+    assert_eq!(in_force.task.as_deref(), Some("c"));
+    let in_force = in_force.at_unix_ns;
     eprintln!(
         "guard: sample sent at {sent}, switch in force {:.1} ms later",
         (in_force as f64 - sent as f64) / 1e6
@@ -263,15 +266,6 @@ switch = "a"
         "no step ran after the guard: {:#?}",
         q.history
     );
-}
-
-/// The number right after `prefix` in `text`.
-fn number_after(text: &str, prefix: &str) -> Option<u64> {
-    let rest = &text[text.find(prefix)? + prefix.len()..];
-    rest.split(|c: char| !c.is_ascii_digit())
-        .next()?
-        .parse()
-        .ok()
 }
 
 #[test]

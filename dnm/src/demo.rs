@@ -1,8 +1,10 @@
-//! `dnm demo`: the whole simulated Beetle-One on this machine, and a scripted mission driven
-//! the way an operator would drive it: through a ground station (its outbox, the rover's
-//! authority, every DNM switching at one instant) and over Zenoh: joystick driving, a switch to
-//! the autopilot to reach the waypoints, a module replaced while the rover runs, a switch back,
-//! then a summary.
+//! `dnm demo`: the whole simulated Beetle-One on this machine, and its mission driven the way
+//! operators would drive it: through a ground station (its outbox, the rover's authority,
+//! every DNM switching at one instant) and over Zenoh. Joystick driving, then the exploration
+//! sequence (`configs/sequences/explore.toml`), uploaded through the station and carried out on
+//! board by the authority with no command from the ground: a switch to the autopilot until it
+//! reports every waypoint reached, the camera narrowed while the rover runs, a switch back to
+//! the joystick. Then a summary.
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -21,6 +23,9 @@ use zenoh::Wait;
 
 /// The Beetle-One netlist, built in so the demo runs from any folder.
 const BEETLE: &str = include_str!("../../configs/beetle.toml");
+/// Its exploration sequence, likewise.
+const EXPLORE: &str = include_str!("../../configs/sequences/explore.toml");
+const EXPLORE_FILE: &str = "configs/sequences/explore.toml";
 
 /// How far odometry may be from the simulator's ground truth at the end: 0.1 m plus 1 % of
 /// the distance driven (encoder quantisation, sampling, and the lag between the two readings).
@@ -31,6 +36,8 @@ fn tolerance(distance: f64) -> f64 {
 #[derive(Debug, Clone)]
 pub struct DemoArgs {
     pub netlist: Option<PathBuf>,
+    /// The sequence the rover runs on board (default: the built-in exploration).
+    pub sequence: Option<PathBuf>,
     pub keep_running: bool,
     pub json: bool,
     /// Seconds of joystick driving before and after the autopilot.
@@ -205,10 +212,36 @@ struct SwitchSummary {
     revision: u64,
     slowest_ns: u64,
     per_dnm_ns: Vec<(String, u64)>,
-    /// From the operator's command to the decided instant, ms.
+    /// What asked for it: `station` (an operator's command) or `sequence` (a step on board).
+    by: String,
+    /// From the operator's command (or the sequence reaching the step) to the decided
+    /// instant, ms.
     command_to_switch_ms: f64,
     /// Between the first and the last DNM of the rover to switch, µs.
     spread_us: f64,
+}
+
+/// What the exploration sequence did, as the mission saw it.
+struct Explored {
+    /// Odometry against the truth at rest on the last waypoint, m.
+    at_rest_error: f64,
+    replaced: String,
+    revision: u64,
+    summary: SequenceSummary,
+}
+
+/// The sequence as the rover reported it.
+#[derive(Debug, Serialize)]
+struct SequenceSummary {
+    name: String,
+    /// `finished`, `aborted`...
+    state: String,
+    steps: usize,
+    duration_s: f64,
+    /// Why it stopped, if it was aborted.
+    why: String,
+    /// Its events, in words.
+    events: Vec<String>,
 }
 
 #[derive(Debug, Serialize)]
@@ -226,6 +259,8 @@ struct Summary {
     position_tolerance_m: f64,
     at_rest_position_error_m: f64,
     switches: Vec<SwitchSummary>,
+    /// The exploration sequence as the rover carried it out.
+    sequence: Option<SequenceSummary>,
     replaced: String,
     revision: u64,
     module_messages: u64,
@@ -347,6 +382,167 @@ impl Mission<'_> {
         }
     }
 
+    /// Gives the ground station `order` (one that changes nothing the DNMs run) and waits until
+    /// the rover took it; returns what the rover says it did.
+    fn order(&mut self, order: dnm_proto::station::Order) -> anyhow::Result<String> {
+        use dnm_proto::station::Fate;
+        let entry = self.station.submit(order)?;
+        let done = self
+            .station
+            .wait(entry.seq, Duration::from_secs(60))
+            .context("the command vanished from the outbox")?;
+        match done.fate {
+            Some(Fate::Done { detail, .. }) => Ok(detail),
+            Some(Fate::Refused { reason }) => {
+                bail!("the rover refused command {}: {reason}", entry.seq)
+            }
+            other => bail!("command {} not done within 60 s: {other:?}", entry.seq),
+        }
+    }
+
+    /// Uploads the exploration sequence, starts it, and follows it until the rover says it
+    /// ended: its events as they come, the rover's state, its switches.
+    fn explore(&mut self, netlist: &Netlist, args: &DemoArgs) -> anyhow::Result<Explored> {
+        use dnm_proto::station::{Order, SequenceAction, SequenceState};
+        let (file, text) = match &args.sequence {
+            Some(p) => (
+                p.display().to_string(),
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?,
+            ),
+            None => (EXPLORE_FILE.to_string(), EXPLORE.to_string()),
+        };
+        let sequence = dnm_netlist::Sequence::parse(Path::new(&file), &text, netlist)?;
+        let name = sequence.name.clone();
+        let said = self.order(Order::Sequence {
+            name: name.clone(),
+            action: SequenceAction::Upload {
+                file,
+                text,
+                netlists: Default::default(),
+            },
+        })?;
+        self.say(&format!("uploaded through the ground station: {said}"));
+        let started = dnm_ground::now_unix_ns();
+        let said = self.order(Order::Sequence {
+            name: name.clone(),
+            action: SequenceAction::Start,
+        })?;
+        self.say(&format!("{said}; from here the rover runs on its own"));
+        let reached_all =
+            |s: &Snapshot| s.progress.total > 0 && s.progress.reached == s.progress.total;
+        let mut at_rest_error = f64::NAN;
+        let mut told = 0usize;
+        let until = Instant::now() + Duration::from_secs(300);
+        let q = loop {
+            if let Some(s) = Snapshot::read(&self.probe) {
+                self.status(&s);
+                // At rest on the last waypoint: the pose estimates compared.
+                if at_rest_error.is_nan()
+                    && reached_all(&s)
+                    && s.truth.linear.abs() < 1e-3
+                    && s.odom.linear.abs() < 1e-3
+                {
+                    at_rest_error = s.pose_error().0;
+                }
+            }
+            let q = self
+                .station
+                .link()
+                .rover
+                .and_then(|r| r.sequences.into_iter().find(|q| q.name == name));
+            if let Some(q) = &q {
+                let events: Vec<_> = q
+                    .history
+                    .iter()
+                    .filter(|e| e.at_unix_ns >= started)
+                    .cloned()
+                    .collect();
+                for e in events.iter().skip(told) {
+                    self.said_on_board(e)?;
+                }
+                told = told.max(events.len());
+                if matches!(q.state, SequenceState::Finished | SequenceState::Aborted)
+                    && q.history.iter().any(|e| e.at_unix_ns >= started)
+                {
+                    break q.clone();
+                }
+            }
+            if Instant::now() > until {
+                bail!("the sequence `{name}` did not end within 300 s: {q:?}");
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        };
+        let events: Vec<_> = q
+            .history
+            .iter()
+            .filter(|e| e.at_unix_ns >= started)
+            .collect();
+        let edit = events
+            .iter()
+            .zip(events.iter().skip(1))
+            .find(|(a, b)| {
+                a.what == "step_started" && a.detail.starts_with("replace") && b.in_force.is_some()
+            })
+            .map(|(a, b)| {
+                (
+                    a.detail.clone(),
+                    b.in_force.clone().unwrap_or_else(|| unreachable!()),
+                )
+            });
+        let state = serde_json::to_value(q.state)?
+            .as_str()
+            .unwrap_or_default()
+            .to_string();
+        Ok(Explored {
+            at_rest_error,
+            // "replace module `camera` fov_deg=40" -> "camera: fov_deg=40 (revision 2)..."
+            replaced: edit
+                .as_ref()
+                .map(|(what, f)| {
+                    let what = what
+                        .trim_start_matches("replace module ")
+                        .replacen('`', "", 2);
+                    let what = what.replacen(' ', ": ", 1);
+                    format!("{what} (revision {}), by the sequence on board", f.revision)
+                })
+                .unwrap_or_default(),
+            revision: edit.map_or(0, |(_, f)| f.revision),
+            summary: SequenceSummary {
+                name,
+                state,
+                steps: q.steps,
+                duration_s: events
+                    .last()
+                    .map_or(0.0, |e| e.at_unix_ns.saturating_sub(started) as f64 / 1e9),
+                why: q.why.clone(),
+                events: events
+                    .iter()
+                    .map(|e| {
+                        let step = e.step.map_or(String::new(), |s| format!(" step {}", s + 1));
+                        format!("{}{step}: {}", e.what, e.detail)
+                    })
+                    .collect(),
+            },
+        })
+    }
+
+    /// Says what the sequence did on board; a switch it made is measured like an operator's.
+    fn said_on_board(&mut self, e: &dnm_proto::station::SequenceEvent) -> anyhow::Result<()> {
+        let step = e.step.map_or(String::new(), |s| format!(" step {}", s + 1));
+        self.say(&format!("on board: {}{step}: {}", e.what, e.detail));
+        if let Some(f) = &e.in_force
+            && let Some(task) = f.task.as_ref().filter(|t| **t != self.task)
+        {
+            let task = task.clone();
+            // Decided for an instant that may still be a few milliseconds ahead.
+            let ahead = f.at_unix_ns.saturating_sub(dnm_ground::now_unix_ns());
+            std::thread::sleep(Duration::from_nanos(ahead) + Duration::from_millis(20));
+            let step_started = e.at_unix_ns.min(f.at_unix_ns);
+            self.switched(&task, f.revision, step_started, f.at_unix_ns, "sequence")?;
+        }
+        Ok(())
+    }
+
     fn switch(&mut self, task: &str) -> anyhow::Result<()> {
         let asked = dnm_ground::now_unix_ns();
         let (revision, at) = self.command(dnm_proto::station::Order::Switch {
@@ -354,6 +550,19 @@ impl Mission<'_> {
             at_unix_ns: None,
             late_by_ms: None,
         })?;
+        self.switched(task, revision, asked, at, "station")
+    }
+
+    /// Reads what the rover's DNMs recorded of the switch to `task` in `revision`, decided
+    /// for `at` after it was asked for at `asked`, and says so.
+    fn switched(
+        &mut self,
+        task: &str,
+        revision: u64,
+        asked: u64,
+        at: u64,
+        by: &str,
+    ) -> anyhow::Result<()> {
         // Each DNM of the rover recorded its switch; those across the radio follow later.
         let status = self.probe.request(&Request::Status)?;
         let records: Vec<SwitchRecord> = status
@@ -381,13 +590,19 @@ impl Mission<'_> {
                 .iter()
                 .map(|s| (s.dnm.clone(), s.duration_ns))
                 .collect(),
+            by: by.to_string(),
             command_to_switch_ms: at.saturating_sub(asked) as f64 / 1e6,
             spread_us: spread as f64 / 1e3,
         };
+        let how = if by == "station" {
+            "through the ground station: {} ms from command to the instant"
+        } else {
+            "by the sequence on board: {} ms from the step to the instant"
+        };
         self.say(&format!(
-            "switched {} -> {task} through the ground station: {:.0} ms from command to the instant, {} rover DNMs within {:.0} µs of each other; slowest switch inside a DNM {:.2} µs",
+            "switched {} -> {task} {}, {} rover DNMs within {:.0} µs of each other; slowest switch inside a DNM {:.2} µs",
             summary.from.as_deref().unwrap_or("?"),
-            summary.command_to_switch_ms,
+            how.replace("{}", &format!("{:.0}", summary.command_to_switch_ms)),
             records.len(),
             summary.spread_us,
             slowest as f64 / 1000.0
@@ -601,38 +816,19 @@ fn mission(
     m.say("driving by joystick (task `teleop`)");
     m.watch(args.teleop_s, |_| false);
 
-    m.switch("auto")?;
-    m.say("autopilot driving to its waypoints (task `auto`)");
-    // A module is replaced while the rover drives: the camera gets a narrower lens.
-    let mut replaced = String::new();
-    let mut revision = 0;
-    let reached_all = |s: &Snapshot| s.progress.total > 0 && s.progress.reached == s.progress.total;
-    let first = m.watch(60.0, |s| s.progress.reached >= 1 || reached_all(s));
-    if first.is_some() {
-        let (r, _) = m.command(dnm_proto::station::Order::Module {
-            edit: dnm_proto::station::ModuleEdit::Replace {
-                name: "camera".into(),
-                kind: None,
-                params: vec!["fov_deg=60.0".into()],
-            },
-        })?;
-        revision = r;
-        replaced = format!("camera: field of view 70° -> 60° (revision {revision})");
-        m.say(&format!("replaced module {replaced} while driving"));
+    // The rest of the mission is a plan the rover carries out on its own: the exploration
+    // sequence, uploaded through the ground station and run on board by the authority.
+    let explored = m.explore(netlist, args)?;
+    let at_rest_error = explored.at_rest_error;
+    let replaced = explored.replaced.clone();
+    let revision = explored.revision;
+    let sequence = explored.summary;
+    if sequence.state != "finished" {
+        problems.push(format!(
+            "the sequence `{}` did not finish: {} ({})",
+            sequence.name, sequence.state, sequence.why
+        ));
     }
-    let at_rest = m.watch(120.0, reached_all);
-    let at_rest = at_rest.filter(reached_all);
-    match &at_rest {
-        Some(_) => m.say("all waypoints reached"),
-        None => problems.push("the autopilot did not reach all its waypoints within 120 s".into()),
-    }
-    // Let the rover come to rest on the last waypoint, then compare the pose estimates.
-    let rest = m.watch(3.0, |s| {
-        s.truth.linear.abs() < 1e-3 && s.odom.linear.abs() < 1e-3
-    });
-    let at_rest_error = rest.map(|s| s.pose_error().0).unwrap_or(f64::NAN);
-
-    m.switch("teleop")?;
     m.say("back to the joystick (task `teleop`)");
     let last = m
         .watch(args.teleop_s, |_| false)
@@ -684,6 +880,7 @@ fn mission(
         position_tolerance_m: tol,
         at_rest_position_error_m: at_rest_error,
         switches: m.switches,
+        sequence: Some(sequence),
         replaced,
         revision: status.revision.unwrap_or(revision),
         module_messages,
@@ -724,14 +921,38 @@ fn print_summary(s: &Summary) {
     );
     for sw in &s.switches {
         println!(
-            "  switch            {} -> {} at {:.1} s: {:.0} ms from command to instant; {} rover DNMs within {:.0} µs; slowest {:.2} µs inside a DNM",
+            "  switch            {} -> {} at {:.1} s by the {}: {:.0} ms from {} to instant; {} rover DNMs within {:.0} µs; slowest {:.2} µs inside a DNM",
             sw.from.as_deref().unwrap_or("?"),
             sw.to,
             sw.at_s,
+            if sw.by == "station" {
+                "ground station"
+            } else {
+                "sequence on board"
+            },
             sw.command_to_switch_ms,
+            if sw.by == "station" {
+                "command"
+            } else {
+                "step"
+            },
             sw.per_dnm_ns.len(),
             sw.spread_us,
             sw.slowest_ns as f64 / 1000.0
+        );
+    }
+    if let Some(q) = &s.sequence {
+        println!(
+            "  sequence          `{}` run on board by the authority, no command from the ground: {}, {} steps in {:.1} s{}",
+            q.name,
+            q.state,
+            q.steps,
+            q.duration_s,
+            if q.why.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", q.why)
+            }
         );
     }
     if !s.replaced.is_empty() {

@@ -6,6 +6,7 @@
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::PathBuf;
 use std::sync::mpsc::{self, SyncSender};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -112,6 +113,8 @@ impl Host {
         let follow = crate::commanded_by_authority(&netlist);
         let (netlist, joined) = join_running(&session, netlist, dnms, follow);
         let mut hosted = Hosted(Vec::new());
+        // The authority's sequence events go to its DNM's recorder, once it runs.
+        let sequences: SequenceSlot = Arc::default();
         for name in dnms {
             let start = DnmStart {
                 netlist: netlist.clone(),
@@ -120,11 +123,12 @@ impl Host {
                 session: session.clone(),
                 joined: joined.clone(),
                 follow,
+                sequences: (netlist.authority() == Some(name.as_str())).then(|| sequences.clone()),
             };
             hosted.0.push(start.spawn()?);
         }
         let (socket, listener) = bind_socket(&netlist.system, dnms)?;
-        let authority = start_authority(&session, &netlist, dnms, follow, &options)?;
+        let authority = start_authority(&session, &netlist, dnms, follow, &options, sequences)?;
         let commanders: Vec<Commander> = hosted.0.iter().map(|h| h.commander.clone()).collect();
         let system = netlist.system.clone();
         let follows = follow
@@ -265,6 +269,7 @@ fn start_authority(
     dnms: &[String],
     follow: bool,
     options: &HostOptions,
+    sequences: SequenceSlot,
 ) -> anyhow::Result<Option<dnm_authority::Authority>> {
     if netlist
         .authority()
@@ -277,15 +282,26 @@ fn start_authority(
         anyhow::bail!("the authority did not start: {}", crate::NO_STATE_DIR);
     };
     let db = dir.join(format!("{}-authority.redb", netlist.system));
+    let mut authority_options = dnm_authority::AuthorityOptions::new(db);
+    authority_options.sequence_log = Some(dnm_authority::SequenceLog(Arc::new(move |e| {
+        if let (Ok(slot), Ok(json)) = (sequences.lock(), serde_json::to_string(e))
+            && let Some(r) = slot.as_ref()
+        {
+            r.record(json);
+        }
+    })));
     let authority = dnm_authority::Authority::start(
         session.clone(),
         netlist,
         crate::remote_door(&netlist.system),
-        dnm_authority::AuthorityOptions::new(db),
+        authority_options,
     )
     .map_err(|e| anyhow::anyhow!("the authority did not start: {e}"))?;
     Ok(Some(authority))
 }
+
+/// Where the authority's sequence events are recorded: its DNM's recorder, once it runs.
+type SequenceSlot = Arc<Mutex<Option<crate::record::SequenceRecorder>>>;
 
 /// What a DNM thread starts from.
 struct DnmStart {
@@ -297,6 +313,8 @@ struct DnmStart {
     joined: Option<(u64, Option<String>)>,
     /// It takes what the authority decides instead of applying the netlist.
     follow: bool,
+    /// Set for the authority's DNM: its recorder records the sequence events.
+    sequences: Option<SequenceSlot>,
 }
 
 impl DnmStart {
@@ -356,6 +374,11 @@ impl DnmStart {
         dnm.add_plugin(Box::new(bridge));
         if let Some(r) = self.options.record {
             let recorder = crate::record::Recorder::start(name, dnm.prefix(), r)?;
+            if let Some(slot) = &self.sequences
+                && let Ok(mut slot) = slot.lock()
+            {
+                *slot = Some(recorder.sequence_recorder());
+            }
             dnm.add_plugin(Box::new(recorder));
         }
         // A DNM joining a running system continues from the netlist and task in force there.

@@ -179,10 +179,14 @@ enum Cmd {
         /// Netlist to run (default: configs/beetle.toml, or the built-in copy).
         #[arg(long)]
         netlist: Option<PathBuf>,
+        /// The sequence the rover carries out on board after the joystick driving (default:
+        /// configs/sequences/explore.toml, built in).
+        #[arg(long)]
+        sequence: Option<PathBuf>,
         /// Keep the system running after the mission, until Ctrl-C.
         #[arg(long)]
         keep_running: bool,
-        /// Seconds of joystick driving before and after the autopilot.
+        /// Seconds of joystick driving before and after the sequence.
         #[arg(long, default_value_t = 8.0)]
         teleop_seconds: f64,
         /// Print only the summary, as JSON.
@@ -412,6 +416,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Cmd::Module { op } => module_op(z, op),
         Cmd::Demo {
             netlist,
+            sequence,
             keep_running,
             teleop_seconds,
             json,
@@ -423,6 +428,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             &z.options(),
             &demo::DemoArgs {
                 netlist,
+                sequence,
                 keep_running,
                 json,
                 teleop_s: teleop_seconds,

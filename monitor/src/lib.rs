@@ -90,6 +90,8 @@ enum Event {
         wiring: Option<Wiring>,
         reports: Vec<DnmGlance>,
     },
+    /// An onboard sequence's event, as the authority published it.
+    Sequence(dnm_proto::station::SequenceEvent),
 }
 
 /// Samples waiting for the logging thread at most; beyond, they are dropped and counted.
@@ -112,6 +114,19 @@ pub fn run(
         std::thread::Builder::new()
             .name("monitor-status".into())
             .spawn(move || status_loop(&session, &system, every, &tx, &stop))?
+    };
+    // The authority's sequence events, each as it happens.
+    let _sequences = {
+        let tx = tx.clone();
+        session
+            .declare_subscriber(keys::authority_sequences(&options.system))
+            .callback(move |sample| {
+                if let Ok(e) = serde_json::from_slice(&sample.payload().to_bytes()) {
+                    let _ = tx.try_send(Event::Sequence(e));
+                }
+            })
+            .wait()
+            .map_err(|e| anyhow::anyhow!("watching sequence events: {e}"))?
     };
     let mut view = View::new(rec.clone(), options.clone());
     let result = view.run(session, &rx, &tx, &dropped, stop_when);
@@ -330,6 +345,17 @@ impl View {
                         self.wiring_changed(session, w, tx, dropped)?;
                     }
                     self.reports(&reports)?;
+                }
+                Ok(Event::Sequence(e)) => {
+                    let level = match e.what.as_str() {
+                        "guard_fired" | "aborted" | "timed_out" => rerun::TextLogLevel::WARN,
+                        _ => rerun::TextLogLevel::INFO,
+                    };
+                    let step = e.step.map_or(String::new(), |s| format!(" step {}", s + 1));
+                    self.say(
+                        level,
+                        &format!("sequence `{}`{step}: {} {}", e.sequence, e.what, e.detail),
+                    )?;
                 }
                 Err(RecvTimeoutError::Timeout) => {}
                 Err(RecvTimeoutError::Disconnected) => break,

@@ -150,6 +150,18 @@ pub(crate) fn publish_rover(s: &Shared, core: &Core) {
             });
         *d = sequence::defers_link_loss(core).or_else(|| d.take().filter(|_| loss_due));
     }
+    if let Ok(mut told) = s.told.lock() {
+        sequence::tell_new_events(core, &mut told, &mut |e| {
+            if let Some(log) = &s.options.sequence_log {
+                (log.0)(e);
+            }
+            if let Ok(json) = serde_json::to_vec(e)
+                && let Err(err) = s.sequence_events.put(json).wait()
+            {
+                tracing::debug!("publishing a sequence event: {err}");
+            }
+        });
+    }
     s.sequencer
         .arm(sequence::active(core).and_then(|r| sequencer::Armed::of(r, &core.netlist)));
 }

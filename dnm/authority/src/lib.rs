@@ -58,7 +58,7 @@ use std::time::{Duration, Instant};
 
 use dnm_netlist::{AcceptError, Netlist, NetlistDoor};
 use dnm_proto::station::{
-    DEFAULT_LATE_BY_MS, Downlink, Fate, Order, RoverEvent, RoverState, Sent, Uplink,
+    DEFAULT_LATE_BY_MS, Downlink, Fate, Order, RoverEvent, RoverState, Sent, SequenceEvent, Uplink,
 };
 use dnm_proto::{DnmBrief, RemoteCommand, Request, Response, keys};
 use zenoh::Wait;
@@ -112,6 +112,17 @@ pub enum AuthorityError {
     DecidedNetlist(#[source] AcceptError),
 }
 
+/// Where the authority hands each event of its sequences as it happens (besides publishing it
+/// on [`keys::authority_sequences`]): its DNM's recorder, say.
+#[derive(Clone)]
+pub struct SequenceLog(pub Arc<dyn Fn(&SequenceEvent) + Send + Sync>);
+
+impl std::fmt::Debug for SequenceLog {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("SequenceLog")
+    }
+}
+
 /// How the authority works.
 #[derive(Debug, Clone)]
 pub struct AuthorityOptions {
@@ -124,6 +135,8 @@ pub struct AuthorityOptions {
     pub prepare_timeout: Duration,
     /// How often every DNM is checked against what was decided.
     pub reconcile_every: Duration,
+    /// Also told every sequence event.
+    pub sequence_log: Option<SequenceLog>,
 }
 
 impl AuthorityOptions {
@@ -133,6 +146,7 @@ impl AuthorityOptions {
             switch_lead: Duration::from_millis(50),
             prepare_timeout: Duration::from_secs(10),
             reconcile_every: Duration::from_millis(500),
+            sequence_log: None,
         }
     }
 }
@@ -216,6 +230,9 @@ pub(crate) struct Shared {
     /// The sequence running whose end loss of signal waits for (the beat says it).
     deferring: Mutex<Option<String>>,
     sequencer: sequencer::Sequencer,
+    /// How many events of each sequence were told (published and logged).
+    told: Mutex<BTreeMap<String, u64>>,
+    sequence_events: zenoh::pubsub::Publisher<'static>,
     stop: AtomicBool,
 }
 
@@ -328,7 +345,18 @@ impl Authority {
         let digest = format!("{:016x}", current.digest());
         let contact = last_contact(&store);
         let mut sequences = store.sequences()?;
+        // What was told before a restart is not told again.
+        let told = sequences
+            .iter()
+            .map(|(n, r)| (n.clone(), r.events_total))
+            .collect();
         sequence::resume_after_restart(&store, &mut sequences);
+        let sequence_events = session
+            .declare_publisher(keys::authority_sequences(&system))
+            // Never holds up the worker: the history is in the rover's state for stations.
+            .congestion_control(CongestionControl::Drop)
+            .wait()
+            .map_err(AuthorityError::Zenoh)?;
         let shared = Arc::new(Shared {
             timing: Mutex::new(Timing::default()),
             system: system.clone(),
@@ -354,6 +382,8 @@ impl Authority {
             dnms_heard: Mutex::new(BTreeMap::new()),
             deferring: Mutex::new(None),
             sequencer: sequencer::Sequencer::default(),
+            told: Mutex::new(told),
+            sequence_events,
             stop: AtomicBool::new(false),
         });
         if let Ok(core) = shared.core.lock() {

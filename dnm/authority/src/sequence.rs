@@ -31,7 +31,7 @@ use std::path::Path;
 use dnm_netlist::sequence::{Condition, OnTimeout, SequenceEdit, Step};
 use dnm_netlist::{NetlistError, Sequence};
 use dnm_proto::station::{
-    ModuleEdit, SequenceAction, SequenceEvent, SequenceState, SequenceStatus,
+    InForce, ModuleEdit, SequenceAction, SequenceEvent, SequenceState, SequenceStatus,
 };
 use serde::{Deserialize, Serialize};
 
@@ -67,6 +67,9 @@ pub(crate) struct SequenceRun {
     pub(crate) why: String,
     #[serde(default)]
     pub(crate) history: Vec<SequenceEvent>,
+    /// Events it ever had (its history keeps the last ones).
+    #[serde(default)]
+    pub(crate) events_total: u64,
 }
 
 impl SequenceRun {
@@ -80,6 +83,31 @@ impl SequenceRun {
     }
 
     pub(crate) fn event(&mut self, what: &str, step: Option<usize>, detail: String) {
+        self.event_in_force(what, step, detail, None);
+    }
+
+    /// An event of a condition that held on the sample sent at `sample_unix_ns`.
+    pub(crate) fn event_at_sample(
+        &mut self,
+        what: &str,
+        step: Option<usize>,
+        detail: String,
+        sample_unix_ns: u64,
+    ) {
+        self.event_in_force(what, step, detail, None);
+        if let Some(e) = self.history.last_mut() {
+            e.sample_unix_ns = Some(sample_unix_ns);
+        }
+    }
+
+    /// An event of a transaction that put `in_force` in force.
+    pub(crate) fn event_in_force(
+        &mut self,
+        what: &str,
+        step: Option<usize>,
+        detail: String,
+        in_force: Option<InForce>,
+    ) {
         tracing::info!(sequence = %self.name, run = self.run, step, "{what}: {detail}");
         self.history.push(SequenceEvent {
             at_unix_ns: now_unix_ns(),
@@ -88,10 +116,22 @@ impl SequenceRun {
             what: what.into(),
             step,
             detail,
+            sample_unix_ns: None,
+            in_force,
         });
+        self.events_total += 1;
         if self.history.len() > HISTORY_KEPT {
             self.history.remove(0);
         }
+    }
+
+    /// Its events after the first `seen` it ever had (those its history still keeps).
+    pub(crate) fn events_after(&self, seen: u64) -> &[SequenceEvent] {
+        let new = self
+            .events_total
+            .saturating_sub(seen)
+            .min(self.history.len() as u64);
+        &self.history[self.history.len() - new as usize..]
     }
 
     /// The rover time `ms` after the current step began, not counting time paused.
@@ -115,9 +155,14 @@ impl SequenceRun {
 
     /// Stops it before its end.
     pub(crate) fn abort(&mut self, why: String) {
+        self.abort_in_force(why, None);
+    }
+
+    /// Stops it before its end, with what its last transaction put in force.
+    pub(crate) fn abort_in_force(&mut self, why: String, in_force: Option<InForce>) {
         self.state = SequenceState::Aborted;
         self.paused_at_unix_ns = None;
-        self.event("aborted", Some(self.step), why.clone());
+        self.event_in_force("aborted", Some(self.step), why.clone(), in_force);
         self.why = why;
     }
 
@@ -340,6 +385,7 @@ fn upload(
             .get(name)
             .map(|r| r.history.clone())
             .unwrap_or_default(),
+        events_total: core.sequences.get(name).map_or(0, |r| r.events_total),
     };
     let detail = format!(
         "sequence `{name}` stored: {} steps, {} guards (from {file}, by {by})",
@@ -508,7 +554,7 @@ impl StepOrigin {
                         task,
                         at_unix_ns,
                     } => {
-                        r.event(
+                        r.event_in_force(
                             "step_done",
                             Some(*step),
                             format!(
@@ -516,6 +562,11 @@ impl StepOrigin {
                                  task {})",
                                 task.as_deref().unwrap_or("-")
                             ),
+                            Some(InForce {
+                                revision: *revision,
+                                task: task.clone(),
+                                at_unix_ns: *at_unix_ns,
+                            }),
                         );
                         r.advance(*steps, (*at_unix_ns).max(now_unix_ns()));
                     }
@@ -529,17 +580,26 @@ impl StepOrigin {
                 let Some(r) = core.sequences.get_mut(name).filter(|r| r.run == *run) else {
                     return;
                 };
-                let outcome = match fate {
+                let (outcome, in_force) = match fate {
                     Fate::Applied {
-                        task, at_unix_ns, ..
-                    } => format!(
-                        "switched to `{}`, in force at {at_unix_ns} ns rover time",
-                        task.as_deref().unwrap_or("-")
+                        revision,
+                        task,
+                        at_unix_ns,
+                    } => (
+                        format!(
+                            "switched to `{}`, in force at {at_unix_ns} ns rover time",
+                            task.as_deref().unwrap_or("-")
+                        ),
+                        Some(InForce {
+                            revision: *revision,
+                            task: task.clone(),
+                            at_unix_ns: *at_unix_ns,
+                        }),
                     ),
-                    Fate::Refused { reason } => format!("its switch was refused: {reason}"),
-                    other => format!("{other:?}"),
+                    Fate::Refused { reason } => (format!("its switch was refused: {reason}"), None),
+                    other => (format!("{other:?}"), None),
                 };
-                r.abort(format!("{detail}; {outcome}"));
+                r.abort_in_force(format!("{detail}; {outcome}"), in_force);
             }
         }
     }
@@ -714,11 +774,15 @@ pub(crate) enum DueWhat {
     /// A `wait` or `at` step's time came.
     Elapsed,
     /// A `wait_until` or `end_if` condition held: on which sample, in words.
-    Met { detail: String },
+    Met { detail: String, sample_unix_ns: u64 },
     /// A `wait_until`'s timeout passed first.
     TimedOut,
     /// Guard `index` held: on which sample, in words.
-    Guard { index: usize, detail: String },
+    Guard {
+        index: usize,
+        detail: String,
+        sample_unix_ns: u64,
+    },
 }
 
 impl Due {
@@ -754,7 +818,11 @@ pub(crate) fn apply_due(s: &Shared, core: &mut Core, due: Due) -> Result<(), Aut
     let step = sequence.steps.get(due.step).cloned();
     let name = due.name.clone();
     match due.what {
-        DueWhat::Guard { index, detail } => {
+        DueWhat::Guard {
+            index,
+            detail,
+            sample_unix_ns,
+        } => {
             let Some(g) = sequence.guards.get(index) else {
                 return Ok(());
             };
@@ -763,7 +831,7 @@ pub(crate) fn apply_due(s: &Shared, core: &mut Core, due: Due) -> Result<(), Aut
                 describe_condition(&g.condition)
             );
             if let Some(r) = core.sequences.get_mut(&name) {
-                r.event("guard_fired", Some(r.step), detail.clone());
+                r.event_at_sample("guard_fired", Some(r.step), detail.clone(), sample_unix_ns);
             }
             let origin = Origin {
                 cmd: None,
@@ -785,9 +853,17 @@ pub(crate) fn apply_due(s: &Shared, core: &mut Core, due: Due) -> Result<(), Aut
             }
             save(s, core, &name)
         }
-        DueWhat::Met { detail } => {
+        DueWhat::Met {
+            detail,
+            sample_unix_ns,
+        } => {
             if let Some(r) = core.sequences.get_mut(&name) {
-                r.event("condition_met", Some(due.step), detail.clone());
+                r.event_at_sample(
+                    "condition_met",
+                    Some(due.step),
+                    detail.clone(),
+                    sample_unix_ns,
+                );
                 if matches!(step, Some(Step::End { .. })) {
                     r.state = SequenceState::Finished;
                     r.step = steps;
@@ -864,6 +940,22 @@ pub(crate) fn resume_after_restart(store: &Store, sequences: &mut BTreeMap<Strin
         if let Err(e) = store.save_sequence(r) {
             tracing::error!(sequence = %r.name, "storing its history: {e}");
         }
+    }
+}
+
+/// Hands every sequence event not yet told (`told`: how many of each sequence's were) to
+/// `tell`.
+pub(crate) fn tell_new_events(
+    core: &Core,
+    told: &mut BTreeMap<String, u64>,
+    tell: &mut dyn FnMut(&SequenceEvent),
+) {
+    for r in core.sequences.values() {
+        let seen = told.entry(r.name.clone()).or_insert(0);
+        for e in r.events_after(*seen) {
+            tell(e);
+        }
+        *seen = r.events_total;
     }
 }
 

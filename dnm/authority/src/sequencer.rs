@@ -255,6 +255,14 @@ fn evaluate(w: &mut Watching) -> Option<Due> {
             .collect::<Vec<_>>()
             .join(", ")
     };
+    // The newest sample a condition read: the one on which it came to hold.
+    let newest = |c: &Condition| {
+        c.fields()
+            .iter()
+            .filter_map(|f| fresh(f).map(|v| v.unix_ns))
+            .max()
+            .unwrap_or_else(now_unix_ns)
+    };
     let due = |what| Due {
         name: armed.name.clone(),
         run: armed.run,
@@ -270,6 +278,7 @@ fn evaluate(w: &mut Watching) -> Option<Due> {
         let d = due(DueWhat::Guard {
             index,
             detail: said(g),
+            sample_unix_ns: newest(g),
         });
         w.fired = true;
         return Some(d);
@@ -280,6 +289,7 @@ fn evaluate(w: &mut Watching) -> Option<Due> {
     }
     let d = due(DueWhat::Met {
         detail: format!("{} held: {}", describe_condition(c), said(c)),
+        sample_unix_ns: newest(c),
     });
     w.fired = true;
     Some(d)

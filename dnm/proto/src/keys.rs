@@ -73,6 +73,12 @@ pub fn authority_beat(system: &str) -> String {
     format!("{system}/authority/beat")
 }
 
+/// `<system>/authority/sequences`: every event of the rover's onboard sequences as it happens
+/// ([`crate::station::SequenceEvent`], JSON), for monitors and tools.
+pub fn authority_sequences(system: &str) -> String {
+    format!("{system}/authority/sequences")
+}
+
 /// `<system>/module/<dnm>/<module>`.
 pub fn module(system: &str, dnm: &str, module: &str) -> String {
     format!("{system}/module/{dnm}/{module}")

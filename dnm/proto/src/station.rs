@@ -301,6 +301,22 @@ pub struct SequenceEvent {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub step: Option<usize>,
     pub detail: String,
+    /// The send time of the sample on which a condition or guard held, rover time (ns since
+    /// the Unix epoch).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sample_unix_ns: Option<u64>,
+    /// What a step's (or a guard's) transaction put in force, if it did.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub in_force: Option<InForce>,
+}
+
+/// A decision in force on every DNM of the rover.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct InForce {
+    pub revision: u64,
+    pub task: Option<String>,
+    /// The instant every DNM put it in force, rover time (ns since the Unix epoch).
+    pub at_unix_ns: u64,
 }
 
 /// What the authority answers an [`Uplink`].

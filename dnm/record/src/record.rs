@@ -18,7 +18,9 @@
 //! transforms) is recorded as that message ([`crate::standard`]); when it cannot hold our fields
 //! exactly, our bytes are kept beside it on `<topic>/raw`. Log and publish times are the producer's
 //! send stamps, mapped from CLOCK_MONOTONIC to Unix time. The netlist of each revision is an
-//! attachment and a metadata record; task switches are a JSON channel `/<dnm>/_switches`.
+//! attachment and a metadata record; task switches are a JSON channel `/<dnm>/_switches`, module events `/<dnm>/_events`, and the
+//! authority's onboard sequence events `/<dnm>/_sequences` (step started, condition met, guard
+//! fired, finished, aborted...).
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -162,6 +164,25 @@ enum Item {
     },
     Switch(String),
     Event(String),
+    /// An onboard sequence's event (the authority's DNM records them).
+    Sequence(String),
+}
+
+/// Where the authority's onboard sequence events go into this recorder's files (a channel
+/// `/<dnm>/_sequences`), from any thread. It does not keep the recorder's queue open: once the
+/// recorder stops, events are let go.
+#[derive(Debug, Clone)]
+pub struct SequenceRecorder(Arc<std::sync::Mutex<Option<SyncSender<Item>>>>);
+
+impl SequenceRecorder {
+    /// Records one event (JSON); dropped if the recorder's queue is full or it stopped.
+    pub fn record(&self, json: String) {
+        if let Ok(q) = self.0.lock()
+            && let Some(q) = q.as_ref()
+        {
+            let _ = q.try_send(Item::Sequence(json));
+        }
+    }
 }
 
 /// Why a recorder did not start.
@@ -185,6 +206,8 @@ pub enum RecorderStartError {
 /// A DNM's recorder: the reader and writer threads.
 pub struct Recorder {
     queue: SyncSender<Item>,
+    /// The queue as sequence events reach it (closed before the writer is waited for).
+    sequences: SequenceRecorder,
     counters: Arc<Counters>,
     options: RecordOptions,
     reader: Option<Worker<RecPort>>,
@@ -250,6 +273,7 @@ impl Recorder {
             .map_err(|e| RecorderStartError::Reader(e.to_string()))?
         };
         Ok(Self {
+            sequences: SequenceRecorder(Arc::new(std::sync::Mutex::new(Some(queue.clone())))),
             queue,
             counters,
             options,
@@ -300,6 +324,11 @@ impl Recorder {
         if let Ok(json) = serde_json::to_string(record) {
             let _ = self.queue.try_send(Item::Switch(json));
         }
+    }
+
+    /// A handle that records onboard sequence events in this recorder's files.
+    pub fn sequence_recorder(&self) -> SequenceRecorder {
+        self.sequences.clone()
     }
 
     /// Records a module event (exit, hang, restart).
@@ -382,6 +411,9 @@ impl Drop for Recorder {
     fn drop(&mut self) {
         // Stops the reader first.
         self.reader.take();
+        if let Ok(mut q) = self.sequences.0.lock() {
+            q.take();
+        }
         // The reader held the other queue sender; dropping ours ends the writer, which
         // finishes the file (summary and footer).
         drop(std::mem::replace(&mut self.queue, mpsc::sync_channel(1).0));
@@ -693,6 +725,15 @@ struct OpenFile {
     channels: Vec<Channel>,
     switches: u16,
     events: u16,
+    sequences: u16,
+}
+
+/// The JSON channels of a file.
+#[derive(Debug, Clone, Copy)]
+enum Json {
+    Switch,
+    Event,
+    Sequence,
 }
 
 /// A port's channel in a file: the standard message where its type declares one (and our
@@ -785,6 +826,12 @@ fn open_file(
         br#"{"type":"object","properties":{"dnm":{"type":"string"},"module":{"type":"string"},"what":{"type":"string"},"detail":{"type":"string"},"at_ns":{"type":"integer"}}}"#,
         &format!("/{dnm}/_events"),
     )?;
+    let sequences = add_json_channel(
+        &mut writer,
+        "dnm/SequenceEvent",
+        br#"{"type":"object","properties":{"at_unix_ns":{"type":"integer"},"sequence":{"type":"string"},"run":{"type":"integer"},"what":{"type":"string"},"step":{"type":["integer","null"]},"detail":{"type":"string"}}}"#,
+        &format!("/{dnm}/_sequences"),
+    )?;
     let mut f = OpenFile {
         writer,
         path,
@@ -793,6 +840,7 @@ fn open_file(
         channels,
         switches,
         events,
+        sequences,
     };
     if let Some((revision, file, text)) = netlist {
         write_netlist(&mut f, *revision, file, text)?;
@@ -999,8 +1047,9 @@ fn write_loop(
                 // each file holds the netlist of its own data.
                 w.netlist = Some((revision, file, text));
             }
-            Some(Item::Switch(json)) => w.write_json(&json, false)?,
-            Some(Item::Event(json)) => w.write_json(&json, true)?,
+            Some(Item::Switch(json)) => w.write_json(&json, Json::Switch)?,
+            Some(Item::Event(json)) => w.write_json(&json, Json::Event)?,
+            Some(Item::Sequence(json)) => w.write_json(&json, Json::Sequence)?,
             Some(Item::Sample {
                 port,
                 header,
@@ -1068,11 +1117,15 @@ impl Writer<'_> {
     }
 
     /// Writes a task switch or (`event`) a module event to the file open.
-    fn write_json(&mut self, json: &str, event: bool) -> Result<(), String> {
+    fn write_json(&mut self, json: &str, channel: Json) -> Result<(), String> {
         if let Some(f) = self.file.as_mut() {
             let now = self.clock.unix(monotonic_ns());
             let header = mcap::records::MessageHeader {
-                channel_id: if event { f.events } else { f.switches },
+                channel_id: match channel {
+                    Json::Switch => f.switches,
+                    Json::Event => f.events,
+                    Json::Sequence => f.sequences,
+                },
                 sequence: 0,
                 log_time: now,
                 publish_time: now,
