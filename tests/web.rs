@@ -1,8 +1,11 @@
 //! The ground station's web interface in a real headless Chromium (over WebDriver), against a
 //! running system and a real station: an operator composes a task by drawing links, applies
 //! it and switches to it through the outbox; a link between mismatched types is refused in the
-//! page; a killed module shows failed and then running again; an output is watched. And the
-//! page's responsiveness with a system of 200 modules, measured in the browser.
+//! page; a killed module shows failed and then running again; an output is watched; an onboard
+//! sequence is written (the task editor adding its switches), uploaded, started, paused, resumed
+//! and seen to finish, and one naming a task the rover lacks is refused with the rover's
+//! located reason. And the page's responsiveness with a system of 200 modules, measured in the
+//! browser.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod support;
@@ -138,6 +141,7 @@ fn until(b: &Browser, what: &str, js: &str) -> Value {
                  const S = window.__dnm || {}; \
                  return { message: t('message'), link: t('link-status'), check: t('check-state'), \
                  problems: t('problems'), draft_base: t('draft-base'), task: S.task, \
+                 sequences: t('sequences'), sequence_commands: t('seq-commands'), \
                  modules: S.draft && S.draft.module && S.draft.module.length, \
                  kinds: S.kinds && Object.keys(S.kinds).length };",
                 json!([]),
@@ -173,8 +177,8 @@ const CREEP: [(&str, &str); 8] = [
 ];
 
 #[test]
-fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_and_watches_a_module_fail()
-{
+fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_a_module_fail_and_runs_a_sequence()
+ {
     let _one = exclusive();
     let beetle = std::fs::read_to_string(
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/beetle.toml"),
@@ -344,7 +348,147 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_and_watc
     let values = b.text("#watch-values");
     assert!(values.contains('x') && values.contains("yaw"), "{values}");
     b.screenshot(&shots().join("connections.png"));
+
+    run_a_sequence_from_the_page(&b, &rig, &z, &dnms);
     eprintln!("screenshots in {}", shots().display());
+}
+
+/// The sequence panel's card of sequence `name` shows `js` (an expression of its element `q`).
+fn card(b: &Browser, name: &str, what: &str, js: &str) -> Value {
+    until(
+        b,
+        &format!("sequence {name}: {what}"),
+        &format!("(q => q && ({js}))(document.querySelector('.seq[data-seq=\"{name}\"]'))"),
+    )
+}
+
+/// Picks `task` in the task editor's selector, as an operator choosing it does.
+fn pick_task(b: &Browser, task: &str) {
+    b.js(
+        "const s = document.getElementById('task-select'); s.value = arguments[0]; \
+         s.dispatchEvent(new Event('change'));",
+        json!([task]),
+    );
+    until(
+        b,
+        &format!("task {task} in the editor"),
+        &format!("window.__dnm.task === {}", json!(task)),
+    );
+}
+
+/// An onboard sequence written in the page (its switches added from the task editor), uploaded,
+/// started, paused, resumed and seen to finish, every DNM through its tasks; a sequence file
+/// chosen and uploaded; a sequence naming a task the rover lacks refused with the rover's
+/// located reason.
+fn run_a_sequence_from_the_page(b: &Browser, rig: &Rig, z: &zenoh::Session, dnms: &[&str]) {
+    b.click("#tab-tasks");
+    b.type_into("#seq-text", "[sequence]\nname = \"tour\"\n");
+    pick_task(b, "auto");
+    b.click("#task-step");
+    b.type_after("#seq-text", "\n[[step]]\nwait = \"10s\"\n");
+    pick_task(b, "creep");
+    b.click("#task-step");
+    let written = b.js(
+        "return document.getElementById('seq-text').value",
+        json!([]),
+    );
+    assert_eq!(
+        written,
+        "[sequence]\nname = \"tour\"\n\n[[step]]\nswitch = \"auto\"\n\n[[step]]\nwait = \"10s\"\n\n[[step]]\nswitch = \"creep\"\n",
+        "the steps the task editor added"
+    );
+    b.click("#seq-upload");
+    card(b, "tour", "stored", "q.dataset.state === 'stored'");
+    let steps = b.text(".seq[data-seq=tour] .seq-step");
+    assert!(steps.starts_with("3 steps"), "{steps}");
+
+    b.click(".seq[data-seq=tour] button[data-seq-act=start]");
+    card(
+        b,
+        "tour",
+        "running, on its wait",
+        "q.dataset.state === 'running' && q.querySelector('.seq-step').textContent.startsWith('step 2/3: wait')",
+    );
+    b.screenshot(&shots().join("sequence-running.png"));
+    b.click(".seq[data-seq=tour] button[data-seq-act=pause]");
+    card(
+        b,
+        "tour",
+        "paused, saying so",
+        "q.dataset.state === 'paused' && q.querySelector('.seq-why').textContent.includes('paused') && q.querySelector('button[data-seq-act=resume]')",
+    );
+    b.click(".seq[data-seq=tour] button[data-seq-act=resume]");
+    card(
+        b,
+        "tour",
+        "finished",
+        "q.dataset.state === 'finished' && q.querySelector('.seq-step').textContent === 'went through its 3 steps'",
+    );
+    let history = b.text(".seq[data-seq=tour] .seq-history");
+    for what in ["finished", "resumed", "paused"] {
+        assert!(history.contains(what), "{what}: {history}");
+    }
+    assert!(
+        b.try_element(".seq[data-seq=tour] button[data-seq-act=start]")
+            .is_some(),
+        "a finished sequence may be started again"
+    );
+    // Every DNM went to `auto` and back to `creep`.
+    wait_in_step(z, &rig.system, dnms, "creep");
+    for d in dnms {
+        let tasks: Vec<String> = report(z, &rig.system, d)
+            .unwrap()
+            .switches
+            .into_iter()
+            .map(|s| s.to)
+            .collect();
+        assert!(
+            tasks.ends_with(&["auto".to_string(), "creep".to_string()]),
+            "{d}: {tasks:?}"
+        );
+    }
+
+    // A sequence file chosen in the page is uploaded under the name it gives itself.
+    let explore = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../configs/sequences/explore.toml")
+        .canonicalize()
+        .unwrap();
+    b.choose_file("#seq-file", &explore);
+    until(
+        b,
+        "explore.toml read into the page",
+        "document.getElementById('seq-text').value.includes('name = \"explore\"')",
+    );
+    b.click("#seq-upload");
+    card(b, "explore", "stored", "q.dataset.state === 'stored'");
+    let head = b.text(".seq[data-seq=explore] .seq-head");
+    assert!(head.contains("explore.toml"), "{head}");
+    let steps = b.text(".seq[data-seq=explore] .seq-step");
+    assert!(steps.starts_with("5 steps"), "{steps}");
+
+    // A task the rover does not have: refused, with the rover's located reason in the page.
+    b.type_into(
+        "#seq-text",
+        "[sequence]\nname = \"lost\"\n\n[[step]]\nswitch = \"nowhere\"\n",
+    );
+    b.click("#seq-upload");
+    let reason = until(
+        b,
+        "the upload of lost refused in the sequence panel",
+        "[...document.querySelectorAll('#seq-commands li')].find(li => li.textContent.includes('upload sequence lost') && li.dataset.state === 'refused')?.textContent",
+    );
+    let reason = reason.as_str().unwrap();
+    assert!(
+        reason.contains("nowhere") && reason.contains("lost.toml:5:"),
+        "the reason names the task and where: {reason}"
+    );
+    let outbox = b.text("#outbox");
+    assert!(outbox.contains("upload sequence lost"), "{outbox}");
+    assert!(
+        b.try_element(".seq[data-seq=lost]").is_none(),
+        "nothing stored"
+    );
+    b.screenshot(&shots().join("sequences.png"));
 }
 
 /// 200 modules on 4 DNMs: 100 tickers, each feeding a relay; task `u` shifts every link.

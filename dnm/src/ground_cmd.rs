@@ -478,28 +478,7 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             &common,
         ),
         GroundCmd::Cancel { seq, common } => submit(&Order::Cancel { seq }, &common),
-        GroundCmd::Sequence(cmd) => {
-            let (order, common) = match cmd {
-                SequenceCmd::Upload {
-                    file,
-                    check,
-                    common,
-                } => (sequence_upload(&file, check.as_deref())?, common),
-                SequenceCmd::Start { name, common } => {
-                    (sequence(name, SequenceAction::Start), common)
-                }
-                SequenceCmd::Pause { name, common } => {
-                    (sequence(name, SequenceAction::Pause), common)
-                }
-                SequenceCmd::Resume { name, common } => {
-                    (sequence(name, SequenceAction::Resume), common)
-                }
-                SequenceCmd::Cancel { name, common } => {
-                    (sequence(name, SequenceAction::Cancel), common)
-                }
-            };
-            submit(&order, &common)
-        }
+        GroundCmd::Sequence(cmd) => sequence_cmd(cmd),
         GroundCmd::Status { url: u, json } => {
             let base = url(&u);
             let link: LinkStatus = serde_json::from_str(&get(&format!("{base}/link"))?)?;
@@ -520,6 +499,22 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// `dnm ground sequence ...`: the order queued at the station.
+fn sequence_cmd(cmd: SequenceCmd) -> anyhow::Result<ExitCode> {
+    let (order, common) = match cmd {
+        SequenceCmd::Upload {
+            file,
+            check,
+            common,
+        } => (sequence_upload(&file, check.as_deref())?, common),
+        SequenceCmd::Start { name, common } => (sequence(name, SequenceAction::Start), common),
+        SequenceCmd::Pause { name, common } => (sequence(name, SequenceAction::Pause), common),
+        SequenceCmd::Resume { name, common } => (sequence(name, SequenceAction::Resume), common),
+        SequenceCmd::Cancel { name, common } => (sequence(name, SequenceAction::Cancel), common),
+    };
+    submit(&order, &common)
 }
 
 /// The upload of the sequence in `file`, with the netlists its `apply` steps name (read

@@ -2,8 +2,8 @@
 //!
 //! | request | answer |
 //! |---|---|
-//! | `POST /commands` with an order (`{"cmd":"switch","task":"auto"}`, `{"cmd":"switch","task":"auto","at_unix_ns":…}`, `{"cmd":"apply","file":"x.toml","text":"…"}`, `{"cmd":"module","edit":{"op":"replace","name":"camera","params":["fov_deg=60"]}}`, `{"cmd":"cancel","seq":12}`) | `201` and the entry, `queued` (stored) |
-//! | `GET /commands?since=N` | the entries from `N` on (`&last=K`: only the last `K`; `&brief`: applies without their netlist text) |
+//! | `POST /commands` with an order (`{"cmd":"switch","task":"auto"}`, `{"cmd":"switch","task":"auto","at_unix_ns":…}`, `{"cmd":"apply","file":"x.toml","text":"…"}`, `{"cmd":"module","edit":{"op":"replace","name":"camera","params":["fov_deg=60"]}}`, `{"cmd":"cancel","seq":12}`, `{"cmd":"sequence","name":"explore","action":{"do":"start"}}`) | `201` and the entry, `queued` (stored) |
+//! | `GET /commands?since=N` | the entries from `N` on (`&last=K`: only the last `K`; `&brief`: applies and sequence uploads without their text) |
 //! | `GET /commands/N` (`?wait=30` waits up to 30 s for it to be final) | one entry |
 //! | `GET /link` | the link: up, round-trip time, last contact, loss, the rover's state and events |
 //!
@@ -22,7 +22,7 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::Duration;
 
-use dnm_proto::station::Order;
+use dnm_proto::station::{Order, SequenceAction};
 use tiny_http::{Header, Method, Response, Server};
 
 use crate::Station;
@@ -507,11 +507,22 @@ fn handle(ctx: &Ctx, mut request: tiny_http::Request) {
                 let skip = entries.len().saturating_sub(last as usize);
                 entries.drain(..skip);
             }
-            // `brief`: applies without their netlist text (a page polling its outbox).
+            // `brief`: applies and sequence uploads without their text (a page polling its
+            // outbox).
             if query.split('&').any(|kv| kv == "brief") {
                 for e in &mut entries {
-                    if let Order::Apply { text, .. } = &mut e.order {
-                        *text = format!("({} bytes)", text.len());
+                    match &mut e.order {
+                        Order::Apply { text, .. } => *text = format!("({} bytes)", text.len()),
+                        Order::Sequence {
+                            action: SequenceAction::Upload { text, netlists, .. },
+                            ..
+                        } => {
+                            *text = format!("({} bytes)", text.len());
+                            for t in netlists.values_mut() {
+                                *t = format!("({} bytes)", t.len());
+                            }
+                        }
+                        _ => {}
                     }
                 }
             }

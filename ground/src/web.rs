@@ -3,7 +3,7 @@
 //!
 //! | request | answer |
 //! |---|---|
-//! | `GET /` | the page: task generation and the module connection view |
+//! | `GET /` | the page: task generation, the module connection view and the onboard sequences (uploaded, started, paused, resumed, cancelled through `POST /commands`; their state from `GET /api/live`'s link) |
 //! | `GET /api/live` | the connection layer now: the wiring in force, every DNM's glance (states, restarts, hangs, rate, CPU, switches, events), the link, the station |
 //! | `GET /api/netlist` | the netlist in force: revision, file, text, and the text as a JSON document the page edits |
 //! | `GET /api/kinds` | every kind the rover can run: ports, message types, parameters |

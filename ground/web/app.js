@@ -18,6 +18,7 @@ const S = {
   layout: null,       // where every module and port is drawn
   watch: null,        // the watched output
   outbox: [],
+  seqFile: null,      // the sequence file read into the text area: {file, name}
   seen: {},           // module -> {restarts, hangs} at the last poll
   sticky: {},         // module -> {state, until, note}: a failure stays visible a while
   perf: { renders: [], checks: [], firstDraftMs: 0, longTasks: [], events: [] },
@@ -489,9 +490,8 @@ function renderHierarchy() {
   // clock: grouped, not timed) and the last module events.
   const commanded = S.outbox.filter((e) => e.order.cmd !== 'cancel').slice(-12).reverse().map((e) => {
     const o = e.order;
-    const what = o.cmd === 'switch' ? `switch to ${o.task}` : o.cmd === 'apply' ? `apply ${o.file}` : `${o.edit.op} ${o.edit.name}`;
     const f = e.fate || {};
-    return `<li>${new Date(e.queued_unix_ns / 1e6).toLocaleTimeString()} #${e.seq} ${esc(what)}: <span class="state ${e.state}">${e.state}</span>${f.revision ? ` rev ${f.revision}` : ''}${f.reason ? ` — ${esc(f.reason)}` : ''}</li>`;
+    return `<li>${new Date(e.queued_unix_ns / 1e6).toLocaleTimeString()} #${e.seq} ${esc(orderText(o))}: <span class="state ${esc(e.state)}">${esc(e.state)}</span>${f.revision ? ` rev ${f.revision}` : ''}${f.reason ? ` — <span class="reason">${esc(f.reason)}</span>` : ''}</li>`;
   });
   const switches = new Map();
   for (const g of Object.values(S.live.live.glances)) {
@@ -717,6 +717,149 @@ function onPointerUp(ev) {
   }
 }
 
+// ---- onboard sequences --------------------------------------------------------------------------
+
+// The name in a sequence file's `[sequence]` table (what the upload is stored under).
+function sequenceName(text) {
+  const table = /^\s*\[sequence\]\s*(?:#.*)?$([\s\S]*?)(?=^\s*\[|(?![\s\S]))/m.exec(text);
+  if (!table) return null;
+  const name = /^\s*name\s*=\s*(?:"((?:[^"\\\n]|\\.)*)"|'([^'\n]*)')/m.exec(table[1]);
+  return name ? (name[1] !== undefined ? name[1] : name[2]) : null;
+}
+
+// The netlist files a sequence's `apply` steps name, as written.
+function appliedFiles(text) {
+  return [...text.matchAll(/^\s*apply\s*=\s*(?:"([^"\n]*)"|'([^'\n]*)')/gm)].map((m) => (m[1] !== undefined ? m[1] : m[2]));
+}
+
+const baseName = (f) => f.split(/[\\/]/).pop();
+
+// Reads the chosen sequence file into the text area (the operator may edit it before upload).
+async function loadSequenceFile() {
+  const f = $('seq-file').files[0];
+  if (!f) return;
+  try {
+    const text = await f.text();
+    $('seq-text').value = text;
+    S.seqFile = { file: f.name, name: sequenceName(text) };
+    say(`${f.name} read: upload it to store it on the rover`, 'ok');
+  } catch (e) {
+    say(`${f.name} could not be read: ${e.message}`, 'refused');
+  }
+}
+
+// Uploads the sequence in the text area under its `[sequence] name`, with the netlists its
+// `apply` steps name (chosen beside it, matched by file name). The rover checks it against the
+// netlist in force: a refusal shows its located errors in the outbox and in this panel.
+async function uploadSequence() {
+  const text = $('seq-text').value;
+  const name = sequenceName(text);
+  if (!text.trim()) { say('write a sequence or choose its file first', 'refused'); return; }
+  if (!name) { say('no name: a sequence file begins with [sequence] and name = "..."', 'refused'); return; }
+  const chosen = [...$('seq-netlists').files];
+  const netlists = {};
+  for (const f of appliedFiles(text)) {
+    const file = chosen.find((c) => c.name === baseName(f));
+    if (!file) { say(`a step applies ${f}: choose that file in “netlists of its apply steps” first`, 'refused'); return; }
+    try { netlists[f] = await file.text(); } catch (e) { say(`${file.name} could not be read: ${e.message}`, 'refused'); return; }
+  }
+  // Errors are located in the file read, while the text is still that sequence's.
+  const file = S.seqFile && S.seqFile.name === name ? S.seqFile.file : `${name}.toml`;
+  await submit({ cmd: 'sequence', name, action: { do: 'upload', file, text, netlists } }, `upload of sequence ${name}`);
+  renderSequences();
+}
+
+// The task in the editor as a step of the sequence being written (a new one if there is none).
+function addTaskStep() {
+  if (!S.task) { say('choose a task first', 'refused'); return; }
+  const area = $('seq-text');
+  let text = area.value;
+  if (!text.trim()) text = '[sequence]\nname = "plan"\n';
+  if (!text.endsWith('\n')) text += '\n';
+  if (!text.endsWith('\n\n')) text += '\n';
+  area.value = `${text}[[step]]\nswitch = ${JSON.stringify(S.task)}\n`;
+  area.scrollTop = area.scrollHeight;
+  say(`a switch to ${S.task} added as a step of sequence ${sequenceName(area.value) || '(no name yet)'}`, 'ok');
+}
+
+// What an operator may do to a sequence in each state.
+const SEQ_ACTIONS = {
+  stored: ['start'], running: ['pause', 'cancel'], paused: ['resume', 'cancel'],
+  finished: ['start'], aborted: ['start'],
+};
+
+function sequenceStep(q) {
+  const at = `step ${Math.min(q.step + 1, q.steps)}/${q.steps}${q.doing ? `: ${q.doing}` : ''}`;
+  switch (q.state) {
+    case 'stored': return `${q.steps} step${q.steps === 1 ? '' : 's'}${q.doing ? `, the first: ${q.doing}` : ''}`;
+    case 'finished': return `went through its ${q.steps} step${q.steps === 1 ? '' : 's'}`;
+    case 'aborted': return `stopped at ${at}`;
+    default: return at;
+  }
+}
+
+function sequenceEvent(e) {
+  const f = e.in_force;
+  return `<li data-what="${esc(e.what)}"><span class="when">${esc(new Date(e.at_unix_ns / 1e6).toLocaleTimeString())}</span> ${esc(e.what)}${e.step == null ? '' : ` (step ${e.step + 1})`}: ${esc(e.detail)}${f ? ` <span class="hint">→ ${esc(`revision ${f.revision}${f.task ? `, task ${f.task}` : ''}`)}</span>` : ''}</li>`;
+}
+
+// A sequence's card, part by part: each part is redrawn only when it changed (a button redrawn
+// between an operator's press and release would lose the click, and `why` changes every poll
+// while a step waits).
+const SEQ_PARTS = ['head', 'step', 'why', 'buttons', 'history'];
+
+function sequenceParts(q) {
+  const history = (q.history || []).slice(-6).reverse().map(sequenceEvent).join('');
+  return {
+    head: `<b>${esc(q.name)}</b> <span class="state ${esc(q.state)}">${esc(q.state)}</span> <span class="hint">${esc(q.file)}</span>`,
+    step: esc(sequenceStep(q)),
+    why: esc(q.why || ''),
+    buttons: (SEQ_ACTIONS[q.state] || []).map((a) => `<button data-seq-act="${a}" data-seq-name="${esc(q.name)}">${a[0].toUpperCase()}${a.slice(1)}</button>`).join(' '),
+    history: history ? `<ol>${history}</ol>` : '',
+  };
+}
+
+function setHtml(el, html) {
+  if (el.dnmHtml === html) return;
+  el.innerHTML = html;
+  el.dnmHtml = html;
+}
+
+// The sequences the rover reports (as it last did when the link is down) and the station's last
+// sequence commands with their fates.
+function renderSequences() {
+  const l = S.live && S.live.link;
+  const rover = l && l.rover;
+  const list = (rover && rover.sequences) || [];
+  $('seq-note').textContent = !rover ? 'the rover has not answered yet'
+    : !list.length ? 'no sequence stored on the rover'
+      : !l.up ? 'as the rover last reported them (the link is down)' : '';
+  const box = $('seq-list');
+  const names = new Set(list.map((q) => q.name));
+  for (const d of [...box.children]) if (!names.has(d.dataset.seq)) d.remove();
+  list.forEach((q, i) => {
+    let d = [...box.children].find((c) => c.dataset.seq === q.name);
+    if (!d) {
+      d = document.createElement('div');
+      d.className = 'seq';
+      d.dataset.seq = q.name;
+      d.innerHTML = SEQ_PARTS.map((p) => `<div class="seq-${p}"></div>`).join('');
+    }
+    if (box.children[i] !== d) box.insertBefore(d, box.children[i] || null);
+    d.dataset.state = q.state;
+    const parts = sequenceParts(q);
+    for (const p of SEQ_PARTS) setHtml(d.querySelector(`.seq-${p}`), parts[p]);
+  });
+  setHtml($('seq-commands'), S.outbox.filter((e) => e.order.cmd === 'sequence').slice(-5).reverse().map(outboxItem).join(''));
+}
+
+function onSequenceButton(ev) {
+  const b = ev.target.closest && ev.target.closest('[data-seq-act]');
+  if (!b) return;
+  const act = b.dataset.seqAct, name = b.dataset.seqName;
+  submit({ cmd: 'sequence', name, action: { do: act } }, `${act} sequence ${name}`);
+}
+
 // ---- polling ----------------------------------------------------------------------------------
 
 async function pollLive() {
@@ -731,6 +874,7 @@ async function pollLive() {
     if (!S.draft) await loadNetlist(false);
     else if (!Object.keys(S.kinds).length) { await loadKinds(); fillPalette(); render(); }
     showDraftBase();
+    renderSequences();
     if (S.view === 'connections') render(); else fillTaskSelect();
   } catch (e) {
     $('link-status').className = 'down';
@@ -746,15 +890,32 @@ async function pollOutbox() {
     const bySeq = new Map(S.outbox.map((e) => [e.seq, e]));
     for (const e of got) bySeq.set(e.seq, e);
     S.outbox = [...bySeq.values()].sort((a, b) => a.seq - b.seq).slice(-30);
-    $('outbox').innerHTML = S.outbox.slice().reverse().map((e) => {
-      const o = e.order;
-      const what = o.cmd === 'switch' ? `switch to ${o.task}` : o.cmd === 'apply' ? `apply ${o.file}` : o.cmd === 'module' ? `${o.edit.op} ${o.edit.name}` : `cancel #${o.seq}`;
-      const f = e.fate || {};
-      const detail = f.reason ? ` — ${f.reason}` : f.revision ? ` — revision ${f.revision}${f.task ? `, task ${f.task}` : ''}` : '';
-      return `<li data-seq="${e.seq}" data-state="${e.state}">#${e.seq} ${esc(what)} <span class="state ${e.state}">${e.state}</span>${esc(detail)}</li>`;
-    }).join('');
+    $('outbox').innerHTML = S.outbox.slice().reverse().map(outboxItem).join('');
+    renderSequences();
   } catch (_) { /* the next poll tries again */ }
   setTimeout(pollOutbox, 1000);
+}
+
+// A command in words, as the outbox lists it.
+function orderText(o) {
+  switch (o.cmd) {
+    case 'switch': return `switch to ${o.task}`;
+    case 'apply': return `apply ${o.file}`;
+    case 'module': return `${o.edit.op} ${o.edit.name}`;
+    case 'cancel': return `cancel #${o.seq}`;
+    case 'sequence': return `${o.action.do} sequence ${o.name}`;
+    default: return o.cmd;
+  }
+}
+
+// One command of the outbox: its state and what the rover said (a refusal's reason in full:
+// a sequence's located errors take several lines).
+function outboxItem(e) {
+  const f = e.fate || {};
+  const detail = f.reason ? ` — <span class="reason">${esc(f.reason)}</span>`
+    : f.revision ? ` — ${esc(`revision ${f.revision}${f.task ? `, task ${f.task}` : ''}`)}`
+      : f.detail ? ` — ${esc(f.detail)}` : '';
+  return `<li data-seq="${e.seq}" data-state="${esc(e.state)}">#${e.seq} ${esc(orderText(e.order))} <span class="state ${esc(e.state)}">${esc(e.state)}</span>${detail}</li>`;
 }
 
 // Which revision the draft was taken from, and what applying it would do to the task in force.
@@ -857,6 +1018,10 @@ function init() {
     $('export-dialog').showModal();
   };
   $('export-close').onclick = () => $('export-dialog').close();
+  $('task-step').onclick = addTaskStep;
+  $('seq-file').onchange = loadSequenceFile;
+  $('seq-upload').onclick = uploadSequence;
+  $('sequences').addEventListener('click', onSequenceButton);
   const svg = $('canvas');
   svg.addEventListener('pointerdown', onPointerDown);
   window.addEventListener('pointermove', onPointerMove);

@@ -171,6 +171,21 @@ impl Browser {
         );
     }
 
+    /// Types `text` after what a field holds (a field not focused takes it at its end).
+    pub fn type_after(&self, css: &str, text: &str) {
+        let e = self.element(css);
+        self.call(
+            "POST",
+            &format!("/element/{e}/value"),
+            Some(json!({ "text": text })),
+        );
+    }
+
+    /// Chooses `file` in a file input, as an operator picking it would.
+    pub fn choose_file(&self, css: &str, file: &Path) {
+        self.type_after(css, &file.display().to_string());
+    }
+
     /// Types `text` over a field's current value (selected first, so the field never
     /// passes through empty as a clear would).
     pub fn retype(&self, css: &str, text: &str) {

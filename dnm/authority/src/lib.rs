@@ -286,59 +286,7 @@ impl Authority {
             .to_string();
         let system = netlist.system.clone();
         let store = Store::open(&options.db)?;
-        let state = match store.state()? {
-            Some(s) => {
-                if s.text != netlist.text {
-                    tracing::warn!(
-                        revision = s.revision,
-                        "continuing from the decided revision {}; {} is not it (apply it to change)",
-                        s.revision,
-                        netlist.file.display()
-                    );
-                }
-                s
-            }
-            None => {
-                let found = reports(&session, &system, Duration::from_secs(1));
-                let used = found
-                    .iter()
-                    .map(|r| r.last_attempt.max(r.revision))
-                    .max()
-                    .unwrap_or(0);
-                let revision = used + 1;
-                // A rover already running (this store was lost or replaced) goes on with what
-                // it runs: the newest netlist in force on its DNMs, in its task.
-                let (file, text, task) = match running(&session, &door) {
-                    Some((n, task)) => {
-                        tracing::warn!(
-                            file = %n.file.display(),
-                            task = ?task,
-                            "a new store for a running rover: continuing with what it runs"
-                        );
-                        (n.file.display().to_string(), n.text.clone(), task)
-                    }
-                    None => (
-                        netlist.file.display().to_string(),
-                        netlist.text.clone(),
-                        netlist.initial_task().map(str::to_string),
-                    ),
-                };
-                let s = State {
-                    revision,
-                    task,
-                    file,
-                    text,
-                    // Ids never seen before by any DNM, even if this database is new again:
-                    // they start from the time it was created.
-                    next_txn: (now_unix_ns() / 1_000_000_000) << 24,
-                    burned: revision,
-                    ..State::default()
-                };
-                store.save_state(&s)?;
-                tracing::info!(revision, file = %netlist.file.display(), "authority decided its first revision");
-                s
-            }
-        };
+        let state = decided_state(&store, &session, netlist, &door)?;
         let current = door
             .accept(&state.file, &state.text)
             .map_err(AuthorityError::DecidedNetlist)?;
@@ -455,6 +403,71 @@ impl Authority {
             let _ = t.join();
         }
     }
+}
+
+/// The state the authority goes on from: its store's, or, with a new store, the netlist's (or
+/// what a rover already running runs), decided as the revision after any its DNMs have used.
+fn decided_state(
+    store: &Store,
+    session: &zenoh::Session,
+    netlist: &Netlist,
+    door: &NetlistDoor,
+) -> Result<State, AuthorityError> {
+    let system = &netlist.system;
+    let state = match store.state()? {
+        Some(s) => {
+            if s.text != netlist.text {
+                tracing::warn!(
+                    revision = s.revision,
+                    "continuing from the decided revision {}; {} is not it (apply it to change)",
+                    s.revision,
+                    netlist.file.display()
+                );
+            }
+            s
+        }
+        None => {
+            let found = reports(session, system, Duration::from_secs(1));
+            let used = found
+                .iter()
+                .map(|r| r.last_attempt.max(r.revision))
+                .max()
+                .unwrap_or(0);
+            let revision = used + 1;
+            // A rover already running (this store was lost or replaced) goes on with what
+            // it runs: the newest netlist in force on its DNMs, in its task.
+            let (file, text, task) = match running(session, door) {
+                Some((n, task)) => {
+                    tracing::warn!(
+                        file = %n.file.display(),
+                        task = ?task,
+                        "a new store for a running rover: continuing with what it runs"
+                    );
+                    (n.file.display().to_string(), n.text.clone(), task)
+                }
+                None => (
+                    netlist.file.display().to_string(),
+                    netlist.text.clone(),
+                    netlist.initial_task().map(str::to_string),
+                ),
+            };
+            let s = State {
+                revision,
+                task,
+                file,
+                text,
+                // Ids never seen before by any DNM, even if this database is new again:
+                // they start from the time it was created.
+                next_txn: (now_unix_ns() / 1_000_000_000) << 24,
+                burned: revision,
+                ..State::default()
+            };
+            store.save_state(&s)?;
+            tracing::info!(revision, file = %netlist.file.display(), "authority decided its first revision");
+            s
+        }
+    };
+    Ok(state)
 }
 
 /// The moment of the last uplink the store took, on this process's monotonic clock (now if
