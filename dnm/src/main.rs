@@ -284,6 +284,9 @@ enum Cmd {
     Linksim(linksim::LinkArgs),
     /// List the standard module kinds.
     Kinds {
+        /// Also the kinds this netlist declares (`[kind.NAME] exec = ...`, in any language).
+        #[arg(long)]
+        netlist: Option<PathBuf>,
         #[arg(long)]
         json: bool,
     },
@@ -468,7 +471,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             dnm_router::run_router(&z.options())?;
             Ok(ExitCode::SUCCESS)
         }
-        Cmd::Kinds { json } => kinds(json),
+        Cmd::Kinds { netlist, json } => kinds(netlist.as_deref(), json),
     }
 }
 
@@ -612,8 +615,16 @@ fn replay(
 }
 
 /// `dnm kinds`: the built-in module kinds and their ports.
-fn kinds(json: bool) -> anyhow::Result<ExitCode> {
-    let specs = dnm::registry().specs();
+fn kinds(netlist: Option<&Path>, json: bool) -> anyhow::Result<ExitCode> {
+    let mut specs = dnm::registry().specs();
+    if let Some(path) = netlist {
+        let n = dnm::load_netlist(path).map_err(|e| anyhow::anyhow!("{e}"))?;
+        for entry in n.catalog.iter() {
+            if !specs.iter().any(|s| s.name == entry.spec.name) {
+                specs.push(entry.spec.clone());
+            }
+        }
+    }
     if json {
         println!("{}", serde_json::to_string_pretty(&specs)?);
     } else {

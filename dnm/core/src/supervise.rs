@@ -365,10 +365,25 @@ fn exited(
     exit: std::process::ExitStatus,
     now: Instant,
 ) -> Event {
+    // Its last status, posted before it exited, may say why (a step's fatal error).
+    let pid = slot.pid();
+    while let Ok(Some(s)) = slot.status_sub.receive() {
+        if Some(s.pid) == pid {
+            slot.status = *s;
+        }
+    }
+    let error = pid
+        .filter(|p| *p == slot.status.pid)
+        .and_then(|_| slot.status.error())
+        .filter(|_| !exit.success());
     slot.child = None;
     let why = match slot.killed_hung.take() {
         Some(h) => format!("{h}; killed ({exit})"),
         None => exit.to_string(),
+    };
+    let why = match error {
+        Some(e) => format!("{why}; its last error: {e}"),
+        None => why,
     };
     slot.last_exit = Some(why.clone());
     let restart = match slot.decl.restart.mode {

@@ -39,6 +39,7 @@ pub use host::{Registration, Registry, host_main};
 pub use kind::Kind;
 pub use runtime::author::{BytesInput, BytesOutput, Input, Io, Module, ModuleError, Output, Setup};
 pub use runtime::offline::{Offline, Stepper};
+pub use runtime::process::{MakeModule, run_dynamic};
 pub use runtime::services::{
     TaskWatch, event_service, event_service_for, plan_service_factory, port_service,
     port_service_for, status_service_factory,

@@ -219,7 +219,7 @@ impl ModuleState {
 
 /// A module's heartbeat, published on `_dnm/status/<module>`.
 #[repr(C)]
-#[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, ZeroCopySend)]
 #[type_name("dnm::Status")]
 pub struct Status {
     pub pid: u32,
@@ -241,6 +241,52 @@ pub struct Status {
     /// The newest plan revision this process could not prepare (0: none); the DNM refuses
     /// that revision.
     pub prepare_failed: u64,
+    /// Bytes of [`Status::error`] in use.
+    pub error_len: u32,
+    /// The last error of a step, UTF-8, cut to fit (for a module of another language, its
+    /// traceback): the DNM puts it in the module's events when the process exits.
+    pub error: [u8; STATUS_ERROR_BYTES],
+}
+
+/// Bytes of a step's error a status carries.
+pub const STATUS_ERROR_BYTES: usize = 1020;
+
+impl Default for Status {
+    fn default() -> Self {
+        Self {
+            pid: 0,
+            state: 0,
+            plan_revision: 0,
+            steps: 0,
+            sent: 0,
+            last_step_ns: 0,
+            step_errors: 0,
+            heartbeat_ns: 0,
+            prepare_failed: 0,
+            error_len: 0,
+            error: [0; STATUS_ERROR_BYTES],
+        }
+    }
+}
+
+impl Status {
+    /// Keeps `text` as the last error, its end kept when it is too long (where a traceback
+    /// says what failed), cut on a character boundary.
+    pub fn set_error(&mut self, text: &str) {
+        let mut start = text.len().saturating_sub(STATUS_ERROR_BYTES);
+        while !text.is_char_boundary(start) {
+            start += 1;
+        }
+        let bytes = &text.as_bytes()[start..];
+        self.error[..bytes.len()].copy_from_slice(bytes);
+        self.error_len = bytes.len() as u32;
+    }
+
+    /// The last error of a step, if one.
+    pub fn error(&self) -> Option<String> {
+        let len = (self.error_len as usize).min(STATUS_ERROR_BYTES);
+        (len > 0).then(|| String::from_utf8_lossy(&self.error[..len]).into_owned())
+    }
 }
 
 /// How often a module posts its status at least, stepping or idle.

@@ -5,7 +5,7 @@
 use std::collections::BTreeMap;
 use std::marker::PhantomData;
 
-use dnm_netlist::{KindSpec, ParamValue, Payload};
+use dnm_netlist::{KindSpec, ParamValue, Payload, PortSpec};
 
 use super::offline::Offline;
 use super::process::Shm;
@@ -25,6 +25,10 @@ pub enum ModuleError {
     Launch(String),
     #[error("{0}")]
     Step(String),
+    /// A step failed so that the module cannot go on (an exception in a module of another
+    /// language): the process ends with it, and its DNM applies the restart policy.
+    #[error("{0}")]
+    Fatal(String),
 }
 
 impl ModuleError {
@@ -207,6 +211,33 @@ impl<'a> Setup<'a> {
             index: self.port_index(name, false, None)?,
         })
     }
+
+    /// For bindings of other languages: the index and declaration of port `name` (an input
+    /// if `input`), whatever its type; the binding checks what it reads and writes itself.
+    pub fn port(&self, name: &str, input: bool) -> Result<(usize, &PortSpec), ModuleError> {
+        let ports = if input {
+            &self.spec.inputs
+        } else {
+            &self.spec.outputs
+        };
+        ports
+            .iter()
+            .enumerate()
+            .find(|(_, p)| p.name == name)
+            .ok_or_else(|| ModuleError::Port {
+                name: name.into(),
+                problem: format!(
+                    "kind `{}` declares no {} port of that name",
+                    self.spec.name,
+                    if input { "input" } else { "output" }
+                ),
+            })
+    }
+
+    /// For bindings: the value of parameter `name` (given, else its default).
+    pub fn param(&self, name: &str) -> Result<&ParamValue, ModuleError> {
+        self.param_value(name)
+    }
 }
 
 /// Given to [`Module::step`]: reads inputs under the task active for this step, writes outputs.
@@ -319,6 +350,40 @@ impl Io<'_> {
             Ports::Offline(_) => self.send(output.index, size_of::<M>(), |b| {
                 b.copy_from_slice(bytemuck::bytes_of(value));
             }),
+        }
+    }
+
+    /// For bindings: the newest sample on input `index` (header and bytes) if the input has
+    /// not read it yet. The bytes are the producer's shared memory, valid for this step.
+    pub fn take_raw(&mut self, index: usize) -> Option<(PortHeader, &[u8])> {
+        self.take_new(index)
+    }
+
+    /// For bindings: the newest sample on input `index`, new or not.
+    pub fn latest_raw(&self, index: usize) -> Option<(PortHeader, &[u8])> {
+        self.sample(index)
+    }
+
+    /// For bindings: sends `data` (copied once into shared memory) on output `index`.
+    pub fn write_raw(&mut self, index: usize, data: &[u8]) -> Result<(), ModuleError> {
+        self.send(index, data.len(), |b| b.copy_from_slice(data))
+    }
+
+    /// For bindings: loans `len` zeroed bytes of shared memory on output `index`, to be filled
+    /// in place and sent with [`Io::send_loaned`] in this step (given back otherwise).
+    pub fn loan_raw(&mut self, index: usize, len: usize) -> Result<&mut [u8], ModuleError> {
+        match &mut self.ports {
+            Ports::Shm(shm) => shm.loan(index, len),
+            Ports::Offline(o) => o.loan(index, len),
+        }
+    }
+
+    /// For bindings: sends what was loaned on output `index`.
+    pub fn send_loaned(&mut self, index: usize) -> Result<(), ModuleError> {
+        let (word, now) = (self.word, self.now_ns);
+        match &mut self.ports {
+            Ports::Shm(shm) => shm.send_loaned(index, word),
+            Ports::Offline(o) => o.send_loaned(index, word, now),
         }
     }
 

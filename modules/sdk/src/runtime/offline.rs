@@ -26,6 +26,8 @@ pub struct Offline {
     written: Vec<(usize, PortHeader, Vec<u8>)>,
     next: u64,
     task: Option<String>,
+    /// A buffer loaned on an output in this step: (output, bytes).
+    loaned: Option<(usize, Vec<u8>)>,
 }
 
 impl Offline {
@@ -38,6 +40,7 @@ impl Offline {
             written: Vec::new(),
             next: 0,
             task: task.map(str::to_string),
+            loaned: None,
         }
     }
 
@@ -132,6 +135,39 @@ impl Offline {
             },
             bytes,
         ));
+    }
+
+    pub(crate) fn loan(&mut self, index: usize, len: usize) -> Result<&mut [u8], ModuleError> {
+        if index >= self.seq.len() {
+            return Err(ModuleError::Port {
+                name: index.to_string(),
+                problem: "no such output".into(),
+            });
+        }
+        Ok(&mut self.loaned.insert((index, vec![0u8; len])).1)
+    }
+
+    pub(crate) fn send_loaned(
+        &mut self,
+        index: usize,
+        word: u64,
+        now_ns: u64,
+    ) -> Result<(), ModuleError> {
+        match self.loaned.take() {
+            Some((i, bytes)) if i == index => {
+                self.send(index, word, now_ns, bytes.len(), |b| {
+                    b.copy_from_slice(&bytes)
+                });
+                Ok(())
+            }
+            other => {
+                self.loaned = other;
+                Err(ModuleError::Port {
+                    name: index.to_string(),
+                    problem: "nothing loaned on this output in this step".into(),
+                })
+            }
+        }
     }
 }
 

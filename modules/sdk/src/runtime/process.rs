@@ -14,6 +14,7 @@ use iceoryx2::sample_mut::SampleMut;
 use iceoryx2::waitset::{WaitSet, WaitSetGuard, WaitSetRunResult};
 
 use super::author::{Io, Module, ModuleError, Ports, Setup, ipc};
+use super::offline::Stepper;
 use super::services::{
     Svc, TaskWatch, event_service, plan_service_factory, port_service, status_service_factory,
 };
@@ -32,7 +33,23 @@ const STATUS_EVERY_NS: u64 = 100_000_000;
 /// Runs module `M` in this process as described by `launch`, until the DNM stops it or a
 /// termination signal arrives.
 pub(crate) fn run<M: Module>(launch: &Launch) -> Result<(), ModuleError> {
-    Process::<M>::open(launch)?.run()
+    Process::open(launch, M::kind(), &mut |setup| Ok(Box::new(M::new(setup)?)))?.run()
+}
+
+/// Builds a module from its setup (see [`run_dynamic`]).
+pub type MakeModule<'m> = dyn FnMut(&mut Setup<'_>) -> Result<Box<dyn Stepper>, ModuleError> + 'm;
+
+/// Runs a module of kind `spec` in this process as described by `launch`, built by `make`
+/// (for modules whose kind is known only at run time, such as those of another language),
+/// until the DNM stops it or a termination signal arrives. A step that fails with
+/// [`ModuleError::Fatal`] ends the process with its error, after posting it to the DNM (which
+/// reports it in the module's exit event and applies its restart policy).
+pub fn run_dynamic(
+    launch: &Launch,
+    spec: KindSpec,
+    make: &mut MakeModule<'_>,
+) -> Result<(), ModuleError> {
+    Process::open(launch, spec, make)?.run()
 }
 
 /// Why the loop leaves a wait set, and what it does before the next.
@@ -46,9 +63,9 @@ enum Leave {
 }
 
 /// A module process: the module, its ports and its side of the conversation with the DNM.
-struct Process<'a, M> {
+struct Process<'a> {
     wakers: Wakers,
-    serving: Serving<'a, M>,
+    serving: Serving<'a>,
     /// Declared last, so it outlives every port opened on it.
     node: Node<Svc>,
 }
@@ -62,13 +79,13 @@ struct Wakers {
 }
 
 /// Everything of a module process a wait changes.
-struct Serving<'a, M> {
+struct Serving<'a> {
     launch: &'a Launch,
     spec: KindSpec,
     /// The step period of a periodic module; an on-input module has none.
     period: Option<Duration>,
     inputs: Inputs,
-    module: M,
+    module: Box<dyn Stepper>,
     outputs: Vec<OutPort>,
     dnm: DnmLink,
     status: Status,
@@ -111,6 +128,8 @@ struct OutPort {
     publisher: PortPublisher,
     notifier: Notifier<Svc>,
     seq: u64,
+    /// A sample loaned in this step and not sent yet ([`Shm::loan`]).
+    loaned: Option<SampleMut<Svc, [u8], PortHeader>>,
 }
 
 /// A subscription to one candidate source, with the newest sample taken from it.
@@ -168,10 +187,13 @@ struct Wake {
     woken: bool,
 }
 
-impl<'a, M: Module> Process<'a, M> {
+impl<'a> Process<'a> {
     /// Opens the module's side of its DNM's shared memory and builds the module.
-    fn open(launch: &'a Launch) -> Result<Self, ModuleError> {
-        let spec = M::kind();
+    fn open(
+        launch: &'a Launch,
+        spec: KindSpec,
+        make: &mut MakeModule<'_>,
+    ) -> Result<Self, ModuleError> {
         let config = dnm_config(&launch.prefix).map_err(|e| ModuleError::Launch(e.to_string()))?;
         let node_name: NodeName = launch
             .module
@@ -206,7 +228,7 @@ impl<'a, M: Module> Process<'a, M> {
 
         let module = {
             let mut setup = Setup::new(&launch.module, &spec, &launch.params);
-            M::new(&mut setup)?
+            make(&mut setup)?
         };
         let status_now = Status {
             pid: std::process::id(),
@@ -362,7 +384,7 @@ impl<'a, M: Module> Process<'a, M> {
     }
 }
 
-impl<M: Module> Serving<'_, M> {
+impl Serving<'_> {
     /// Takes the plans the DNM posted. `Some` when the wait set must go: the DNM stops the
     /// module, or there are plans to prepare.
     fn receive_plans(&mut self) -> Result<Option<Leave>, ModuleError> {
@@ -427,8 +449,19 @@ impl<M: Module> Serving<'_, M> {
         self.status.steps += 1;
         self.status.last_step_ns = now_ns;
         self.status.heartbeat_ns = now_ns;
-        if let Err(e) = self.module.step(&mut io) {
+        let stepped = self.module.step_io(&mut io);
+        for out in self.outputs.iter_mut() {
+            // A loan not sent in the step is given back.
+            out.loaned = None;
+        }
+        if let Err(e) = stepped {
             self.status.step_errors += 1;
+            self.status.set_error(&e.to_string());
+            if let ModuleError::Fatal(_) = e {
+                // The DNM reads why in the last status before it sees the process exit.
+                self.publish_status()?;
+                return Err(e);
+            }
             tracing::warn!(module = %self.launch.module, "step failed: {e}");
         }
         if now_ns.saturating_sub(self.last_status_ns) > STATUS_EVERY_NS {
@@ -672,6 +705,7 @@ fn open_outputs(
             publisher,
             notifier,
             seq: 0,
+            loaned: None,
         });
     }
     Ok(outputs)
@@ -768,6 +802,36 @@ impl Shm<'_> {
             .loan_slice_uninit(data.len())
             .map_err(ipc("loan"))?;
         let sample = sample.write_from_slice(data);
+        self.stamp_and_send(index, word, sample)
+    }
+
+    /// Loans `len` zeroed bytes of shared memory on output `index`, to be filled in place and
+    /// sent by [`Shm::send_loaned`] in the same step (given back otherwise). A loan not sent
+    /// yet on the same output is given back first.
+    pub(crate) fn loan(&mut self, index: usize, len: usize) -> Result<&mut [u8], ModuleError> {
+        let out = self
+            .outputs
+            .get_mut(index)
+            .ok_or_else(|| ModuleError::Port {
+                name: index.to_string(),
+                problem: "no such output".into(),
+            })?;
+        out.loaned = None;
+        let sample = out.publisher.loan_slice_uninit(len).map_err(ipc("loan"))?;
+        let sample = out.loaned.insert(sample.write_from_fn(|_| 0u8));
+        Ok(sample.payload_mut())
+    }
+
+    /// Sends the sample loaned on output `index`; an error if there is none.
+    pub(crate) fn send_loaned(&mut self, index: usize, word: u64) -> Result<(), ModuleError> {
+        let sample = self
+            .outputs
+            .get_mut(index)
+            .and_then(|o| o.loaned.take())
+            .ok_or_else(|| ModuleError::Port {
+                name: index.to_string(),
+                problem: "nothing loaned on this output in this step".into(),
+            })?;
         self.stamp_and_send(index, word, sample)
     }
 

@@ -1,0 +1,299 @@
+//! `dnm._dnm`: the module SDK's runtime for modules written in Python (the `dnm` package wraps
+//! it). One implementation of the protocol: a Python module runs in the Rust SDK's module
+//! process loop ([`dnm_module::run_dynamic`]), which waits for its inputs with the GIL released
+//! and calls the module's `step` with it held.
+//!
+//! Inputs are handed to Python as read-only `memoryview`s of the producer's shared-memory
+//! sample (no copy; valid for the step), outputs are loaned in shared memory and handed as
+//! writable `memoryview`s to fill in place, then sent. An exception in `step` ends the process
+//! with its traceback, which the DNM reports in the module's exit event before it applies the
+//! restart policy.
+
+use std::collections::BTreeMap;
+use std::os::raw::c_char;
+
+use dnm_module::protocol::Launch;
+use dnm_module::{Io, ModuleError, Setup, Stepper};
+use dnm_netlist::{KindSpec, MessageType, ParamValue};
+use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyList;
+
+/// A read-only (or, with `writable`, writable) memoryview of `len` bytes at `ptr`.
+///
+/// # Safety
+/// The memory must stay valid (mapped) for as long as Python may use the view; the caller
+/// documents for how long its contents mean anything.
+unsafe fn memoryview(
+    py: Python<'_>,
+    ptr: *const u8,
+    len: usize,
+    writable: bool,
+) -> PyResult<Bound<'_, PyAny>> {
+    let flags = if writable {
+        pyo3::ffi::PyBUF_WRITE
+    } else {
+        pyo3::ffi::PyBUF_READ
+    };
+    // SAFETY: the caller keeps the memory valid; a null result is turned into the exception
+    // Python set.
+    unsafe {
+        let view = pyo3::ffi::PyMemoryView_FromMemory(
+            ptr as *mut c_char,
+            len as pyo3::ffi::Py_ssize_t,
+            flags,
+        );
+        Bound::from_owned_ptr_or_err(py, view)
+    }
+}
+
+fn module_error(e: ModuleError) -> PyErr {
+    PyRuntimeError::new_err(e.to_string())
+}
+
+/// What `step` is given: the step's inputs and outputs, valid only during the step.
+#[pyclass(unsendable, module = "dnm._dnm")]
+struct RawIo {
+    io: *mut Io<'static>,
+}
+
+impl RawIo {
+    fn io(&mut self) -> PyResult<&mut Io<'static>> {
+        // SAFETY: `io` is set only for the duration of the `step` call that created this object
+        // (and cleared before the `Io` it points to goes away); a null pointer is refused.
+        unsafe { self.io.as_mut() }.ok_or_else(|| {
+            PyRuntimeError::new_err(
+                "this `io` belongs to a step that has ended: use it only inside `step`",
+            )
+        })
+    }
+}
+
+type Received<'py> = Option<(Bound<'py, PyAny>, u64, u64, u64)>;
+
+#[pymethods]
+impl RawIo {
+    /// CLOCK_MONOTONIC time at the start of the step, ns.
+    fn now_ns(&mut self) -> PyResult<u64> {
+        Ok(self.io()?.now_ns())
+    }
+
+    /// The task the step runs under.
+    fn task(&mut self) -> PyResult<Option<String>> {
+        Ok(self.io()?.task().map(str::to_string))
+    }
+
+    /// The newest sample of input `index` not read yet: (view, stamp_ns, seq, address).
+    fn take<'py>(&mut self, py: Python<'py>, index: usize) -> PyResult<Received<'py>> {
+        let Some((h, bytes)) = self.io()?.take_raw(index) else {
+            return Ok(None);
+        };
+        let (ptr, len) = (bytes.as_ptr(), bytes.len());
+        // SAFETY: the sample is held by the module's subscriber until a newer one replaces it,
+        // after this step at the earliest; the segment stays mapped while the process runs.
+        let view = unsafe { memoryview(py, ptr, len, false)? };
+        Ok(Some((view, h.stamp_ns, h.seq, ptr as u64)))
+    }
+
+    /// The newest sample of input `index`, new or not.
+    fn latest<'py>(&mut self, py: Python<'py>, index: usize) -> PyResult<Received<'py>> {
+        let Some((h, bytes)) = self.io()?.latest_raw(index) else {
+            return Ok(None);
+        };
+        let (ptr, len) = (bytes.as_ptr(), bytes.len());
+        // SAFETY: as in `take`.
+        let view = unsafe { memoryview(py, ptr, len, false)? };
+        Ok(Some((view, h.stamp_ns, h.seq, ptr as u64)))
+    }
+
+    /// Sends `data` on output `index` (copied once into shared memory).
+    fn write(&mut self, index: usize, data: &[u8]) -> PyResult<()> {
+        self.io()?.write_raw(index, data).map_err(module_error)
+    }
+
+    /// Loans `len` zeroed bytes of shared memory on output `index`: (writable view, address).
+    fn loan<'py>(
+        &mut self,
+        py: Python<'py>,
+        index: usize,
+        len: usize,
+    ) -> PyResult<(Bound<'py, PyAny>, u64)> {
+        let buf = self.io()?.loan_raw(index, len).map_err(module_error)?;
+        let ptr = buf.as_mut_ptr();
+        // SAFETY: the loaned sample stays in the output until it is sent or the step ends;
+        // the segment stays mapped while the process runs.
+        let view = unsafe { memoryview(py, ptr, len, true)? };
+        Ok((view, ptr as u64))
+    }
+
+    /// Sends what was loaned on output `index`.
+    fn send(&mut self, index: usize) -> PyResult<()> {
+        self.io()?.send_loaned(index).map_err(module_error)
+    }
+}
+
+/// What the module's constructor is given: its name, parameters and ports.
+#[pyclass(unsendable, module = "dnm._dnm")]
+struct RawSetup {
+    setup: *mut Setup<'static>,
+}
+
+impl RawSetup {
+    fn setup(&self) -> PyResult<&Setup<'static>> {
+        // SAFETY: set only while the constructor runs, cleared before the `Setup` goes away.
+        unsafe { self.setup.as_ref() }.ok_or_else(|| {
+            PyRuntimeError::new_err("this `setup` belongs to a constructor that has returned")
+        })
+    }
+}
+
+#[pymethods]
+impl RawSetup {
+    fn name(&self) -> PyResult<String> {
+        Ok(self.setup()?.name().to_string())
+    }
+
+    /// The parameter's value (given in the netlist, else its default).
+    fn param<'py>(&self, py: Python<'py>, name: &str) -> PyResult<Bound<'py, PyAny>> {
+        let v = self.setup()?.param(name).map_err(module_error)?;
+        Ok(match v {
+            ParamValue::Int(i) => i.into_pyobject(py)?.into_any(),
+            ParamValue::Float(f) => f.into_pyobject(py)?.into_any(),
+            ParamValue::Bool(b) => b.into_pyobject(py)?.to_owned().into_any(),
+            ParamValue::String(s) => s.into_pyobject(py)?.into_any(),
+        })
+    }
+
+    /// (index, message type as JSON) of port `name`.
+    fn port(&self, name: &str, input: bool) -> PyResult<(usize, String)> {
+        let (index, spec) = self.setup()?.port(name, input).map_err(module_error)?;
+        let json = serde_json::to_string(&spec.message)
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        Ok((index, json))
+    }
+}
+
+/// A Python module object, stepped by the runtime: its `_step(raw_io)` is called with the GIL.
+struct PyStepper {
+    module: Py<PyAny>,
+}
+
+/// A Python exception as its traceback reads.
+fn traceback(py: Python<'_>, e: &PyErr) -> String {
+    // The `dnm` package formats it where the exception is caught, with its frames.
+    if let Ok(text) = e
+        .value(py)
+        .getattr("__dnm_traceback__")
+        .and_then(|t| t.extract::<String>())
+    {
+        return text;
+    }
+    let formatted = py
+        .import("traceback")
+        .and_then(|tb| tb.call_method1("format_exception", (e.value(py),)))
+        .and_then(|lines| lines.cast_into::<PyList>().map_err(PyErr::from))
+        .map(|lines| {
+            lines
+                .iter()
+                .filter_map(|l| l.extract::<String>().ok())
+                .collect::<String>()
+        });
+    formatted
+        .unwrap_or_else(|_| e.to_string())
+        .trim_end()
+        .to_string()
+}
+
+impl Stepper for PyStepper {
+    fn step_io(&mut self, io: &mut Io<'_>) -> Result<(), ModuleError> {
+        Python::attach(|py| {
+            let raw = Py::new(
+                py,
+                RawIo {
+                    io: (io as *mut Io<'_>).cast::<Io<'static>>(),
+                },
+            )
+            .map_err(|e| ModuleError::Fatal(traceback(py, &e)))?;
+            let result = self.module.call_method1(py, "_step", (raw.clone_ref(py),));
+            raw.borrow_mut(py).io = std::ptr::null_mut();
+            result
+                .map(|_| ())
+                .map_err(|e| ModuleError::Fatal(traceback(py, &e)))
+        })
+    }
+}
+
+/// Runs a Python module process: `launch` as the DNM gave it, `spec` the kind's declaration
+/// (JSON), `factory(raw_setup)` builds the module object. Returns when the DNM stops it.
+#[pyfunction]
+fn run(py: Python<'_>, launch: &str, spec: &str, factory: Py<PyAny>) -> PyResult<()> {
+    let launch: Launch = serde_json::from_str(launch)
+        .map_err(|e| PyValueError::new_err(format!("bad launch description: {e}")))?;
+    let spec: KindSpec = serde_json::from_str(spec)
+        .map_err(|e| PyValueError::new_err(format!("bad kind declaration: {e}")))?;
+    dnm_module::init_logging();
+    let mut make = |setup: &mut Setup<'_>| -> Result<Box<dyn Stepper>, ModuleError> {
+        Python::attach(|py| {
+            let raw = Py::new(
+                py,
+                RawSetup {
+                    setup: (setup as *mut Setup<'_>).cast::<Setup<'static>>(),
+                },
+            )
+            .map_err(|e| ModuleError::Fatal(traceback(py, &e)))?;
+            let built = factory.call1(py, (raw.clone_ref(py),));
+            raw.borrow_mut(py).setup = std::ptr::null_mut();
+            let module = built.map_err(|e| ModuleError::Fatal(traceback(py, &e)))?;
+            Ok(Box::new(PyStepper { module }) as Box<dyn Stepper>)
+        })
+    };
+    // The loop waits for inputs without the GIL; it takes it for each step.
+    py.detach(|| dnm_module::run_dynamic(&launch, spec, &mut make))
+        .map_err(|e| PyRuntimeError::new_err(e.to_string()))
+}
+
+/// Checks a kind declaration (JSON) and returns it as the DNM reads it.
+#[pyfunction]
+fn check_kind(spec: &str) -> PyResult<String> {
+    let spec: KindSpec = serde_json::from_str(spec)
+        .map_err(|e| PyValueError::new_err(format!("bad kind declaration: {e}")))?;
+    serde_json::to_string(&spec).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
+/// The message types of the SDK and of Beetle-One, by short name, as JSON (variable-size ones
+/// with a `max_bytes` of 0: a port declares its own).
+#[pyfunction]
+fn message_types() -> PyResult<String> {
+    use dnm_module::msg as sdk;
+    use dnm_module::msg::{BytesMessage, Message};
+    use dnm_rover::msgs as rover;
+    let mut all: BTreeMap<&str, MessageType> = BTreeMap::new();
+    all.insert("Tick", sdk::Tick::message_type());
+    all.insert("PairReading", sdk::PairReading::message_type());
+    all.insert("Scalar", sdk::Scalar::message_type());
+    all.insert("Blob", sdk::Blob::message_type(0));
+    all.insert("Twist", rover::Twist::message_type());
+    all.insert("WheelCommand", rover::WheelCommand::message_type());
+    all.insert("MotorState", rover::MotorState::message_type());
+    all.insert("WorldState", rover::WorldState::message_type());
+    all.insert("EncoderTicks", rover::EncoderTicks::message_type());
+    all.insert("Imu", rover::Imu::message_type());
+    all.insert("BatteryState", rover::BatteryState::message_type());
+    all.insert("Range", rover::Range::message_type());
+    all.insert("Odometry", rover::Odometry::message_type());
+    all.insert("Progress", rover::Progress::message_type());
+    all.insert("WatchdogState", rover::WatchdogState::message_type());
+    all.insert("Image", rover::Image::message_type(0));
+    all.insert("Telemetry", rover::Telemetry::message_type(0));
+    serde_json::to_string(&all).map_err(|e| PyValueError::new_err(e.to_string()))
+}
+
+#[pymodule]
+fn _dnm(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<RawIo>()?;
+    m.add_class::<RawSetup>()?;
+    m.add_function(wrap_pyfunction!(run, m)?)?;
+    m.add_function(wrap_pyfunction!(check_kind, m)?)?;
+    m.add_function(wrap_pyfunction!(message_types, m)?)?;
+    Ok(())
+}
