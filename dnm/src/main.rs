@@ -1143,14 +1143,16 @@ fn module_op(z: &ZenohArgs, op: ModuleOp) -> anyhow::Result<ExitCode> {
     };
     let (text, what) = dnm_authority::edit_netlist(&text, &edit)
         .map_err(|e| anyhow::anyhow!("system `{system}`: {e}"))?;
-    let r = send(
-        z,
-        &system,
-        &Request::Apply {
-            file: format!("<{system} running netlist, edited>"),
-            text,
-        },
-    )?;
+    // Named beside the file it came from, so the relative `exec` paths of its kinds resolve
+    // as they did.
+    let from = send(z, &system, &Request::Status)
+        .ok()
+        .and_then(|r| r.dnms.into_iter().find_map(|d| d.netlist_file));
+    let file = match from {
+        Some(f) => format!("{f} (running netlist of `{system}`, edited)"),
+        None => format!("<{system} running netlist, edited>"),
+    };
+    let r = send(z, &system, &Request::Apply { file, text })?;
     answer(&r, json, |r| {
         println!("{what}: revision {}", r.revision.unwrap_or(0))
     })

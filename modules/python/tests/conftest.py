@@ -131,7 +131,7 @@ class System:
             with open(f, "rb") as fh:
                 for _schema, channel, message in make_reader(fh).iter_messages(topics=[topic]):
                     out.append((message.log_time, message.data))
-        return out
+        return sorted(out, key=lambda m: m[0])
 
 
 @pytest.fixture

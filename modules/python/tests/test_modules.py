@@ -247,3 +247,163 @@ links = []
     )
     detail = exited[0]["detail"]
     assert "TypeError: output `out` carries dnm_msgs/Tick, not Scalar" in detail, detail
+
+
+ZERO_COPY = '''
+import dnm
+import numpy as np
+from dnm.msg import Blob, Image, Tick
+
+MIB = 1 << 20
+
+class ZeroCopy(dnm.Module):
+    @classmethod
+    def kind(cls):
+        return (dnm.Kind("py_zero_copy", "reads a 1 MiB blob and an image in place, writes one in place")
+                .input("blob", Blob, max_bytes=MIB).input("image", Image, max_bytes=230412)
+                .output("copy", Blob, max_bytes=MIB).output("verdict", Tick).on_input())
+
+    def __init__(self, setup):
+        self.blob = setup.input("blob")
+        self.image = setup.input("image")
+        self.copy = setup.output("copy")
+        self.verdict = setup.output("verdict")
+        self.n = 0
+
+    def step(self, io):
+        a = io.read(self.blob)
+        if a is None:
+            return
+        _stamp, _seq, address = io.header(self.blob)
+        # The array is the producer's shared-memory sample: same address, no copy, read-only.
+        assert a.nbytes == MIB and a.dtype == np.uint8, (a.nbytes, a.dtype)
+        assert a.__array_interface__["data"][0] == address, "the input was copied"
+        assert not a.flags.writeable
+        out = io.loan(self.copy, MIB)
+        assert out.__array_interface__["data"][0] == io.loan_address, "the output is not the loan"
+        out[:] = a
+        out[8:16] = 0xAB
+        io.send(self.copy)
+        img = io.latest(self.image)
+        shaped = img is not None and img.shape == (240, 320, 3) and img.base is not None
+        self.n += 1
+        io.write(self.verdict, Tick(origin=int(shaped), seq=self.n))
+
+if __name__ == "__main__":
+    raise SystemExit(dnm.host_main([ZeroCopy]))
+'''
+
+
+POSE = '''
+import dnm
+from dnm.msg import WorldState
+
+class Pose(dnm.Module):
+    @classmethod
+    def kind(cls):
+        return dnm.Kind("py_pose", "a rover standing still").output("world", WorldState).periodic(10)
+
+    def __init__(self, setup):
+        self.out = setup.output("world")
+
+    def step(self, io):
+        io.write(self.out, WorldState(x=1.0, y=0.5, yaw=0.3))
+
+if __name__ == "__main__":
+    raise SystemExit(dnm.host_main([Pose]))
+'''
+
+
+def test_a_1_mib_sample_is_read_as_numpy_without_a_copy_and_one_written_in_place(system):
+    system.module("zero_copy.py", ZERO_COPY)
+    system.module("pose.py", POSE)
+    n = system.netlist('''
+default_task = "a"
+
+[[dnm]]
+name = "main"
+
+[kind.py_zero_copy]
+exec = "zero_copy.py"
+
+[kind.py_pose]
+exec = "pose.py"
+
+[[module]]
+name = "pose"
+kind = "py_pose"
+
+[[module]]
+name = "blobs"
+kind = "blob_source"
+rate_hz = 20
+params = { bytes = 1048576, origin = 9 }
+
+[[module]]
+name = "camera"
+kind = "camera"
+
+[[module]]
+name = "zc"
+kind = "py_zero_copy"
+
+[task.a]
+links = ["blobs.out -> zc.blob", "camera.image -> zc.image", "pose.world -> camera.world"]
+''')
+    system.up(n)
+    system.running("blobs", "camera", "zc", "pose")
+    eventually("1 MiB samples checked", lambda: system.modules()["zc"]["sent"] > 40)
+    assert not [e for e in system.events() if e["module"] == "zc"], system.events()
+    system.stop()
+    verdicts = ticks(system.messages("/main/zc/verdict"))
+    assert verdicts and verdicts[-1][0] == 1, "the image was read shaped (240, 320, 3)"
+    copies = system.messages("/main/zc/copy")
+    assert copies
+    # CDR `uint8[] data`: the 4-byte encapsulation, the length, then the bytes.
+    _, data = copies[-1]
+    (length,) = struct.unpack_from("<I", data, 4)
+    body = data[8 : 8 + length]
+    assert length == 1 << 20
+    assert struct.unpack_from("<Q", body, 0)[0] == 9, "the producer's tag, copied"
+    assert body[8:16] == b"\xab" * 8, "written in place"
+
+
+def test_a_python_module_replaced_live_under_traffic(system):
+    system.module("relay.py", RELAY)
+    n = system.netlist('''
+default_task = "a"
+
+[[dnm]]
+name = "main"
+
+[kind.py_relay]
+exec = "relay.py"
+
+[[module]]
+name = "src"
+kind = "ticker"
+rate_hz = 50
+params = { origin = 5 }
+
+[[module]]
+name = "py"
+kind = "py_relay"
+params = { add = 100 }
+
+[[module]]
+name = "sink"
+kind = "relay"
+
+[task.a]
+links = ["src.out -> py.in", "py.out -> sink.in"]
+''')
+    system.up(n)
+    system.running("src", "py", "sink")
+    eventually("traffic", lambda: system.modules()["sink"]["sent"] > 50)
+    system.cmd("module", "replace", "--system", system.system, "--name", "py", "--param", "add=200")
+    before = system.modules()["sink"]["sent"]
+    eventually("traffic after the replacement", lambda: system.modules()["sink"]["sent"] > before + 50)
+    system.stop()
+    origins = [o for o, _ in ticks(system.messages("/main/sink/out"))]
+    switched = origins.index(205)
+    assert set(origins[:switched]) == {105} and set(origins[switched:]) == {205}, origins

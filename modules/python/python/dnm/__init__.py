@@ -214,10 +214,12 @@ class Io:
     """Given to ``step``: reads inputs under the task of this step, writes outputs. Valid only
     during the step."""
 
-    __slots__ = ("_raw",)
+    __slots__ = ("_raw", "loan_address")
 
     def __init__(self, raw):
         self._raw = raw
+        #: Where the last loan of this step lies in shared memory.
+        self.loan_address = None
 
     @property
     def now_ns(self):
@@ -289,7 +291,7 @@ class Io:
         dtype = np.dtype(dtype)
         shape = (shape,) if isinstance(shape, int) else tuple(shape)
         nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-        view, _addr = self._raw.loan(port.index, nbytes)
+        view, self.loan_address = self._raw.loan(port.index, nbytes)
         return np.ndarray(shape, dtype=dtype, buffer=view)
 
     def loan_image(self, port, height, width):
@@ -297,7 +299,7 @@ class Io:
         written, to fill and send."""
         np = _numpy()
         step = width * 3
-        view, _addr = self._raw.loan(port.index, msg.IMAGE_HEADER + step * height)
+        view, self.loan_address = self._raw.loan(port.index, msg.IMAGE_HEADER + step * height)
         np.frombuffer(view, dtype="<u4", count=3)[:] = (width, height, step)
         return np.ndarray((height, width, 3), dtype=np.uint8, buffer=view, offset=msg.IMAGE_HEADER)
 
