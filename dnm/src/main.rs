@@ -9,6 +9,7 @@ use clap::{Parser, Subcommand};
 
 mod certs;
 mod demo;
+mod exec_check;
 mod ground_cmd;
 mod linksim;
 mod monitor_cmd;
@@ -263,6 +264,11 @@ enum Cmd {
         /// With --check: numbers equal within this relative tolerance (0: bit for bit).
         #[arg(long, default_value_t = 1e-4, requires = "check")]
         tolerance: f64,
+        /// With --check: the module's executable, for a kind this build does not hold (a
+        /// module of another language, e.g. a Python file): it steps the module here. A
+        /// recording alone never runs a program.
+        #[arg(long, value_name = "FILE", requires = "check")]
+        exec: Option<PathBuf>,
         #[arg(long)]
         json: bool,
     },
@@ -462,9 +468,10 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             check,
             set,
             tolerance,
+            exec,
             json,
         } => match check {
-            Some(module) => check_module(&file, &module, &set, tolerance, json),
+            Some(module) => check_module(&file, &module, &set, (tolerance, exec.as_deref()), json),
             None => replay(&file, system.as_deref(), &only, (rate, fast, step), json),
         },
         Cmd::Router => {
@@ -651,7 +658,7 @@ fn check_module(
     path: &Path,
     module: &str,
     set: &[String],
-    tolerance: f64,
+    (tolerance, exec): (f64, Option<&Path>),
     json: bool,
 ) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(
@@ -667,20 +674,33 @@ fn check_module(
     }
     let registry = dnm::registry();
     let make = |kind: &str, setup: &mut dnm_module::Setup<'_>| {
-        let r = registry
-            .find(kind)
-            .ok_or_else(|| dnm::check::MakeError::UnknownKind(kind.to_string()))?;
-        Ok((r.make)(setup)?)
+        if let Some(r) = registry.find(kind) {
+            return Ok((r.make)(setup)?);
+        }
+        let exec = exec.ok_or_else(|| dnm::check::MakeError::UnknownKind(kind.to_string()))?;
+        let stepper = exec_check::ExecStepper::spawn(exec, kind, setup)?;
+        Ok(Box::new(stepper) as Box<dyn dnm_module::Stepper>)
     };
-    let r = dnm::check::check(
-        path,
-        module,
-        &changes,
-        tolerance,
-        &dnm::parse_recorded_netlist,
-        &make,
-    )
-    .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    // The recording's netlist runs nothing, but the executable the operator named.
+    let named = exec.map(Path::to_path_buf);
+    let parse = move |file: &Path, text: &str| match &named {
+        None => dnm::parse_recorded_netlist(file, text),
+        Some(exec) => {
+            let mut describe = |named: &Path| -> Result<_, dnm_netlist::DescribeError> {
+                if named.file_name() == exec.file_name() {
+                    dnm::describe_exec(exec)
+                } else {
+                    Err(dnm_netlist::DescribeError::NotRun(format!(
+                        "`{}` is not run for a recording (only the --exec given)",
+                        named.display()
+                    )))
+                }
+            };
+            dnm_netlist::Netlist::parse(file, text, &dnm::catalog(), &mut describe)
+        }
+    };
+    let r = dnm::check::check(path, module, &changes, tolerance, &parse, &make)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     if json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {

@@ -252,6 +252,102 @@ fn run(py: Python<'_>, launch: &str, spec: &str, factory: Py<PyAny>) -> PyResult
         .map_err(|e| PyRuntimeError::new_err(e.to_string()))
 }
 
+/// One frame of the offline protocol: a 4-byte little-endian length, a JSON header of that
+/// length, then the payloads the header lists, back to back.
+fn read_frame<R: std::io::Read>(
+    r: &mut R,
+) -> std::io::Result<Option<(serde_json::Value, Vec<u8>)>> {
+    let mut len = [0u8; 4];
+    match r.read_exact(&mut len) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
+        Err(e) => return Err(e),
+    }
+    let mut head = vec![0u8; u32::from_le_bytes(len) as usize];
+    r.read_exact(&mut head)?;
+    let head: serde_json::Value = serde_json::from_slice(&head)?;
+    let total: u64 = head["payload_bytes"].as_u64().unwrap_or(0);
+    // Samples of at most a few MiB each come this way: a larger frame is not the check's.
+    if total > 1 << 30 {
+        return Err(std::io::ErrorKind::InvalidData.into());
+    }
+    let mut body = vec![0u8; total as usize];
+    r.read_exact(&mut body)?;
+    Ok(Some((head, body)))
+}
+
+fn write_frame(
+    w: &mut impl std::io::Write,
+    head: &serde_json::Value,
+    body: &[u8],
+) -> std::io::Result<()> {
+    let head = serde_json::to_vec(head)?;
+    w.write_all(&(head.len() as u32).to_le_bytes())?;
+    w.write_all(&head)?;
+    w.write_all(body)?;
+    w.flush()
+}
+
+/// Steps a Python module without a DNM for the determinism check (`dnm replay --check MODULE
+/// --exec FILE`), serving the check over standard input and output: each request sets and
+/// clears inputs, sets the task and steps the module once (the SDK's `Offline`); the answer is
+/// what it wrote, or the traceback of its exception.
+#[pyfunction]
+fn offline(py: Python<'_>, launch: &str, spec: &str, factory: Py<PyAny>) -> PyResult<()> {
+    use serde_json::json;
+    let launch: Launch = serde_json::from_str(launch)
+        .map_err(|e| PyValueError::new_err(format!("bad launch description: {e}")))?;
+    let spec: KindSpec = serde_json::from_str(spec)
+        .map_err(|e| PyValueError::new_err(format!("bad kind declaration: {e}")))?;
+    let io_err = |e: std::io::Error| PyRuntimeError::new_err(format!("the check's pipe: {e}"));
+    let mut setup = Setup::new(&launch.module, &spec, &launch.params);
+    let raw = Py::new(
+        py,
+        RawSetup {
+            setup: (&mut setup as *mut Setup<'_>).cast::<Setup<'static>>(),
+        },
+    )?;
+    let built = factory.call1(py, (raw.clone_ref(py),));
+    raw.borrow_mut(py).setup = std::ptr::null_mut();
+    let mut module = PyStepper { module: built? };
+    let mut offline = dnm_module::Offline::new(&spec, None);
+    let (mut stdin, mut stdout) = (std::io::stdin(), std::io::stdout().lock());
+    while let Some((head, body)) = py.detach(|| read_frame(&mut stdin)).map_err(io_err)? {
+        offline.set_task(head["task"].as_str());
+        for i in head["clear"].as_array().into_iter().flatten() {
+            offline.clear_input(i.as_u64().unwrap_or(u64::MAX) as usize);
+        }
+        let mut at = 0usize;
+        for s in head["set"].as_array().into_iter().flatten() {
+            let field = |i: usize| s.get(i).and_then(|v| v.as_u64()).unwrap_or(0);
+            let len = field(3) as usize;
+            let bytes = body.get(at..at + len).unwrap_or_default().to_vec();
+            at += len;
+            offline.set_input(field(0) as usize, field(1), field(2), bytes);
+        }
+        let now = head["now_ns"].as_u64().unwrap_or(0);
+        let (answer, out) = match offline.step(&mut module, now) {
+            Ok(written) => {
+                let list: Vec<_> = written
+                    .iter()
+                    .map(|(i, _, b)| json!([i, b.len()]))
+                    .collect();
+                let out: Vec<u8> = written.into_iter().flat_map(|(_, _, b)| b).collect();
+                (
+                    json!({"ok": true, "outputs": list, "payload_bytes": out.len()}),
+                    out,
+                )
+            }
+            Err(e) => (
+                json!({"ok": false, "error": e.to_string(), "payload_bytes": 0}),
+                Vec::new(),
+            ),
+        };
+        write_frame(&mut stdout, &answer, &out).map_err(io_err)?;
+    }
+    Ok(())
+}
+
 /// Checks a kind declaration (JSON) and returns it as the DNM reads it.
 #[pyfunction]
 fn check_kind(spec: &str) -> PyResult<String> {
@@ -293,6 +389,7 @@ fn _dnm(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<RawIo>()?;
     m.add_class::<RawSetup>()?;
     m.add_function(wrap_pyfunction!(run, m)?)?;
+    m.add_function(wrap_pyfunction!(offline, m)?)?;
     m.add_function(wrap_pyfunction!(check_kind, m)?)?;
     m.add_function(wrap_pyfunction!(message_types, m)?)?;
     Ok(())

@@ -407,3 +407,48 @@ links = ["src.out -> py.in", "py.out -> sink.in"]
     origins = [o for o, _ in ticks(system.messages("/main/sink/out"))]
     switched = origins.index(205)
     assert set(origins[:switched]) == {105} and set(origins[switched:]) == {205}, origins
+
+
+def test_replay_check_steps_a_python_module_on_its_recorded_inputs(system):
+    relay = system.module("relay.py", RELAY)
+    n = system.netlist('''
+default_task = "a"
+
+[[dnm]]
+name = "main"
+
+[kind.py_relay]
+exec = "relay.py"
+
+[[module]]
+name = "src"
+kind = "ticker"
+rate_hz = 50
+params = { origin = 5 }
+
+[[module]]
+name = "py"
+kind = "py_relay"
+params = { add = 100 }
+
+[task.a]
+links = ["src.out -> py.in"]
+''')
+    system.up(n)
+    system.running("src", "py")
+    eventually("traffic", lambda: system.modules()["py"]["sent"] > 50)
+    system.stop()
+    session = str(system.session())
+    # A recording alone runs nothing: the module's executable must be named.
+    r = system.cmd("replay", "--check", "py", session, check=False)
+    assert r.returncode != 0 and "is not run for a recording" in r.stderr, r.stderr
+    r = system.cmd("replay", "--check", "py", "--exec", str(relay), "--json", session, check=False)
+    assert r.returncode == 0, r.stdout + r.stderr
+    report = __import__("json").loads(r.stdout)
+    assert report["ok"], report
+    assert report["outputs"]["out"]["recorded"] > 50
+    assert report["outputs"]["out"]["identical"] == report["outputs"]["out"]["recorded"]
+    # Its code changed: the check finds where it diverges.
+    r = system.cmd("replay", "--check", "py", "--exec", str(relay), "--set", "add=101", session, check=False)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "origin" in r.stdout, r.stdout

@@ -106,6 +106,16 @@ impl<'a> Setup<'a> {
         self.module
     }
 
+    /// Its kind's declaration.
+    pub fn spec(&self) -> &KindSpec {
+        self.spec
+    }
+
+    /// The parameters given to it (defaults not included).
+    pub fn params(&self) -> &BTreeMap<String, ParamValue> {
+        self.params
+    }
+
     fn param_value(&self, name: &str) -> Result<&ParamValue, ModuleError> {
         self.params
             .get(name)
