@@ -39,7 +39,7 @@ impl ExecStepper {
             module: setup.name().to_string(),
             kind: kind.to_string(),
             params: setup.params().clone(),
-            trigger: spec.trigger.clone(),
+            trigger: spec.trigger,
         };
         let launch =
             serde_json::to_string(&launch).map_err(|e| ModuleError::Launch(e.to_string()))?;
