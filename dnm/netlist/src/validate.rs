@@ -296,7 +296,12 @@ impl Validation<'_, '_> {
         raw: &BTreeMap<Spanned<String>, Spanned<RawKind>>,
         describe: &mut crate::error::Describe<'_>,
     ) {
-        let base = file.parent().unwrap_or(Path::new("."));
+        // A netlist named without a folder lies in the current one: its executables are
+        // `./name`, never looked up on the PATH.
+        let base = file
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
         for (name, k) in raw {
             let field = format!("kind.{}", name.get_ref());
             if !check_name(self.r, name, &field) {

@@ -38,6 +38,15 @@ def eventually(what, f, timeout=120.0):
     pytest.fail(f"never: {what} (last: {last!r})")
 
 
+def env(**more):
+    """The environment of the DNM: this Python first on the PATH (`#!/usr/bin/env python3`
+    modules find `dnm`)."""
+    e = dict(os.environ, PATH=f"{Path(sys.executable).parent}:{os.environ.get('PATH', '')}")
+    e.setdefault("RUST_LOG", "info")
+    e.update(more)
+    return e
+
+
 class System:
     """One machine's DNMs of a netlist, run with `dnm up`."""
 
@@ -66,6 +75,7 @@ class System:
             capture_output=True,
             text=True,
             timeout=120,
+            env=env(),
         )
         if check and r.returncode != 0:
             pytest.fail(f"dnm {' '.join(args)}: {r.stdout}\n{r.stderr}")
@@ -77,8 +87,7 @@ class System:
                 "--record-dir", str(self.dir / "recordings")]
         if not record:
             args.append("--no-record")
-        env = dict(os.environ, RUST_LOG=os.environ.get("RUST_LOG", "info"))
-        self.proc = subprocess.Popen(args, stdout=open(self.log, "w"), stderr=subprocess.STDOUT, env=env)
+        self.proc = subprocess.Popen(args, stdout=open(self.log, "w"), stderr=subprocess.STDOUT, env=env())
         return self
 
     def status(self):
@@ -118,6 +127,7 @@ class System:
 
     def session(self) -> Path:
         sessions = [p for p in (self.dir / "recordings").iterdir() if p.is_dir()]
+        sessions = sessions or [p for p in (self.dir / "recordings").glob("*/") if p.is_dir()]
         assert len(sessions) == 1, sessions
         return sessions[0]
 
@@ -139,7 +149,7 @@ def system(tmp_path, request):
     s = System(tmp_path, request.node.name.replace("test_", "py")[:12].replace("_", ""))
     yield s
     s.stop()
-    if request.node.rep_call.failed if hasattr(request.node, "rep_call") else False:
+    if getattr(request.node, "rep_call", None) and request.node.rep_call.failed and s.log.exists():
         print(s.log.read_text()[-4000:])
 
 

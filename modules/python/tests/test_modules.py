@@ -452,3 +452,39 @@ links = ["src.out -> py.in"]
     r = system.cmd("replay", "--check", "py", "--exec", str(relay), "--set", "add=101", session, check=False)
     assert r.returncode == 1, r.stdout + r.stderr
     assert "origin" in r.stdout, r.stdout
+
+
+def test_the_rock_detector_example_runs_on_beetle_one(system, tmp_path):
+    """examples/python: Beetle-One's mission with the Python rock detector on its camera board,
+    its detections recorded and decoded, the detector checked on its recorded frames."""
+    import json
+    import os
+    import subprocess
+    from pathlib import Path
+
+    example = Path(__file__).resolve().parents[3] / "examples" / "python"
+    env = dict(
+        os.environ,
+        PATH=f"{Path(os.sys.executable).parent}:{os.environ['PATH']}",
+        DNM_MODULE_DIR=str(example),
+        DNM_RECORD_DIR=str(tmp_path / "recordings"),
+        RUST_LOG="warn",
+    )
+    netlist = (example / "beetle-rocks.toml").read_text().replace('name = "beetle"', f'name = "{system.system}"', 1)
+    mine = example / f"test-{system.system}.toml"
+    mine.write_text(netlist)
+    try:
+        r = subprocess.run(
+            [str(system.dnm), "--no-multicast", "demo", "--json", "--teleop-seconds", "2", "--netlist", str(mine)],
+            capture_output=True, text=True, env=env, timeout=600,
+        )
+    finally:
+        mine.unlink()
+    assert r.returncode == 0, r.stdout + r.stderr[-3000:]
+    assert json.loads(r.stdout)["ok"], r.stdout
+    rows = [struct.unpack_from("<Qddd", data, 4) for _, data in system.messages("/vision/rocks/detections")]
+    assert len(rows) > 50
+    assert max(count for count, *_ in rows) >= 1, "rocks seen on the way"
+    assert all(0.0 <= coverage <= 1.0 for *_, coverage in rows)
+    r = system.cmd("replay", "--check", "rocks", "--exec", str(example / "rocks.py"), str(system.session()), check=False)
+    assert r.returncode == 0, r.stdout + r.stderr
