@@ -173,9 +173,25 @@ impl RawSetup {
     }
 }
 
-/// A Python module object, stepped by the runtime: its `_step(raw_io)` is called with the GIL.
+/// A Python module object, stepped by the runtime: its `_step(raw_io)` is called with the GIL,
+/// with the same `raw_io` each step (pointing at that step's `Io` for the call only).
 struct PyStepper {
-    module: Py<PyAny>,
+    step: Py<PyAny>,
+    raw: Py<RawIo>,
+}
+
+impl PyStepper {
+    fn new(py: Python<'_>, module: Py<PyAny>) -> PyResult<Self> {
+        Ok(Self {
+            step: module.getattr(py, "_step")?,
+            raw: Py::new(
+                py,
+                RawIo {
+                    io: std::ptr::null_mut(),
+                },
+            )?,
+        })
+    }
 }
 
 /// A Python exception as its traceback reads.
@@ -204,18 +220,21 @@ fn traceback(py: Python<'_>, e: &PyErr) -> String {
         .to_string()
 }
 
+impl PyStepper {
+    /// Hands the module's `_bind(raw_io)` the object each step's `Io` goes through.
+    fn bind(self, py: Python<'_>) -> PyResult<Self> {
+        let module = self.step.getattr(py, "__self__")?;
+        module.call_method1(py, "_bind", (self.raw.clone_ref(py),))?;
+        Ok(self)
+    }
+}
+
 impl Stepper for PyStepper {
     fn step_io(&mut self, io: &mut Io<'_>) -> Result<(), ModuleError> {
         Python::attach(|py| {
-            let raw = Py::new(
-                py,
-                RawIo {
-                    io: (io as *mut Io<'_>).cast::<Io<'static>>(),
-                },
-            )
-            .map_err(|e| ModuleError::Fatal(traceback(py, &e)))?;
-            let result = self.module.call_method1(py, "_step", (raw.clone_ref(py),));
-            raw.borrow_mut(py).io = std::ptr::null_mut();
+            self.raw.borrow_mut(py).io = (io as *mut Io<'_>).cast::<Io<'static>>();
+            let result = self.step.call0(py);
+            self.raw.borrow_mut(py).io = std::ptr::null_mut();
             result
                 .map(|_| ())
                 .map_err(|e| ModuleError::Fatal(traceback(py, &e)))
@@ -244,7 +263,10 @@ fn run(py: Python<'_>, launch: &str, spec: &str, factory: Py<PyAny>) -> PyResult
             let built = factory.call1(py, (raw.clone_ref(py),));
             raw.borrow_mut(py).setup = std::ptr::null_mut();
             let module = built.map_err(|e| ModuleError::Fatal(traceback(py, &e)))?;
-            Ok(Box::new(PyStepper { module }) as Box<dyn Stepper>)
+            let stepper = PyStepper::new(py, module)
+                .and_then(|s| s.bind(py))
+                .map_err(|e| ModuleError::Fatal(traceback(py, &e)))?;
+            Ok(Box::new(stepper) as Box<dyn Stepper>)
         })
     };
     // The loop waits for inputs without the GIL; it takes it for each step.
@@ -309,7 +331,7 @@ fn offline(py: Python<'_>, launch: &str, spec: &str, factory: Py<PyAny>) -> PyRe
     )?;
     let built = factory.call1(py, (raw.clone_ref(py),));
     raw.borrow_mut(py).setup = std::ptr::null_mut();
-    let mut module = PyStepper { module: built? };
+    let mut module = PyStepper::new(py, built?)?.bind(py)?;
     let mut offline = dnm_module::Offline::new(&spec, None);
     let (mut stdin, mut stdout) = (std::io::stdin(), std::io::stdout().lock());
     while let Some((head, body)) = py.detach(|| read_frame(&mut stdin)).map_err(io_err)? {

@@ -128,7 +128,7 @@ class Module:
 class Port:
     """A port's handle: what ``setup.input``/``setup.output`` give, ``io`` takes."""
 
-    __slots__ = ("name", "index", "input", "type", "message_type")
+    __slots__ = ("name", "index", "input", "type", "message_type", "fixed", "image")
 
     def __init__(self, name, index, input, message_type):
         self.name = name
@@ -136,6 +136,8 @@ class Port:
         self.input = input
         self.message_type = message_type
         fixed = message_type["payload"]["layout"] == "fixed"
+        self.fixed = fixed
+        self.image = message_type["encoding"] == "dnm-image-rgb8"
         known = msg.by_schema(message_type["schema_name"])
         if fixed:
             if known is None or not isinstance(known, builtins_type):
@@ -152,10 +154,6 @@ class Port:
                 message_type["schema"],
             )
         self.type = known
-
-    @property
-    def fixed(self):
-        return self.message_type["payload"]["layout"] == "fixed"
 
     def __repr__(self):
         return f"<{'input' if self.input else 'output'} `{self.name}` ({self.message_type['schema_name']})>"
@@ -193,10 +191,15 @@ def _numpy():
     return numpy
 
 
+_np = None
+
+
 def _as_array(port, view):
     """A bytes sample as a numpy array on its memory (an image shaped from its header)."""
-    np = _numpy()
-    if port.message_type["encoding"] == "dnm-image-rgb8" and len(view) >= msg.IMAGE_HEADER:
+    global _np
+    np = _np or _numpy()
+    _np = np
+    if port.image and len(view) >= msg.IMAGE_HEADER:
         width, height, step = np.frombuffer(view, dtype="<u4", count=3)
         width, height, step = int(width), int(height), int(step)
         if step >= width * 3 and len(view) >= msg.IMAGE_HEADER + step * height:
@@ -233,9 +236,9 @@ class Io:
 
     @staticmethod
     def _check(port, input):
-        if not isinstance(port, Port):
+        if port.__class__ is not Port:
             raise TypeError(f"{port!r} is not a port: take it from setup.input/setup.output")
-        if port.input != input:
+        if port.input is not input:
             raise TypeError(f"{port!r} is not an {'input' if input else 'output'}")
 
     @staticmethod
@@ -310,16 +313,23 @@ class Io:
 
 
 class _Stepped:
-    """The runtime's handle on a module object."""
+    """The runtime's handle on a module object: one `Io` for all its steps, pointing at each
+    step's inputs and outputs while the step runs."""
 
-    __slots__ = ("module",)
+    __slots__ = ("module", "io", "step")
 
     def __init__(self, module):
         self.module = module
+        self.io = None
+        self.step = module.step
 
-    def _step(self, raw_io):
+    def _bind(self, raw_io):
+        self.io = Io(raw_io)
+
+    def _step(self):
         try:
-            self.module.step(Io(raw_io))
+            self.io.loan_address = None
+            self.step(self.io)
         except BaseException as e:
             e.__dnm_traceback__ = _traceback(e)
             raise
