@@ -378,4 +378,47 @@ fn bad_sequences_are_refused_with_located_errors_and_change_nothing() {
         assert_eq!(r.revision, revision, "{d}");
         assert_eq!(r.active_task.as_deref(), Some("a"), "{d}");
     }
+
+    // A good one: a module replaced, a condition on its new output (its samples only, not the
+    // old module's), a module added, then a wait and a switch: every step after an edit runs as
+    // the sequence was started.
+    let good = r#"
+[sequence]
+name = "good"
+
+[[step]]
+edit = { replace = "src_b", params = ["origin=9"] }
+
+[[step]]
+wait_until = "src_b.out.origin == 9 and src_b.out.seq <= 3"
+timeout = "30s"
+on_timeout = "abort"
+
+[[step]]
+edit = { add = "src_x", kind = "ticker", dnm = "drive", params = ["origin=4"] }
+
+[[step]]
+wait = "1s"
+
+[[step]]
+switch = "b"
+"#;
+    done(&api, &upload("good", good));
+    done(&api, &order("good", SequenceAction::Start));
+    let q = eventually("the good sequence ends", || {
+        status(&api, "good")
+            .filter(|q| matches!(q.state, SequenceState::Finished | SequenceState::Aborted))
+    });
+    assert_eq!(q.state, SequenceState::Finished, "{:#?}", q.history);
+    let met = q
+        .history
+        .iter()
+        .find(|e| e.what == "condition_met")
+        .unwrap();
+    assert!(
+        met.detail.contains("src_b.out.origin = 9"),
+        "{}",
+        met.detail
+    );
+    wait_in_step(&session, &rig.system, &ROVER, "b");
 }

@@ -38,13 +38,15 @@ use zenoh::Wait;
 use zenoh::qos::{CongestionControl, Priority};
 
 use dnm_proto::keys;
-use dnm_proto::station::{Downlink, Fate, Order, RoverState, Sent, Uplink};
+use dnm_proto::station::{Downlink, Fate, Order, RoverState, Sent, SequenceStatus, Uplink};
 
 const OUTBOX: TableDefinition<'_, u64, &[u8]> = TableDefinition::new("outbox");
 const META: TableDefinition<'_, &str, u64> = TableDefinition::new("meta");
 
 /// Answers the clock offset is estimated from.
 const CLOCK_SAMPLES: usize = 16;
+/// Events of each sequence the station keeps (the rover sends each once).
+const SEQUENCE_EVENTS_KEPT: usize = 256;
 
 /// Uplinks remembered for the loss estimate.
 const LOSS_WINDOW: usize = 50;
@@ -558,12 +560,20 @@ fn uplink(s: &Shared) -> (bool, bool, bool) {
             .take(64)
             .collect();
         let has = !commands.is_empty() || pending_from < inner.next_seq;
+        let sequence_events = inner
+            .link
+            .rover
+            .iter()
+            .flat_map(|r| &r.sequences)
+            .map(|q| (q.name.clone(), q.events_total))
+            .collect();
         (
             Uplink {
                 station: s.wire_name.clone(),
                 commands,
                 pending_from,
                 waiting,
+                sequence_events,
             },
             has,
         )
@@ -710,7 +720,27 @@ fn take_downlink(s: &Shared, d: Downlink, rtt: Duration) {
             tracing::info!(what = %e.what, "rover: {}", e.detail);
         }
     }
-    inner.link.rover = Some(d.rover);
+    // The sequences' events arrive once each: added to those the station holds.
+    let mut rover = d.rover;
+    if let Some(old) = inner.link.rover.take() {
+        let mut held: BTreeMap<String, SequenceStatus> = old
+            .sequences
+            .into_iter()
+            .map(|q| (q.name.clone(), q))
+            .collect();
+        rover.sequences = rover
+            .sequences
+            .into_iter()
+            .map(|q| match held.remove(&q.name) {
+                Some(mut h) => {
+                    h.merge(q, SEQUENCE_EVENTS_KEPT);
+                    h
+                }
+                None => q,
+            })
+            .collect();
+    }
+    inner.link.rover = Some(rover);
     let now = now_unix_ns();
     let mut changed: Vec<Entry> = Vec::new();
     for o in &d.outcomes {

@@ -20,7 +20,16 @@ pub(crate) fn intake_loop(s: &Shared, rx: &mpsc::Receiver<Query>) {
 }
 
 pub(crate) fn take_uplink(s: &Shared, q: &Query) -> Downlink {
-    let rover = || s.rover.lock().map(|r| r.clone()).unwrap_or_default();
+    let full = || s.rover.lock().map(|r| r.clone()).unwrap_or_default();
+    // An answer that takes nothing still says what the rover is doing (the sequences' first
+    // events only).
+    let rover = || {
+        let mut r = full();
+        for q in &mut r.sequences {
+            q.after(0);
+        }
+        r
+    };
     let refuse = |e: String| Downlink {
         at_unix_ns: now_unix_ns(),
         outcomes: Vec::new(),
@@ -96,10 +105,15 @@ pub(crate) fn take_uplink(s: &Shared, q: &Query) -> Downlink {
             if outcomes.iter().any(|o| o.fate == Fate::Acknowledged) {
                 s.wake();
             }
+            let mut rover = full();
+            // Only the sequences' events this station does not hold yet cross the radio.
+            for q in &mut rover.sequences {
+                q.after(up.sequence_events.get(&q.name).copied().unwrap_or(0));
+            }
             Downlink {
                 at_unix_ns: now_unix_ns(),
                 outcomes,
-                rover: rover(),
+                rover,
                 error: None,
             }
         }

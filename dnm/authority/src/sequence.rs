@@ -70,12 +70,25 @@ pub(crate) struct SequenceRun {
     /// Events it ever had (its history keeps the last ones).
     #[serde(default)]
     pub(crate) events_total: u64,
+    /// Its steps as they read against the netlist in force when it was started: a run goes by
+    /// them, whatever its own edits and applies change (each step is checked again when it
+    /// runs: a switch to a task no longer defined is refused).
+    #[serde(default)]
+    pub(crate) started: Option<Sequence>,
 }
 
 impl SequenceRun {
     /// Reads its text against `netlist`.
     pub(crate) fn parse(&self, netlist: &Netlist) -> Result<Sequence, NetlistError> {
         Sequence::parse(Path::new(&self.file), &self.text, netlist)
+    }
+
+    /// The steps a run goes by: as read when it was started (else against `netlist`).
+    pub(crate) fn steps_of(&self, netlist: &Netlist) -> Result<Sequence, NetlistError> {
+        match &self.started {
+            Some(q) => Ok(q.clone()),
+            None => self.parse(netlist),
+        }
     }
 
     pub(crate) fn active(&self) -> bool {
@@ -168,7 +181,7 @@ impl SequenceRun {
 
     /// As stations see it.
     pub(crate) fn status(&self, netlist: &Netlist) -> SequenceStatus {
-        let parsed = self.parse(netlist).ok();
+        let parsed = self.steps_of(netlist).ok();
         let steps = parsed.as_ref().map_or(self.step, |q| q.steps.len());
         let doing = parsed
             .as_ref()
@@ -192,6 +205,7 @@ impl SequenceRun {
             why,
             step_since_unix_ns: self.step_since_unix_ns,
             history: self.history.clone(),
+            events_total: self.events_total,
         }
     }
 }
@@ -282,7 +296,7 @@ pub(crate) fn order(
             file,
             text,
             netlists,
-        } => upload(core, name, file, text, netlists, &by),
+        } => upload(core, &s.door, name, (file, text), netlists, &by),
         SequenceAction::Start => start(core, name, &by),
         SequenceAction::Pause => pause(core, name, &by),
         SequenceAction::Resume => resume(core, name, &by),
@@ -325,9 +339,9 @@ fn stored<'a>(core: &'a mut Core, name: &str) -> Result<&'a mut SequenceRun, Str
 
 fn upload(
     core: &mut Core,
+    door: &NetlistDoor,
     name: &str,
-    file: &str,
-    text: &str,
+    (file, text): (&str, &str),
     netlists: &BTreeMap<String, String>,
     by: &str,
 ) -> Result<String, String> {
@@ -346,12 +360,19 @@ fn upload(
         ));
     }
     for step in &sequence.steps {
-        if let Step::Apply { file: f } = step
-            && !netlists.contains_key(f)
-        {
+        let Step::Apply { file: f } = step else {
+            continue;
+        };
+        let Some(netlist) = netlists.get(f) else {
             return Err(format!(
                 "{file}: a step applies `{f}`, which the upload does not carry (the station \
                  reads it beside the sequence file)"
+            ));
+        };
+        // Checked now, as it would be when its step runs: a bad one changes nothing.
+        if let Err(e) = door.accept(f, netlist) {
+            return Err(format!(
+                "{file}: a step applies `{f}`, which does not check:\n{e}"
             ));
         }
     }
@@ -386,6 +407,7 @@ fn upload(
             .map(|r| r.history.clone())
             .unwrap_or_default(),
         events_total: core.sequences.get(name).map_or(0, |r| r.events_total),
+        started: None,
     };
     let detail = format!(
         "sequence `{name}` stored: {} steps, {} guards (from {file}, by {by})",
@@ -420,6 +442,7 @@ fn start(core: &mut Core, name: &str, by: &str) -> Result<String, String> {
     let sequence = run.parse(&netlist).map_err(|e| {
         format!("sequence `{name}` no longer checks against the netlist in force:\n{e}")
     })?;
+    run.started = Some(sequence.clone());
     run.state = SequenceState::Running;
     run.run += 1;
     run.step = 0;
@@ -446,10 +469,7 @@ fn pause(core: &mut Core, name: &str, by: &str) -> Result<String, String> {
     }
     run.state = SequenceState::Paused;
     run.paused_at_unix_ns = Some(now_unix_ns());
-    let detail = format!(
-        "sequence `{name}` paused before step {}, by {by}",
-        run.step + 1
-    );
+    let detail = format!("sequence `{name}` paused at step {}, by {by}", run.step + 1);
     run.event("paused", Some(run.step), detail.clone());
     run.why = detail.clone();
     Ok(detail)
@@ -497,7 +517,7 @@ fn cancel(core: &mut Core, name: &str, by: &str) -> Result<String, String> {
 /// end): `(name, run, step)`.
 pub(crate) fn next_step(core: &Core) -> Option<(String, u64, usize)> {
     let run = running(core)?;
-    let step = match run.parse(&core.netlist) {
+    let step = match run.steps_of(&core.netlist) {
         // The netlist changed under it: the worker aborts it, saying why.
         Err(_) => return Some((run.name.clone(), run.run, run.step)),
         Ok(q) => q.steps.get(run.step).cloned(),
@@ -619,7 +639,7 @@ pub(crate) fn run_step(
     else {
         return Ok(());
     };
-    let parsed = r.parse(&core.netlist);
+    let parsed = r.steps_of(&core.netlist);
     let netlists = r.netlists.clone();
     let sequence = match parsed {
         Ok(q) => q,
@@ -801,9 +821,10 @@ pub(crate) fn apply_due(s: &Shared, core: &mut Core, due: Due) -> Result<(), Aut
             && (guard || r.step == due.step)
     }) else {
         tracing::debug!(?due, "no longer due");
+        s.sequencer.dropped(&due);
         return Ok(());
     };
-    let sequence = match r.parse(&core.netlist) {
+    let sequence = match r.steps_of(&core.netlist) {
         Ok(q) => q,
         Err(e) => {
             return save_aborted(
@@ -837,12 +858,28 @@ pub(crate) fn apply_due(s: &Shared, core: &mut Core, due: Due) -> Result<(), Aut
                 cmd: None,
                 timer_remove: None,
                 step: Some(StepOrigin::Guard {
-                    name,
+                    name: name.clone(),
                     run: due.run,
                     detail,
                 }),
             };
-            transact(s, core, None, Some(g.task.clone()), None, origin);
+            let task = g.task.clone();
+            if let Fate::Refused { reason } =
+                transact(s, core, None, Some(task.clone()), None, origin)
+            {
+                // The guard's task is put in force all the same, as a safing: a DNM that cannot
+                // take a transaction takes the beat's safing.
+                safing::make_safe(
+                    s,
+                    core,
+                    task.clone(),
+                    "guard",
+                    format!(
+                        "sequence `{name}`: a guard fired and its switch to `{task}` was refused \
+                         ({reason}): the rover is made safe on it"
+                    ),
+                )?;
+            }
             Ok(())
         }
         DueWhat::Elapsed => {

@@ -23,6 +23,10 @@ pub(crate) struct Armed {
     pub(crate) guards: Vec<Condition>,
     /// The step's condition (`wait_until`, `end_if`).
     pub(crate) condition: Option<Condition>,
+    /// An `end_if`: decided on the first sample of its fields (ends, or goes on).
+    pub(crate) end_if: bool,
+    /// When the step began, rover time: its condition reads only samples sent since.
+    pub(crate) since_unix_ns: u64,
     /// Rover time the step's wait or timeout ends, and what falls due then.
     pub(crate) deadline: Option<(u64, DueWhat)>,
     /// The outputs to watch: (dnm, module, port) and their message type.
@@ -33,7 +37,7 @@ impl Armed {
     /// What the sequencer watches for `run` on `netlist` (`None`: nothing, or the sequence
     /// does not read against it).
     pub(crate) fn of(run: &SequenceRun, netlist: &Netlist) -> Option<Self> {
-        let sequence = run.parse(netlist).ok()?;
+        let sequence = run.steps_of(netlist).ok()?;
         let step = sequence.steps.get(run.step);
         let paused = run.state == SequenceState::Paused;
         let (condition, deadline) = match step {
@@ -50,6 +54,7 @@ impl Armed {
             Some(Step::End { condition }) => (condition.clone(), None),
             _ => (None, None),
         };
+        let end_if = matches!(step, Some(Step::End { condition: Some(_) }));
         let guards: Vec<Condition> = sequence
             .guards
             .iter()
@@ -78,6 +83,8 @@ impl Armed {
             paused,
             guards,
             condition,
+            end_if,
+            since_unix_ns: run.step_since_unix_ns,
             deadline: if paused { None } else { deadline },
             ports,
         })
@@ -122,13 +129,16 @@ impl Sequencer {
         let Ok(mut w) = self.watching.lock() else {
             return;
         };
-        let same = match (&w.armed, &armed) {
-            (Some(a), Some(b)) => a.same_step(b),
-            _ => false,
+        let (same, pause_changed) = match (&w.armed, &armed) {
+            (Some(a), Some(b)) => (a.same_step(b), a.paused != b.paused),
+            _ => (false, false),
         };
         if !same {
             w.fired = false;
             w.since = Some(Instant::now());
+        } else if pause_changed {
+            // Paused or resumed: what fell due meanwhile was dropped; it falls due again.
+            w.fired = false;
         }
         w.armed = armed;
         drop(w);
@@ -150,6 +160,18 @@ impl Sequencer {
             .find(|d| matches!(d.what, DueWhat::Guard { .. }))
             .or_else(|| dues.front())
             .cloned()
+    }
+
+    /// `due` was dropped (its sequence was paused, say): the step falls due again.
+    pub(crate) fn dropped(&self, due: &Due) {
+        if let Ok(mut w) = self.watching.lock()
+            && w.armed
+                .as_ref()
+                .is_some_and(|a| (&a.name, a.run, a.step) == (&due.name, due.run, due.step))
+        {
+            w.fired = false;
+        }
+        self.notify();
     }
 
     /// Takes `due` out of the queue: the worker acted on it.
@@ -243,6 +265,14 @@ fn evaluate(w: &mut Watching) -> Option<Due> {
             .filter(|v| v.received >= since)
     };
     let value_of = |f: &FieldRef| fresh(f).and_then(|v| field_value(&v.value, f));
+    // The step's condition reads only samples sent since the step began (a sample of the
+    // module an edit replaced, or sent under the task a switch left, says nothing of it).
+    let since_step = |f: &FieldRef| {
+        w.values
+            .get(&(f.module.clone(), f.port.clone()))
+            .filter(|v| v.unix_ns >= armed.since_unix_ns)
+    };
+    let step_value = |f: &FieldRef| since_step(f).and_then(|v| field_value(&v.value, f));
     let said = |c: &Condition| {
         c.fields()
             .iter()
@@ -284,7 +314,17 @@ fn evaluate(w: &mut Watching) -> Option<Due> {
         return Some(d);
     }
     let c = armed.condition.as_ref().filter(|_| !armed.paused)?;
-    if !c.holds(&value_of) {
+    let holds = c.holds(&step_value);
+    if armed.end_if && !holds {
+        // Decided once every field has a sample: it does not hold, so the sequence goes on.
+        if !c.fields().iter().all(|f| since_step(f).is_some()) {
+            return None;
+        }
+        let d = due(DueWhat::Elapsed);
+        w.fired = true;
+        return Some(d);
+    }
+    if !holds {
         return None;
     }
     let d = due(DueWhat::Met {

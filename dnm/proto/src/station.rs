@@ -120,6 +120,10 @@ pub struct Uplink {
     /// 64): the answer carries their fates.
     #[serde(default)]
     pub waiting: Vec<u64>,
+    /// How many events of each sequence the station holds (their numbers, from 1): the answer
+    /// carries the next ones (a few dozen at most), so a history crosses the radio once.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub sequence_events: std::collections::BTreeMap<String, u64>,
 }
 
 /// The fate of one command on the rover.
@@ -281,9 +285,60 @@ pub struct SequenceStatus {
     pub why: String,
     /// Rover time the current step began, ns since the Unix epoch.
     pub step_since_unix_ns: u64,
-    /// Its history, oldest first (the last ones).
+    /// Its history, oldest first: in an answer to a station, the events after those it holds.
     #[serde(default)]
     pub history: Vec<SequenceEvent>,
+    /// The number of the newest event in `history` (events are numbered from 1 per sequence;
+    /// all of them when `history` is empty).
+    #[serde(default)]
+    pub events_total: u64,
+}
+
+/// Events of one answer, per sequence, at most.
+pub const EVENTS_PER_ANSWER: usize = 32;
+
+impl SequenceStatus {
+    /// Keeps in `history` only the events after the first `seen`, [`EVENTS_PER_ANSWER`] at most
+    /// (`events_total` then numbers the last kept).
+    pub fn after(&mut self, seen: u64) {
+        // A station that holds more than the rover ever had saw a record that started over
+        // since (a new store): it gets this one from its start.
+        let seen = if seen > self.events_total { 0 } else { seen };
+        let len = self.history.len() as u64;
+        let first = self.events_total.saturating_sub(len) + 1;
+        let skip = seen.saturating_add(1).saturating_sub(first).min(len) as usize;
+        self.history.drain(..skip);
+        self.history.truncate(EVENTS_PER_ANSWER);
+        if !self.history.is_empty() {
+            self.events_total = first - 1 + skip as u64 + self.history.len() as u64;
+        }
+    }
+
+    /// Adds the events of `newer` (an answer about the same sequence) to this one's history,
+    /// keeping the last `keep`.
+    pub fn merge(&mut self, newer: SequenceStatus, keep: usize) {
+        let mut history = std::mem::take(&mut self.history);
+        let (held, total) = (self.events_total, newer.events_total);
+        let first = total.saturating_sub(newer.history.len() as u64) + 1;
+        if total < held {
+            // The rover's record of it started over (a new store): take it as it is.
+            history.clear();
+        }
+        let mut n = first;
+        for e in newer.history.iter().cloned() {
+            if n > held || total < held {
+                history.push(e);
+            }
+            n += 1;
+        }
+        let over = history.len().saturating_sub(keep);
+        history.drain(..over);
+        *self = SequenceStatus {
+            history,
+            events_total: total.max(if total < held { 0 } else { held }),
+            ..newer
+        };
+    }
 }
 
 /// Something that happened to a sequence on the rover.
@@ -334,6 +389,61 @@ pub struct Downlink {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn status(total: u64, numbers: std::ops::RangeInclusive<u64>) -> SequenceStatus {
+        SequenceStatus {
+            name: "s".into(),
+            file: "s.toml".into(),
+            state: SequenceState::Running,
+            step: 0,
+            steps: 1,
+            doing: String::new(),
+            why: String::new(),
+            step_since_unix_ns: 0,
+            history: numbers
+                .map(|n| SequenceEvent {
+                    at_unix_ns: n,
+                    sequence: "s".into(),
+                    run: 1,
+                    what: "step_done".into(),
+                    step: None,
+                    detail: String::new(),
+                    sample_unix_ns: None,
+                    in_force: None,
+                })
+                .collect(),
+            events_total: total,
+        }
+    }
+
+    /// A station gets each event once, at most a few dozen an answer, and ends up holding
+    /// them all in order; a rover whose record started over is taken as it is.
+    #[test]
+    fn sequence_events_cross_once_and_add_up_at_the_station() {
+        // The rover keeps events 37..=100 (64 of them).
+        let rover = status(100, 37..=100);
+        let mut held = status(0, 1..=0);
+        for _ in 0..4 {
+            let mut answer = rover.clone();
+            answer.after(held.events_total);
+            assert!(answer.history.len() <= EVENTS_PER_ANSWER);
+            held.merge(answer, 256);
+        }
+        assert_eq!(held.events_total, 100);
+        let got: Vec<u64> = held.history.iter().map(|e| e.at_unix_ns).collect();
+        assert_eq!(got, (37..=100).collect::<Vec<_>>());
+        // Up to date: nothing more crosses.
+        let mut answer = rover.clone();
+        answer.after(100);
+        assert!(answer.history.is_empty());
+        assert_eq!(answer.events_total, 100);
+        // The rover's store was lost: its new record replaces the station's.
+        let mut answer = status(3, 1..=3);
+        answer.after(100);
+        held.merge(answer, 256);
+        assert_eq!(held.events_total, 3);
+        assert_eq!(held.history.len(), 3);
+    }
 
     /// Every fate survives the trip inside an outcome (its fields sit beside the outcome's).
     #[test]
