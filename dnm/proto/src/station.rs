@@ -324,12 +324,10 @@ impl SequenceStatus {
             // The rover's record of it started over (a new store): take it as it is.
             history.clear();
         }
-        let mut n = first;
-        for e in newer.history.iter().cloned() {
+        for (n, e) in (first..).zip(newer.history.iter().cloned()) {
             if n > held || total < held {
                 history.push(e);
             }
-            n += 1;
         }
         let over = history.len().saturating_sub(keep);
         history.drain(..over);
@@ -390,7 +388,7 @@ pub struct Downlink {
 mod tests {
     use super::*;
 
-    fn status(total: u64, numbers: std::ops::RangeInclusive<u64>) -> SequenceStatus {
+    fn status(total: u64, numbers: impl Iterator<Item = u64>) -> SequenceStatus {
         SequenceStatus {
             name: "s".into(),
             file: "s.toml".into(),
@@ -422,7 +420,7 @@ mod tests {
     fn sequence_events_cross_once_and_add_up_at_the_station() {
         // The rover keeps events 37..=100 (64 of them).
         let rover = status(100, 37..=100);
-        let mut held = status(0, 1..=0);
+        let mut held = status(0, 1..1);
         for _ in 0..4 {
             let mut answer = rover.clone();
             answer.after(held.events_total);
