@@ -398,6 +398,7 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
         }],
         pending_from: 1,
         waiting: vec![],
+        sequence_events: Default::default(),
     };
     let d = reply(&serde_json::to_vec(&gap).unwrap());
     assert_eq!(d.outcomes[0].fate, Fate::OutOfOrder { expected: 1 });
