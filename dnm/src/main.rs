@@ -672,6 +672,15 @@ fn check_module(
             .with_context(|| format!("--set {s}: write NAME=VALUE, e.g. --set wheel_radius=0.2"))?;
         changes.push((name.trim().to_string(), value.trim().to_string()));
     }
+    // A bare file name is the one in this folder, never one found on the PATH.
+    let exec = exec.map(|e| {
+        if e.parent().is_some_and(|p| p.as_os_str().is_empty()) {
+            Path::new(".").join(e)
+        } else {
+            e.to_path_buf()
+        }
+    });
+    let exec = exec.as_deref();
     let registry = dnm::registry();
     let make = |kind: &str, setup: &mut dnm_module::Setup<'_>| {
         if let Some(r) = registry.find(kind) {

@@ -347,8 +347,22 @@ impl Dnm {
                 if let Some(child) = slot.child.as_mut()
                     && let Ok(Some(exit)) = child.try_wait()
                 {
+                    // Its last status may say why (a module that failed to build).
+                    let pid = slot.pid();
+                    while let Ok(Some(s)) = slot.status_sub.receive() {
+                        if Some(s.pid) == pid {
+                            slot.status = *s;
+                        }
+                    }
+                    let error = pid
+                        .filter(|p| *p == slot.status.pid)
+                        .and_then(|_| slot.status.error());
                     slot.child = None;
-                    exited = Some((name.clone(), exit.to_string()));
+                    let why = match error {
+                        Some(e) => format!("{exit}; its last error: {e}"),
+                        None => exit.to_string(),
+                    };
+                    exited = Some((name.clone(), why));
                     break;
                 }
             }

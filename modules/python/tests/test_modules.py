@@ -488,3 +488,50 @@ def test_the_rock_detector_example_runs_on_beetle_one(system, tmp_path):
     assert all(0.0 <= coverage <= 1.0 for *_, coverage in rows)
     r = system.cmd("replay", "--check", "rocks", "--exec", str(example / "rocks.py"), str(system.session()), check=False)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+BROKEN_INIT = '''
+import dnm
+from dnm.msg import Tick
+
+class Broken(dnm.Module):
+    @classmethod
+    def kind(cls):
+        return dnm.Kind("py_broken", "fails to build").input("in", Tick).on_input()
+
+    def __init__(self, setup):
+        self.gain = setup.param("gain")
+
+if __name__ == "__main__":
+    raise SystemExit(dnm.host_main([Broken]))
+'''
+
+
+def test_an_exception_in_init_is_reported_with_its_traceback(system):
+    system.module("broken.py", BROKEN_INIT)
+    n = system.netlist('''
+default_task = "a"
+
+[[dnm]]
+name = "main"
+
+[kind.py_broken]
+exec = "broken.py"
+
+[[module]]
+name = "src"
+kind = "ticker"
+
+[[module]]
+name = "b"
+kind = "py_broken"
+
+[task.a]
+links = ["src.out -> b.in"]
+''')
+    system.up(n, record=False)
+    system.proc.wait(timeout=120)
+    log = system.log.read_text()
+    assert "exited while preparing revision 1" in log, log[-3000:]
+    assert "its last error: Traceback (most recent call last)" in log, log[-3000:]
+    assert "parameter `gain`: not given and has no default" in log, log[-3000:]

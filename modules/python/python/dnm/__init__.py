@@ -66,13 +66,17 @@ class Kind:
             )
         return {"name": name, "message": message_type}
 
-    def input(self, name, type, max_bytes=None):
-        self._inputs.append(self._port(name, type, max_bytes))
+    def _add(self, ports, name, type, max_bytes):
+        if any(p["name"] == name for p in ports):
+            raise ValueError(f"kind `{self.name}`: two ports named `{name}`")
+        ports.append(self._port(name, type, max_bytes))
         return self
 
+    def input(self, name, type, max_bytes=None):
+        return self._add(self._inputs, name, type, max_bytes)
+
     def output(self, name, type, max_bytes=None):
-        self._outputs.append(self._port(name, type, max_bytes))
-        return self
+        return self._add(self._outputs, name, type, max_bytes)
 
     def param(self, name, default, description=""):
         """A parameter and its default, whose type is the parameter's (int, float, bool, str)."""
@@ -84,7 +88,10 @@ class Kind:
 
     def periodic(self, rate_hz):
         """Step at ``rate_hz`` (the netlist may override it per module)."""
-        self._trigger = {"mode": "periodic", "rate_hz": float(rate_hz)}
+        rate_hz = float(rate_hz)
+        if not 0 < rate_hz <= 100_000:
+            raise ValueError(f"kind `{self.name}`: a rate of {rate_hz} Hz; give one above 0 and at most 100 kHz")
+        self._trigger = {"mode": "periodic", "rate_hz": rate_hz}
         return self
 
     def on_input(self):
@@ -290,6 +297,11 @@ class Io:
         """A writable numpy array of ``shape`` in shared memory on ``port``, zeroed, to fill in
         place and send with :meth:`send` in this step."""
         self._check(port, False)
+        if port.fixed:
+            raise TypeError(
+                f"output `{port.name}` carries {port.type.SCHEMA_NAME}, a fixed-size message: "
+                "write it with io.write"
+            )
         np = _numpy()
         dtype = np.dtype(dtype)
         shape = (shape,) if isinstance(shape, int) else tuple(shape)
@@ -300,6 +312,9 @@ class Io:
     def loan_image(self, port, height, width):
         """A writable ``(height, width, 3)`` rgb8 image in shared memory on ``port``, its header
         written, to fill and send."""
+        self._check(port, False)
+        if not port.image:
+            raise TypeError(f"output `{port.name}` carries {port.message_type['schema_name']}, not an rgb8 image")
         np = _numpy()
         step = width * 3
         view, self.loan_address = self._raw.loan(port.index, msg.IMAGE_HEADER + step * height)
@@ -357,16 +372,24 @@ def _spec_of(cls):
 
 
 def host_main(modules, argv=None):
-    """The ``main`` of a module executable: ``describe`` prints the kinds, ``run '<launch>'``
-    (what the DNM runs) runs one. Returns the exit code."""
+    """The ``main`` of a module executable: ``describe`` prints its kind, ``run '<launch>'``
+    (what the DNM runs) runs it, ``offline '<launch>'`` steps it for ``dnm replay --check``.
+    One kind per executable file (``modules`` is a list of one class). Returns the exit code."""
     argv = sys.argv[1:] if argv is None else argv
     kinds = {}
     for cls in modules:
         k = _spec_of(cls)
         kinds[k.name] = (cls, k)
     if argv[:1] in (["describe"], ["--describe"]):
-        specs = [json.loads(k.spec()) for _, k in kinds.values()]
-        print(json.dumps(specs[0] if len(specs) == 1 else specs, indent=2))
+        if len(kinds) != 1:
+            print(
+                f"{sys.argv[0]}: {len(kinds)} kinds; a module executable is one kind (a netlist's "
+                "[kind.NAME] exec = FILE): give host_main one class per file",
+                file=sys.stderr,
+            )
+            return 2
+        (_, k), = kinds.values()
+        print(json.dumps(json.loads(k.spec()), indent=2))
         return 0
     if len(argv) == 2 and argv[0] == "run":
         launch = json.loads(argv[1])

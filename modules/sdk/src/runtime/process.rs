@@ -228,7 +228,20 @@ impl<'a> Process<'a> {
 
         let module = {
             let mut setup = Setup::new(&launch.module, &spec, &launch.params);
-            make(&mut setup)?
+            match make(&mut setup) {
+                Ok(m) => m,
+                Err(e) => {
+                    // The DNM reads why in this status when it sees the process exit.
+                    let mut failed = Status {
+                        pid: std::process::id(),
+                        state: ModuleState::Starting as u32,
+                        ..Status::default()
+                    };
+                    failed.set_error(&e.to_string());
+                    let _ = status.send_copy(failed);
+                    return Err(e);
+                }
+            }
         };
         let status_now = Status {
             pid: std::process::id(),
