@@ -911,56 +911,66 @@ pub(crate) fn apply_due(s: &Shared, core: &mut Core, due: Due) -> Result<(), Aut
             }
             save(s, core, &name)
         }
-        DueWhat::TimedOut => {
-            let Some(Step::WaitUntil {
-                condition,
-                timeout_ms,
-                on_timeout,
-            }) = step
-            else {
-                return Ok(());
-            };
-            let what = format!(
-                "step {}: `{}` did not hold within {:.1} s",
-                due.step + 1,
-                describe_condition(&condition),
-                timeout_ms as f64 / 1e3
-            );
-            match on_timeout {
-                OnTimeout::Continue => {
-                    if let Some(r) = core.sequences.get_mut(&name) {
-                        r.event("timed_out", Some(due.step), format!("{what}; going on"));
-                        r.advance(steps, now_unix_ns());
-                    }
-                    save(s, core, &name)
-                }
-                OnTimeout::Abort => save_aborted(s, core, &name, format!("{what}: aborted")),
-                OnTimeout::Safe => match core.netlist.on_link_loss.clone() {
-                    Some(rule) => {
-                        if let Some(r) = core.sequences.get_mut(&name) {
-                            r.event("timed_out", Some(due.step), what.clone());
-                        }
-                        safing::make_safe(
-                            s,
-                            core,
-                            rule.task.clone(),
-                            "sequence_timeout",
-                            format!("sequence `{name}`: {what}: switching to `{}`", rule.task),
-                        )
-                        .map(|_| ())
-                    }
-                    None => save_aborted(
-                        s,
-                        core,
-                        &name,
-                        format!(
-                            "{what}: the netlist names no safe task (`on_link_loss`), so the \
-                             rover stays in its task"
-                        ),
-                    ),
-                },
+        DueWhat::TimedOut => timed_out(s, core, &name, (due.step, steps), step),
+    }
+}
+
+/// A `wait_until`'s timeout passed first: the sequence goes on, stops, or the rover is made
+/// safe, as the step says.
+fn timed_out(
+    s: &Shared,
+    core: &mut Core,
+    name: &str,
+    (at, steps): (usize, usize),
+    step: Option<Step>,
+) -> Result<(), AuthorityError> {
+    let Some(Step::WaitUntil {
+        condition,
+        timeout_ms,
+        on_timeout,
+    }) = step
+    else {
+        return Ok(());
+    };
+    let what = format!(
+        "step {}: `{}` did not hold within {:.1} s",
+        at + 1,
+        describe_condition(&condition),
+        timeout_ms as f64 / 1e3
+    );
+    match on_timeout {
+        OnTimeout::Continue => {
+            if let Some(r) = core.sequences.get_mut(name) {
+                r.event("timed_out", Some(at), format!("{what}; going on"));
+                r.advance(steps, now_unix_ns());
             }
+            save(s, core, name)
         }
+        OnTimeout::Abort => save_aborted(s, core, name, format!("{what}: aborted")),
+        OnTimeout::Safe => match core.netlist.on_link_loss.clone() {
+            Some(rule) => {
+                if let Some(r) = core.sequences.get_mut(name) {
+                    r.event("timed_out", Some(at), what.clone());
+                }
+                safing::make_safe(
+                    s,
+                    core,
+                    rule.task.clone(),
+                    "sequence_timeout",
+                    format!("sequence `{name}`: {what}: switching to `{}`", rule.task),
+                )
+                .map(|_| ())
+            }
+            None => save_aborted(
+                s,
+                core,
+                name,
+                format!(
+                    "{what}: the netlist names no safe task (`on_link_loss`), so the rover \
+                     stays in its task"
+                ),
+            ),
+        },
     }
 }
 
