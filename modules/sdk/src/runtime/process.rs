@@ -52,6 +52,15 @@ pub fn run_dynamic(
     Process::open(launch, spec, make)?.run()
 }
 
+/// How long a module that fails keeps its status publisher after posting why: the DNM reads
+/// statuses on its supervision passes, and a sample of a publisher that is gone is gone.
+const LINGER: Duration = Duration::from_millis(300);
+
+/// Waits [`LINGER`] before a failing module ends, so its DNM reads the status that says why.
+fn linger_for_the_dnm() {
+    std::thread::sleep(LINGER);
+}
+
 /// Why the loop leaves a wait set, and what it does before the next.
 enum Leave {
     /// The module stops (its status says so already).
@@ -239,6 +248,7 @@ impl<'a> Process<'a> {
                     };
                     failed.set_error(&e.to_string());
                     let _ = status.send_copy(failed);
+                    linger_for_the_dnm();
                     return Err(e);
                 }
             }
@@ -473,6 +483,7 @@ impl Serving<'_> {
             if let ModuleError::Fatal(_) = e {
                 // The DNM reads why in the last status before it sees the process exit.
                 self.publish_status()?;
+                linger_for_the_dnm();
                 return Err(e);
             }
             tracing::warn!(module = %self.launch.module, "step failed: {e}");
