@@ -306,7 +306,11 @@ fn print_sequence(q: &SequenceStatus) {
         println!("  {}", q.why);
     }
     for e in q.history.iter().rev().take(5).rev() {
-        let step = e.step.map_or(String::new(), |s| format!(" step {}", s + 1));
+        // Said once: some details name their step already.
+        let step = e
+            .step
+            .filter(|_| !e.detail.starts_with("step "))
+            .map_or(String::new(), |s| format!(" step {}", s + 1));
         println!(
             "  {} {}{step}: {}",
             e.what,
