@@ -391,30 +391,24 @@ def host_main(modules, argv=None):
         (_, k), = kinds.values()
         print(json.dumps(json.loads(k.spec()), indent=2))
         return 0
-    if len(argv) == 2 and argv[0] == "run":
+    if len(argv) == 2 and argv[0] in ("run", "offline"):
         launch = json.loads(argv[1])
         entry = kinds.get(launch.get("kind"))
         if entry is None:
             print(f"this executable has no kind `{launch.get('kind')}`", file=sys.stderr)
             return 2
         cls, k = entry
+        if argv[0] == "offline":
+            # The determinism check speaks on standard output: what the module prints goes to
+            # standard error.
+            sys.stdout = sys.stderr
+            _dnm.offline(argv[1], k.spec(), lambda raw: _build(cls, raw))
+            return 0
         try:
             _dnm.run(argv[1], k.spec(), lambda raw: _build(cls, raw))
         except RuntimeError as e:
             print(f"module `{launch.get('module')}` failed: {e}", file=sys.stderr)
             return 1
-        return 0
-    if len(argv) == 2 and argv[0] == "offline":
-        # The determinism check speaks on standard output: what the module prints goes to
-        # standard error.
-        launch = json.loads(argv[1])
-        entry = kinds.get(launch.get("kind"))
-        if entry is None:
-            print(f"this executable has no kind `{launch.get('kind')}`", file=sys.stderr)
-            return 2
-        cls, k = entry
-        sys.stdout = sys.stderr
-        _dnm.offline(argv[1], k.spec(), lambda raw: _build(cls, raw))
         return 0
     print(
         f"usage: {sys.argv[0]} describe | run '<launch json>' | offline '<launch json>'\n"

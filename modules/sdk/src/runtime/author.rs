@@ -163,23 +163,7 @@ impl<'a> Setup<'a> {
         input: bool,
         fixed: Option<usize>,
     ) -> Result<usize, ModuleError> {
-        let ports = if input {
-            &self.spec.inputs
-        } else {
-            &self.spec.outputs
-        };
-        let (index, port) = ports
-            .iter()
-            .enumerate()
-            .find(|(_, p)| p.name == name)
-            .ok_or_else(|| ModuleError::Port {
-                name: name.into(),
-                problem: format!(
-                    "kind `{}` declares no {} port of that name",
-                    self.spec.name,
-                    if input { "input" } else { "output" }
-                ),
-            })?;
+        let (index, port) = self.port(name, input)?;
         let layout_ok = match (port.message.payload, fixed) {
             (Payload::Fixed { size_bytes }, Some(size)) => size_bytes == size,
             (Payload::Bytes { .. }, None) => true,
