@@ -520,6 +520,31 @@ fn a_dnm_an_aborted_apply_added_takes_the_next_apply() {
 }
 
 #[test]
+fn a_computer_that_comes_up_late_does_not_make_a_starting_rover_safe() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let rig = Rig::new("flate", LOSS);
+    let _routers = rig.routers();
+    let _radio = rig.linksim(&["--delay", "20ms"]);
+    let (_station, api) = rig.station();
+    let _rover = rig.up(&["rover", "drive"], false);
+    let session = zenoh_client(rig.rover_port);
+    eventually("the authority decides its first revision", || {
+        report(&session, &rig.system, "drive").filter(|r| r.revision > 0)
+    });
+    // `vision` boots twice the loss-of-signal time after the others: a rover starting up
+    // waits for it.
+    std::thread::sleep(Duration::from_secs(4));
+    let _vision = rig.up(&["vision"], false);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    for d in ROVER {
+        let r = report(&session, &rig.system, d).unwrap();
+        assert_eq!(r.safed, None, "{d} is not safe");
+    }
+    let rover = eventually("the station hears the rover", || api.link().rover);
+    assert!(!rover.safe, "{:?}", rover.last_safing);
+}
+
+#[test]
 fn a_rover_computer_that_stops_answering_makes_the_rover_safe_with_the_station_in_contact() {
     let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let rig = Rig::new("fhang", LOSS);

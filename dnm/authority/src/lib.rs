@@ -224,7 +224,7 @@ pub(crate) struct Shared {
     /// Wakes the beat thread (a safing is announced at once).
     beat: (Mutex<bool>, Condvar),
     /// When each DNM of the rover last answered the reconciler.
-    dnms_heard: Mutex<BTreeMap<String, Instant>>,
+    dnms_heard: Mutex<safing::DnmsHeard>,
     /// Time tags' instants on the monotonic clock.
     tag_clock: Mutex<BTreeMap<(String, u64), Instant>>,
     /// The sequence running whose end loss of signal waits for (the beat says it).
@@ -327,7 +327,7 @@ impl Authority {
             wake: (Mutex::new(false), Condvar::new()),
             beat: (Mutex::new(false), Condvar::new()),
             tag_clock: Mutex::new(BTreeMap::new()),
-            dnms_heard: Mutex::new(BTreeMap::new()),
+            dnms_heard: Mutex::new(safing::DnmsHeard::default()),
             deferring: Mutex::new(None),
             sequencer: sequencer::Sequencer::default(),
             told: Mutex::new(told),

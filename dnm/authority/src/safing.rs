@@ -12,8 +12,9 @@
 //!   every command a station gave before it had seen the safing (its `safings_seen`) is
 //!   refused when its turn comes, with the safing as the reason.
 
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::Ordering;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use dnm_proto::DnmBrief;
 use dnm_proto::keys;
@@ -144,22 +145,75 @@ pub(crate) fn adopt_dnm_safing(s: &Shared, found: &[Option<DnmBrief>]) -> bool {
     }
 }
 
+/// How long a rover that is starting up waits for a computer it has not heard yet before it
+/// counts it lost: the computers of a rover come up at their own pace.
+pub(crate) const START_GRACE: Duration = Duration::from_secs(30);
+
+/// When each DNM of the rover last answered the authority, and whether the rover is starting
+/// up. It is starting up until the authority hears a DNM whose first answer shows a netlist in
+/// force from before (the authority restarted on a running rover): then a DNM not heard since
+/// the authority's start is as lost as one that went quiet, after the loss-of-signal time.
+#[derive(Debug)]
+pub(crate) struct DnmsHeard {
+    last: BTreeMap<String, Instant>,
+    /// DNMs that answered in this run.
+    answered: BTreeSet<String>,
+    starting_up: bool,
+}
+
+impl Default for DnmsHeard {
+    fn default() -> Self {
+        Self {
+            last: BTreeMap::new(),
+            answered: BTreeSet::new(),
+            starting_up: true,
+        }
+    }
+}
+
+impl DnmsHeard {
+    /// Takes in a pass's answers (`found` of `names`) at `now`.
+    fn pass(&mut self, names: &[String], found: &[Option<DnmBrief>], now: Instant) {
+        self.last.retain(|d, _| names.contains(d));
+        for (d, b) in names.iter().zip(found) {
+            match b {
+                Some(b) => {
+                    if self.answered.insert(d.clone()) && b.revision > 0 {
+                        self.starting_up = false;
+                    }
+                    self.last.insert(d.clone(), now);
+                }
+                None => {
+                    self.last.entry(d.clone()).or_insert(now);
+                }
+            }
+        }
+    }
+
+    /// The first DNM silent for longer than it may be, and for how long.
+    fn lost(&self, after: Duration, now: Instant) -> Option<(String, Duration)> {
+        self.last.iter().find_map(|(d, t)| {
+            let silent = now.duration_since(*t);
+            let limit = if self.starting_up && !self.answered.contains(d) {
+                after.max(START_GRACE)
+            } else {
+                after
+            };
+            (silent >= limit).then(|| (d.clone(), silent))
+        })
+    }
+}
+
 /// Makes the rover safe when a DNM of the rover has not answered for the loss-of-signal time:
 /// down or cut off, it has made itself safe by its lease by then, and the others must not go
-/// on without it. `found` are the answers of `names` in this pass. Returns whether it did.
+/// on without it. While the rover starts up, a DNM not heard yet has [`START_GRACE`] to come
+/// up. `found` are the answers of `names` in this pass. Returns whether it did.
 pub(crate) fn safe_on_silent_dnm(s: &Shared, names: &[String], found: &[Option<DnmBrief>]) -> bool {
     let Ok(mut heard) = s.dnms_heard.lock() else {
         return false;
     };
-    let now = std::time::Instant::now();
-    heard.retain(|d, _| names.contains(d));
-    for (d, b) in names.iter().zip(found) {
-        if b.is_some() {
-            heard.insert(d.clone(), now);
-        } else {
-            heard.entry(d.clone()).or_insert(now);
-        }
-    }
+    let now = Instant::now();
+    heard.pass(names, found, now);
     let Ok(mut core) = s.core.lock() else {
         return false;
     };
@@ -167,11 +221,7 @@ pub(crate) fn safe_on_silent_dnm(s: &Shared, names: &[String], found: &[Option<D
         return false;
     };
     let after = Duration::from_millis(rule.after_ms);
-    let Some((dnm, silent)) = heard
-        .iter()
-        .map(|(d, t)| (d.clone(), now.duration_since(*t)))
-        .find(|(_, t)| *t >= after)
-    else {
+    let Some((dnm, silent)) = heard.lost(after, now) else {
         return false;
     };
     drop(heard);
@@ -247,4 +297,60 @@ pub(crate) fn beat_publisher(
         .express(true)
         .wait()
         .map_err(AuthorityError::Zenoh)
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    fn brief(dnm: &str, revision: u64) -> Option<DnmBrief> {
+        serde_json::from_value(serde_json::json!({
+            "dnm": dnm, "pid": 1, "revision": revision, "netlist_digest": "",
+            "active_task": null, "preparing": null, "last_attempt": 0, "holding": null,
+            "modules_down": 0,
+        }))
+        .unwrap()
+    }
+
+    fn names() -> Vec<String> {
+        vec!["rover".into(), "vision".into()]
+    }
+
+    const AFTER: Duration = Duration::from_secs(2);
+
+    #[test]
+    fn a_computer_not_up_yet_has_the_start_up_grace() {
+        let t0 = Instant::now();
+        let mut h = DnmsHeard::default();
+        h.pass(&names(), &[brief("rover", 0), None], t0);
+        let t = t0 + AFTER * 2;
+        h.pass(&names(), &[brief("rover", 1), None], t);
+        assert_eq!(h.lost(AFTER, t), None);
+        let t = t0 + START_GRACE;
+        h.pass(&names(), &[brief("rover", 1), None], t);
+        assert_eq!(h.lost(AFTER, t).unwrap().0, "vision");
+    }
+
+    #[test]
+    fn a_computer_that_answered_once_is_lost_after_the_loss_of_signal_time() {
+        let t0 = Instant::now();
+        let mut h = DnmsHeard::default();
+        h.pass(&names(), &[brief("rover", 0), brief("vision", 0)], t0);
+        let t = t0 + AFTER;
+        h.pass(&names(), &[brief("rover", 1), None], t);
+        assert_eq!(h.lost(AFTER, t), Some(("vision".into(), AFTER)));
+    }
+
+    #[test]
+    fn an_authority_restarted_on_a_running_rover_gives_no_grace() {
+        // `rover` answers with a netlist in force from before: the rover was running, and
+        // `vision` not answering is a fault, not a slow start.
+        let t0 = Instant::now();
+        let mut h = DnmsHeard::default();
+        h.pass(&names(), &[brief("rover", 7), None], t0);
+        let t = t0 + AFTER;
+        h.pass(&names(), &[brief("rover", 7), None], t);
+        assert_eq!(h.lost(AFTER, t).unwrap().0, "vision");
+    }
 }
