@@ -174,6 +174,19 @@ fn latency_port(system: &str, dnm: &str, module: &str) -> LatencyPort {
 /// `samples` latencies (ns) measured by the `latency` module `module` on DNM `dnm`, read from
 /// that DNM's shared memory; the first `skip` are dropped (start-up).
 pub fn latencies(system: &str, dnm: &str, module: &str, samples: usize, skip: usize) -> Vec<u64> {
+    latencies_after(system, dnm, module, samples, skip, || ())
+}
+
+/// [`latencies`], calling `warm` once the `skip` first are dropped (to start measuring
+/// something over the same samples).
+pub fn latencies_after(
+    system: &str,
+    dnm: &str,
+    module: &str,
+    samples: usize,
+    skip: usize,
+    mut warm: impl FnMut(),
+) -> Vec<u64> {
     let LatencyPort {
         _node,
         sub,
@@ -183,6 +196,9 @@ pub fn latencies(system: &str, dnm: &str, module: &str, samples: usize, skip: us
     let _g = waitset.attach_notification(&listener).unwrap();
     let mut lat = Vec::with_capacity(samples);
     let mut skipped = 0;
+    if skip == 0 {
+        warm();
+    }
     while lat.len() < samples {
         waitset
             .wait_and_process_once(|_| CallbackProgression::Continue)
@@ -192,6 +208,9 @@ pub fn latencies(system: &str, dnm: &str, module: &str, samples: usize, skip: us
             let t: Tick = bytemuck::pod_read_unaligned(s.payload());
             if skipped < skip {
                 skipped += 1;
+                if skipped == skip {
+                    warm();
+                }
                 continue;
             }
             lat.push(t.seq);
@@ -298,4 +317,41 @@ pub fn crossed_pairs(system: &str, extra: &str) -> String {
             a.join(", "),
             b.join(", ")
         )
+}
+
+/// utime + stime, in seconds, of process `root` and every process descending from it (the
+/// processes alive now: what a system of processes costs between two readings).
+pub fn tree_cpu_seconds(root: u32) -> f64 {
+    let mut parent = std::collections::BTreeMap::new();
+    for entry in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+        let Some(pid) = entry
+            .file_name()
+            .to_str()
+            .and_then(|n| n.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        let stat = std::fs::read_to_string(entry.path().join("stat")).unwrap_or_default();
+        let ppid = stat
+            .rsplit_once(')')
+            .and_then(|(_, r)| r.split_whitespace().nth(1))
+            .and_then(|p| p.parse::<u32>().ok());
+        if let Some(ppid) = ppid {
+            parent.insert(pid, ppid);
+        }
+    }
+    let descends = |mut pid: u32| loop {
+        if pid == root {
+            return true;
+        }
+        match parent.get(&pid) {
+            Some(&p) if p != 0 && p != pid => pid = p,
+            _ => return false,
+        }
+    };
+    parent
+        .keys()
+        .filter(|&&p| descends(p))
+        .map(|&p| cpu_seconds(p))
+        .sum()
 }

@@ -4,12 +4,18 @@
 //! `latency`; Python → Python is the same two written in Python with the `dnm` package (the
 //! source loans its payload in shared memory and fills it in place; the sink reads it as a
 //! numpy view of the sample). Both report on the same kind of output, read from the DNM's
-//! shared memory by this process.
+//! shared memory by this process. Beside them, the same pair as dora Python nodes (dora-rs
+//! 1.1.0, `dora run`): the source stamps CLOCK_MONOTONIC into the payload just before
+//! `send_output`, the sink reads the arrow array without a copy. CPU per message is what every
+//! process of the system (DNM and modules; dora's daemon and nodes) used over the measured
+//! samples, divided by their number.
 //!
 //! Run: `scripts/test` once (it makes the Python environment in `target/py`), then
 //! `target/py/bin/maturin develop --release -m modules/python/Cargo.toml` (with
 //! `VIRTUAL_ENV=target/py`), `cargo build --release --workspace` and
-//! `cargo bench -p dnm --bench python` (`DNM_PYTHON` names another Python with `dnm`).
+//! `cargo bench -p dnm --bench python` (`DNM_PYTHON` names another Python with `dnm`). The
+//! first run makes a Python environment with dora in `target/dora` (`DNM_DORA` names another
+//! `dora` executable).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
 
@@ -17,11 +23,14 @@ mod common;
 
 use std::path::PathBuf;
 
-use common::{human, latencies, percentiles, unique, up};
+use std::time::{Duration, Instant};
+
+use common::{human, latencies_after, percentiles, tree_cpu_seconds, unique, up};
 
 const SIZES: [usize; 3] = [64, 4096, 1 << 20];
 const SAMPLES: usize = 2000;
 const RATE_HZ: f64 = 500.0;
+const SKIP: usize = 100;
 
 const PY_MODULES: &str = r#"
 import time
@@ -89,8 +98,25 @@ fn python() -> PathBuf {
     p
 }
 
-/// One hop: (p50, p99) µs.
-fn hop(size: usize, exec: Option<&PathBuf>) -> (f64, f64) {
+/// What one pair measured.
+struct Hop {
+    p50_us: f64,
+    p99_us: f64,
+    /// CPU of the whole system per message, µs.
+    cpu_us: f64,
+}
+
+impl Hop {
+    fn cell(&self) -> String {
+        format!(
+            "{:.1} / {:.1} ({:.0})",
+            self.p50_us, self.p99_us, self.cpu_us
+        )
+    }
+}
+
+/// One hop through a DNM.
+fn hop(size: usize, exec: Option<&PathBuf>) -> Hop {
     let system = unique(&format!("py{size}"));
     let (source, sink, kinds) = match exec {
         None => ("blob_source", "latency", String::new()),
@@ -119,8 +145,159 @@ kind = "{sink}"
 links = ["src.out -> lat.in"]
 "#
     );
-    let _up = up(&system, &netlist, &[], None, 1);
-    percentiles(latencies(&system, "local", "lat", SAMPLES, 100))
+    let up = up(&system, &netlist, &[], None, 1);
+    let mut cpu0 = 0.0;
+    let lat = latencies_after(&system, "local", "lat", SAMPLES, SKIP, || {
+        cpu0 = tree_cpu_seconds(up.pid());
+    });
+    let cpu = tree_cpu_seconds(up.pid()) - cpu0;
+    let (p50_us, p99_us) = percentiles(lat);
+    Hop {
+        p50_us,
+        p99_us,
+        cpu_us: cpu * 1e6 / SAMPLES as f64,
+    }
+}
+
+const DORA_SOURCE: &str = r#"
+import os, time
+import numpy as np
+import pyarrow as pa
+from dora import Node
+
+node = Node()
+buf = np.zeros(int(os.environ["SIZE"]), dtype=np.uint8)
+seq = 0
+for event in node:
+    if event["type"] == "INPUT":
+        buf[8:16] = np.frombuffer(seq.to_bytes(8, "little"), dtype=np.uint8)
+        # Stamped last, as the DNM stamps a sample when it is sent.
+        buf[0:8] = np.frombuffer(time.monotonic_ns().to_bytes(8, "little"), dtype=np.uint8)
+        node.send_output("out", pa.array(buf))
+        seq += 1
+    elif event["type"] == "STOP":
+        break
+"#;
+
+const DORA_SINK: &str = r#"
+import os, time
+from dora import Node
+
+skip, samples, out = int(os.environ["SKIP"]), int(os.environ["SAMPLES"]), os.environ["OUT"]
+node = Node()
+lat, n, first, last = [], 0, None, None
+for event in node:
+    if event["type"] == "INPUT":
+        now = time.monotonic_ns()
+        data = event["value"].to_numpy(zero_copy_only=True)
+        stamp = int.from_bytes(data[0:8].tobytes(), "little")
+        seq = int.from_bytes(data[8:16].tobytes(), "little")
+        n += 1
+        if n <= skip:
+            if n == skip:
+                open(out + ".warm", "w").close()
+            continue
+        first = seq if first is None else first
+        last = seq
+        lat.append(now - stamp)
+        if len(lat) >= samples:
+            break
+    elif event["type"] == "STOP":
+        break
+with open(out + ".tmp", "w") as f:
+    f.write(f"{last - first + 1 - len(lat)}\n" + "\n".join(map(str, lat)))
+os.rename(out + ".tmp", out)
+"#;
+
+/// The `dora` command: `DNM_DORA`, else the one in `target/dora`, installed there from PyPI
+/// on the first run.
+fn dora() -> PathBuf {
+    if let Some(p) = std::env::var_os("DNM_DORA") {
+        return p.into();
+    }
+    let venv = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/dora");
+    let dora = venv.join("bin/dora");
+    if !dora.exists() {
+        let run = |cmd: &mut std::process::Command| {
+            assert!(cmd.status().is_ok_and(|s| s.success()), "{cmd:?} failed");
+        };
+        run(std::process::Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&venv));
+        run(std::process::Command::new(venv.join("bin/pip")).args([
+            "install",
+            "-q",
+            "dora-rs==1.1.0",
+            "dora-rs-cli==1.1.0",
+            "numpy",
+            "pyarrow",
+        ]));
+    }
+    dora
+}
+
+/// One hop between two dora Python nodes, and how many samples the sink missed.
+fn dora_hop(dora: &PathBuf, size: usize, dir: &std::path::Path) -> (Hop, u64) {
+    let run = dir.join(format!("dora-{size}"));
+    std::fs::create_dir_all(&run).unwrap();
+    std::fs::write(run.join("source.py"), DORA_SOURCE).unwrap();
+    std::fs::write(run.join("sink.py"), DORA_SINK).unwrap();
+    let out = run.join("latencies.txt");
+    let period_ms = (1000.0 / RATE_HZ) as u64;
+    std::fs::write(
+        run.join("dataflow.yml"),
+        format!(
+            "nodes:\n  - id: source\n    path: source.py\n    inputs:\n      tick: dora/timer/millis/{period_ms}\n    outputs:\n      - out\n    env:\n      SIZE: \"{size}\"\n  - id: sink\n    path: sink.py\n    inputs:\n      in:\n        source: source/out\n        queue_size: 100\n    env:\n      SKIP: \"{SKIP}\"\n      SAMPLES: \"{SAMPLES}\"\n      OUT: \"{}\"\n",
+            out.display()
+        ),
+    )
+    .unwrap();
+    let bin = dora.parent().unwrap();
+    let path = format!(
+        "{}:{}",
+        bin.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let log = std::fs::File::create(run.join("dora.log")).unwrap();
+    let mut child = std::process::Command::new(dora)
+        .args(["run", "dataflow.yml"])
+        .current_dir(&run)
+        .env("PATH", path)
+        .stdout(log.try_clone().unwrap())
+        .stderr(log)
+        .spawn()
+        .unwrap();
+    let wait_for = |f: &std::path::Path| {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while !f.exists() {
+            assert!(
+                Instant::now() < deadline,
+                "dora did not get that far: see {}",
+                run.join("dora.log").display()
+            );
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    };
+    wait_for(&run.join("latencies.txt.warm"));
+    let cpu0 = tree_cpu_seconds(child.id());
+    wait_for(&out);
+    let cpu = tree_cpu_seconds(child.id()) - cpu0;
+    // SAFETY: kill(2) on our own child; `dora run` stops its nodes on SIGINT.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let _ = child.wait();
+    let text = std::fs::read_to_string(&out).unwrap();
+    let mut lines = text.lines();
+    let missed = lines.next().unwrap().parse().unwrap();
+    let lat: Vec<u64> = lines.map(|l| l.parse().unwrap()).collect();
+    let (p50_us, p99_us) = percentiles(lat);
+    (
+        Hop {
+            p50_us,
+            p99_us,
+            cpu_us: cpu * 1e6 / SAMPLES as f64,
+        },
+        missed,
+    )
 }
 
 fn main() {
@@ -135,24 +312,36 @@ fn main() {
         std::fs::set_permissions(&f, std::fs::Permissions::from_mode(0o755)).unwrap();
     }
     let exec = dir.clone();
+    let dora = dora();
     println!(
-        "# One hop through a DNM: Python → Python against Rust → Rust ({SAMPLES} samples at {RATE_HZ} Hz)\n"
+        "# One hop: Python → Python against Rust → Rust through a DNM, and dora's Python nodes \
+         ({SAMPLES} samples at {RATE_HZ} Hz)\n"
     );
-    println!("| payload | Rust p50 / p99 (µs) | Python p50 / p99 (µs) | ratio p50 | ratio p99 |");
-    println!("|---|---|---|---|---|");
+    println!("p50 / p99 µs (CPU µs per message, every process of the system)\n");
+    println!(
+        "| payload | Rust (DNM) | Python (DNM) | Python (dora 1.1.0) | Python/Rust p50 | dora/Python p50 |"
+    );
+    println!("|---|---|---|---|---|---|");
+    let mut missed = Vec::new();
     for size in SIZES {
         let rust = hop(size, None);
         let python = hop(size, Some(&exec));
+        let (dora, lost) = dora_hop(&dora, size, &dir);
+        if lost > 0 {
+            missed.push(format!("{lost} at {}", human(size)));
+        }
         println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.2} | {:.2} |",
+            "| {} | {} | {} | {} | {:.2} | {:.2} |",
             human(size),
-            rust.0,
-            rust.1,
-            python.0,
-            python.1,
-            python.0 / rust.0,
-            python.1 / rust.1
+            rust.cell(),
+            python.cell(),
+            dora.cell(),
+            python.p50_us / rust.p50_us,
+            dora.p50_us / python.p50_us,
         );
+    }
+    if !missed.is_empty() {
+        println!("\ndora's sink missed samples: {}", missed.join(", "));
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
