@@ -70,15 +70,21 @@ pub fn describe_exec(path: &Path) -> Result<KindSpec, DescribeError> {
         .arg("describe")
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
         .spawn()?;
     let mut stdout = child.stdout.take().ok_or("no output")?;
+    let mut stderr = child.stderr.take().ok_or("no error output")?;
     let reader = std::thread::spawn(move || {
         let mut out = Vec::new();
         let r = (&mut stdout)
             .take(DESCRIBE_MAX_BYTES + 1)
             .read_to_end(&mut out);
         r.map(|_| out)
+    });
+    let errors = std::thread::spawn(move || {
+        let mut err = Vec::new();
+        let _ = (&mut stderr).take(DESCRIBE_MAX_BYTES).read_to_end(&mut err);
+        err
     });
     let deadline = std::time::Instant::now() + DESCRIBE_TIMEOUT;
     let status = loop {
@@ -97,9 +103,26 @@ pub fn describe_exec(path: &Path) -> Result<KindSpec, DescribeError> {
         return Err(DescribeError::TooMuchOutput(DESCRIBE_MAX_BYTES));
     }
     if !status.success() {
-        return Err(DescribeError::Failed(status));
+        let err = errors.join().unwrap_or_default();
+        return Err(DescribeError::Failed {
+            status,
+            stderr: last_lines(&String::from_utf8_lossy(&err), DESCRIBE_ERROR_LINES),
+        });
     }
     serde_json::from_slice(&out).map_err(DescribeError::NoKind)
+}
+
+/// How many of its last lines of standard error a failed `describe` is quoted with.
+const DESCRIBE_ERROR_LINES: usize = 12;
+
+/// The last `n` non-empty lines of `text`, each indented for a diagnostic.
+fn last_lines(text: &str, n: usize) -> String {
+    let lines: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty()).collect();
+    lines[lines.len().saturating_sub(n)..]
+        .iter()
+        .map(|l| format!("        {}", l.trim_end()))
+        .collect::<Vec<_>>()
+        .join("\n")
 }
 
 /// The folder of module executables installed on this computer (`$DNM_MODULE_DIR`): the only

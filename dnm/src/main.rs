@@ -264,11 +264,12 @@ enum Cmd {
         /// With --check: numbers equal within this relative tolerance (0: bit for bit).
         #[arg(long, default_value_t = 1e-4, requires = "check")]
         tolerance: f64,
-        /// With --check: the module's executable, for a kind this build does not hold (a
-        /// module of another language, e.g. a Python file): it steps the module here. A
+        /// With --check: the executables of the recording's kinds this build does not hold
+        /// (modules of another language, e.g. Python files; repeatable, one per such kind):
+        /// the checked module's steps here, the others only say what kind they are. A
         /// recording alone never runs a program.
         #[arg(long, value_name = "FILE", requires = "check")]
-        exec: Option<PathBuf>,
+        exec: Vec<PathBuf>,
         #[arg(long)]
         json: bool,
     },
@@ -471,7 +472,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             exec,
             json,
         } => match check {
-            Some(module) => check_module(&file, &module, &set, (tolerance, exec.as_deref()), json),
+            Some(module) => check_module(&file, &module, &set, (tolerance, &exec), json),
             None => replay(&file, system.as_deref(), &only, (rate, fast, step), json),
         },
         Cmd::Router => {
@@ -658,7 +659,7 @@ fn check_module(
     path: &Path,
     module: &str,
     set: &[String],
-    (tolerance, exec): (f64, Option<&Path>),
+    (tolerance, exec): (f64, &[PathBuf]),
     json: bool,
 ) -> anyhow::Result<ExitCode> {
     anyhow::ensure!(
@@ -673,40 +674,54 @@ fn check_module(
         changes.push((name.trim().to_string(), value.trim().to_string()));
     }
     // A bare file name is the one in this folder, never one found on the PATH.
-    let exec = exec.map(|e| {
-        if e.parent().is_some_and(|p| p.as_os_str().is_empty()) {
-            Path::new(".").join(e)
-        } else {
-            e.to_path_buf()
-        }
-    });
-    let exec = exec.as_deref();
+    let execs: Vec<PathBuf> = exec
+        .iter()
+        .map(|e| {
+            if e.parent().is_some_and(|p| p.as_os_str().is_empty()) {
+                Path::new(".").join(e)
+            } else {
+                e.clone()
+            }
+        })
+        .collect();
+    // Which of them holds which kind, as they described themselves.
+    let kinds = std::sync::Arc::new(std::sync::Mutex::new(std::collections::BTreeMap::<
+        String,
+        PathBuf,
+    >::new()));
     let registry = dnm::registry();
     let make = |kind: &str, setup: &mut dnm_module::Setup<'_>| {
         if let Some(r) = registry.find(kind) {
             return Ok((r.make)(setup)?);
         }
-        let exec = exec.ok_or_else(|| dnm::check::MakeError::UnknownKind(kind.to_string()))?;
-        let stepper = exec_check::ExecStepper::spawn(exec, kind, setup)?;
+        let exec = kinds
+            .lock()
+            .ok()
+            .and_then(|k| k.get(kind).cloned())
+            .ok_or_else(|| dnm::check::MakeError::UnknownKind(kind.to_string()))?;
+        let stepper = exec_check::ExecStepper::spawn(&exec, kind, setup)?;
         Ok(Box::new(stepper) as Box<dyn dnm_module::Stepper>)
     };
-    // The recording's netlist runs nothing, but the executable the operator named.
-    let named = exec.map(Path::to_path_buf);
-    let parse = move |file: &Path, text: &str| match &named {
-        None => dnm::parse_recorded_netlist(file, text),
-        Some(exec) => {
-            let mut describe = |named: &Path| -> Result<_, dnm_netlist::DescribeError> {
-                if named.file_name() == exec.file_name() {
-                    dnm::describe_exec(exec)
-                } else {
-                    Err(dnm_netlist::DescribeError::NotRun(format!(
-                        "`{}` is not run for a recording (only the --exec given)",
-                        named.display()
-                    )))
-                }
-            };
-            dnm_netlist::Netlist::parse(file, text, &dnm::catalog(), &mut describe)
+    // The recording's netlist runs nothing, but the executables the operator named.
+    let described = kinds.clone();
+    let parse = move |file: &Path, text: &str| {
+        if execs.is_empty() {
+            return dnm::parse_recorded_netlist(file, text);
         }
+        let mut describe = |named: &Path| -> Result<_, dnm_netlist::DescribeError> {
+            let Some(exec) = execs.iter().find(|e| e.file_name() == named.file_name()) else {
+                return Err(dnm_netlist::DescribeError::NotRun(format!(
+                    "`{}` is not run for a recording: name it with --exec too",
+                    named.display()
+                )));
+            };
+            let spec = dnm::describe_exec(exec)?;
+            if let Ok(mut k) = described.lock() {
+                k.insert(spec.name.clone(), exec.clone());
+            }
+            Ok(spec)
+        };
+        dnm_netlist::Netlist::parse(file, text, &dnm::catalog(), &mut describe)
     };
     let r = dnm::check::check(path, module, &changes, tolerance, &parse, &make)
         .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;

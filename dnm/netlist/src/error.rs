@@ -78,8 +78,13 @@ pub enum DescribeError {
     Timeout(u64),
     #[error("`describe` printed more than {0} bytes")]
     TooMuchOutput(u64),
-    #[error("`describe` exited with {0}")]
-    Failed(std::process::ExitStatus),
+    /// It failed: its status and the end of what it printed on standard error (a Python
+    /// module's traceback, say).
+    #[error("`describe` exited with {status}{}", if stderr.is_empty() { String::new() } else { format!(", saying:\n{stderr}") })]
+    Failed {
+        status: std::process::ExitStatus,
+        stderr: String,
+    },
     #[error("`describe` printed no kind: {0}")]
     NoKind(#[source] serde_json::Error),
 }

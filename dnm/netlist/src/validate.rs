@@ -330,10 +330,12 @@ impl Validation<'_, '_> {
                     span_of(&k.get_ref().exec),
                     format!("{field}.exec"),
                     format!("cannot describe `{}`: {why}", path.display()),
-                    Some(
-                        "build the module executable and check the path (relative to this file)"
-                            .into(),
-                    ),
+                    Some(format!(
+                        "`{} describe` must print the kind: build the module executable (a \
+                         Python one: its `#!` Python must have the `dnm` package) and check \
+                         the path (relative to this file)",
+                        path.display()
+                    )),
                 ),
             }
         }

@@ -55,6 +55,8 @@ fn module_error(e: ModuleError) -> PyErr {
 #[pyclass(unsendable, module = "dnm._dnm")]
 struct RawIo {
     io: *mut Io<'static>,
+    /// Whether something was loaned in this step (its array is locked when the step ends).
+    loaned: bool,
 }
 
 impl RawIo {
@@ -106,6 +108,19 @@ impl RawIo {
         Ok(Some((view, h.stamp_ns, h.seq, ptr as u64)))
     }
 
+    /// [`RawIo::take`]'s view alone: the hot path of `io.read`.
+    fn take_view<'py>(
+        &mut self,
+        py: Python<'py>,
+        index: usize,
+    ) -> PyResult<Option<Bound<'py, PyAny>>> {
+        let Some((_, bytes)) = self.io()?.take_raw(index) else {
+            return Ok(None);
+        };
+        // SAFETY: as in `take`.
+        unsafe { memoryview(py, bytes.as_ptr(), bytes.len(), false) }.map(Some)
+    }
+
     /// Sends `data` on output `index` (copied once into shared memory).
     fn write(&mut self, index: usize, data: &[u8]) -> PyResult<()> {
         self.io()?.write_raw(index, data).map_err(module_error)
@@ -118,6 +133,7 @@ impl RawIo {
         index: usize,
         len: usize,
     ) -> PyResult<(Bound<'py, PyAny>, u64)> {
+        self.loaned = true;
         let buf = self.io()?.loan_raw(index, len).map_err(module_error)?;
         let ptr = buf.as_mut_ptr();
         // SAFETY: the loaned sample stays in the output until it is sent or the step ends;
@@ -173,21 +189,26 @@ impl RawSetup {
     }
 }
 
-/// A Python module object, stepped by the runtime: its `_step(raw_io)` is called with the GIL,
-/// with the same `raw_io` each step (pointing at that step's `Io` for the call only).
+/// A Python module object, stepped by the runtime: its `step(io)` is called with the GIL,
+/// with the same `io` each step (its `raw_io` pointing at that step's `Io` for the call only).
 struct PyStepper {
+    stepped: Py<PyAny>,
     step: Py<PyAny>,
+    io: Option<Py<PyAny>>,
     raw: Py<RawIo>,
 }
 
 impl PyStepper {
-    fn new(py: Python<'_>, module: Py<PyAny>) -> PyResult<Self> {
+    fn new(py: Python<'_>, stepped: Py<PyAny>) -> PyResult<Self> {
         Ok(Self {
-            step: module.getattr(py, "_step")?,
+            step: stepped.getattr(py, "step")?,
+            stepped,
+            io: None,
             raw: Py::new(
                 py,
                 RawIo {
                     io: std::ptr::null_mut(),
+                    loaned: false,
                 },
             )?,
         })
@@ -206,7 +227,18 @@ fn traceback(py: Python<'_>, e: &PyErr) -> String {
     }
     let formatted = py
         .import("traceback")
-        .and_then(|tb| tb.call_method1("format_exception", (e.value(py),)))
+        .and_then(|tb| {
+            // Its frames travel beside the exception until it is raised again in Python.
+            let frames = e.traceback(py).map(|t| t.into_any());
+            tb.call_method1(
+                "format_exception",
+                (
+                    e.get_type(py),
+                    e.value(py),
+                    frames.unwrap_or_else(|| py.None().into_bound(py)),
+                ),
+            )
+        })
         .and_then(|lines| lines.cast_into::<PyList>().map_err(PyErr::from))
         .map(|lines| {
             lines
@@ -222,9 +254,10 @@ fn traceback(py: Python<'_>, e: &PyErr) -> String {
 
 impl PyStepper {
     /// Hands the module's `_bind(raw_io)` the object each step's `Io` goes through.
-    fn bind(self, py: Python<'_>) -> PyResult<Self> {
-        let module = self.step.getattr(py, "__self__")?;
-        module.call_method1(py, "_bind", (self.raw.clone_ref(py),))?;
+    fn bind(mut self, py: Python<'_>) -> PyResult<Self> {
+        self.stepped
+            .call_method1(py, "_bind", (self.raw.clone_ref(py),))?;
+        self.io = Some(self.stepped.getattr(py, "io")?);
         Ok(self)
     }
 }
@@ -233,10 +266,22 @@ impl Stepper for PyStepper {
     fn step_io(&mut self, io: &mut Io<'_>) -> Result<(), ModuleError> {
         Python::attach(|py| {
             self.raw.borrow_mut(py).io = (io as *mut Io<'_>).cast::<Io<'static>>();
-            let result = self.step.call0(py);
-            self.raw.borrow_mut(py).io = std::ptr::null_mut();
+            let result = match &self.io {
+                Some(obj) => self.step.call1(py, (obj.clone_ref(py),)),
+                None => Err(PyRuntimeError::new_err("the module's `io` is not bound")),
+            };
+            let loaned = {
+                let mut raw = self.raw.borrow_mut(py);
+                raw.io = std::ptr::null_mut();
+                std::mem::take(&mut raw.loaned)
+            };
+            // What was loaned and not sent went back to the pool: its arrays turn read-only.
+            let closed = match (&self.io, loaned) {
+                (Some(obj), true) => obj.call_method0(py, "_end_step").map(|_| ()),
+                _ => Ok(()),
+            };
             result
-                .map(|_| ())
+                .and(closed)
                 .map_err(|e| ModuleError::Fatal(traceback(py, &e)))
         })
     }

@@ -284,6 +284,14 @@ class ZeroCopy(dnm.Module):
         out[:] = a
         out[8:16] = 0xAB
         io.send(self.copy)
+        # Sent: the sample is its readers' now.
+        assert not out.flags.writeable, "a sent loan stays writable"
+        # A port sends at most its max_bytes.
+        try:
+            io.loan(self.copy, MIB + 1)
+            raise AssertionError("a loan beyond max_bytes was given")
+        except RuntimeError as e:
+            assert "port `copy`" in str(e) and "max_bytes (1048576)" in str(e), e
         img = io.latest(self.image)
         shaped = img is not None and img.shape == (240, 320, 3) and img.base is not None
         self.n += 1
@@ -411,6 +419,7 @@ links = ["src.out -> py.in", "py.out -> sink.in"]
 
 def test_replay_check_steps_a_python_module_on_its_recorded_inputs(system):
     relay = system.module("relay.py", RELAY)
+    source = system.module("ticks.py", TICKS)
     n = system.netlist('''
 default_task = "a"
 
@@ -420,10 +429,12 @@ name = "main"
 [kind.py_relay]
 exec = "relay.py"
 
+[kind.py_ticks]
+exec = "ticks.py"
+
 [[module]]
 name = "src"
-kind = "ticker"
-rate_hz = 50
+kind = "py_ticks"
 params = { origin = 5 }
 
 [[module]]
@@ -442,14 +453,18 @@ links = ["src.out -> py.in"]
     # A recording alone runs nothing: the module's executable must be named.
     r = system.cmd("replay", "--check", "py", session, check=False)
     assert r.returncode != 0 and "is not run for a recording" in r.stderr, r.stderr
-    r = system.cmd("replay", "--check", "py", "--exec", str(relay), "--json", session, check=False)
+    # Every kind this build does not hold is named; only the checked one steps.
+    r = system.cmd("replay", "--check", "py", "--exec", str(relay), session, check=False)
+    assert r.returncode != 0 and "name it with --exec too" in r.stderr, r.stderr
+    execs = ["--exec", str(relay), "--exec", str(source)]
+    r = system.cmd("replay", "--check", "py", *execs, "--json", session, check=False)
     assert r.returncode == 0, r.stdout + r.stderr
     report = __import__("json").loads(r.stdout)
     assert report["ok"], report
     assert report["outputs"]["out"]["recorded"] > 50
     assert report["outputs"]["out"]["identical"] == report["outputs"]["out"]["recorded"]
     # Its code changed: the check finds where it diverges.
-    r = system.cmd("replay", "--check", "py", "--exec", str(relay), "--set", "add=101", session, check=False)
+    r = system.cmd("replay", "--check", "py", *execs, "--set", "add=101", session, check=False)
     assert r.returncode == 1, r.stdout + r.stderr
     assert "origin" in r.stdout, r.stdout
 
@@ -534,4 +549,42 @@ links = ["src.out -> b.in"]
     log = system.log.read_text()
     assert "exited while preparing revision 1" in log, log[-3000:]
     assert "its last error: Traceback (most recent call last)" in log, log[-3000:]
-    assert "parameter `gain`: not given and has no default" in log, log[-3000:]
+    assert "parameter `gain`: not declared by kind `py_broken`" in log, log[-3000:]
+
+
+BAD_KIND = '''
+import dnm
+
+class BadKind(dnm.Module):
+    @classmethod
+    def kind(cls):
+        return dnm.Kind("py_bad_kind", "declares a port of no message type").input("in", int).on_input()
+
+if __name__ == "__main__":
+    raise SystemExit(dnm.host_main([BadKind]))
+'''
+
+
+def test_a_kind_that_cannot_describe_itself_is_refused_with_its_python_error(system):
+    system.module("bad_kind.py", BAD_KIND)
+    n = system.netlist('''
+default_task = "a"
+
+[[dnm]]
+name = "main"
+
+[kind.py_bad_kind]
+exec = "bad_kind.py"
+
+[[module]]
+name = "b"
+kind = "py_bad_kind"
+
+[task.a]
+links = []
+''')
+    r = system.cmd("check", str(n), check=False)
+    assert r.returncode != 0, r.stdout
+    out = r.stdout + r.stderr
+    assert "kind.py_bad_kind.exec" in out, out
+    assert "TypeError: port `in`" in out, out

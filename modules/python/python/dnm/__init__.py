@@ -204,8 +204,9 @@ _np = None
 def _as_array(port, view):
     """A bytes sample as a numpy array on its memory (an image shaped from its header)."""
     global _np
-    np = _np or _numpy()
-    _np = np
+    np = _np
+    if np is None:
+        np = _np = _numpy()
     if port.image and len(view) >= msg.IMAGE_HEADER:
         width, height, step = np.frombuffer(view, dtype="<u4", count=3)
         width, height, step = int(width), int(height), int(step)
@@ -224,12 +225,14 @@ class Io:
     """Given to ``step``: reads inputs under the task of this step, writes outputs. Valid only
     during the step."""
 
-    __slots__ = ("_raw", "loan_address")
+    __slots__ = ("_raw", "loan_address", "_loans")
 
     def __init__(self, raw):
         self._raw = raw
-        #: Where the last loan of this step lies in shared memory.
+        #: Where the last loan lies in shared memory.
         self.loan_address = None
+        # Per output: the array of its loan not sent yet.
+        self._loans = {}
 
     @property
     def now_ns(self):
@@ -260,8 +263,15 @@ class Io:
     def read(self, port):
         """The newest value on ``port`` if it arrived since the port was last read (``None``
         otherwise): a message, or a read-only numpy array on the sample's shared memory."""
-        self._check(port, True)
-        return self._value(port, self._raw.take(port.index))
+        # The hot path of every module: one call into the runtime, no frames of its own.
+        if port.__class__ is not Port or port.input is not True:
+            self._check(port, True)
+        view = self._raw.take_view(port.index)
+        if view is None:
+            return None
+        if port.fixed:
+            return port.type.decode(view)
+        return _as_array(port, view)
 
     def latest(self, port):
         """The newest value on ``port``, new or not."""
@@ -295,7 +305,9 @@ class Io:
 
     def loan(self, port, shape, dtype="u1"):
         """A writable numpy array of ``shape`` in shared memory on ``port``, zeroed, to fill in
-        place and send with :meth:`send` in this step."""
+        place and send with :meth:`send` in this step. It turns read-only when it is sent, when
+        the step ends, or when the same output is loaned again (the first loan is given
+        back): views taken of it are not to be kept."""
         self._check(port, False)
         if port.fixed:
             raise TypeError(
@@ -306,8 +318,10 @@ class Io:
         dtype = np.dtype(dtype)
         shape = (shape,) if isinstance(shape, int) else tuple(shape)
         nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        self._close(port.index)
         view, self.loan_address = self._raw.loan(port.index, nbytes)
-        return np.ndarray(shape, dtype=dtype, buffer=view)
+        array = self._loans[port.index] = np.ndarray(shape, dtype=dtype, buffer=view)
+        return array
 
     def loan_image(self, port, height, width):
         """A writable ``(height, width, 3)`` rgb8 image in shared memory on ``port``, its header
@@ -317,19 +331,36 @@ class Io:
             raise TypeError(f"output `{port.name}` carries {port.message_type['schema_name']}, not an rgb8 image")
         np = _numpy()
         step = width * 3
+        self._close(port.index)
         view, self.loan_address = self._raw.loan(port.index, msg.IMAGE_HEADER + step * height)
         np.frombuffer(view, dtype="<u4", count=3)[:] = (width, height, step)
-        return np.ndarray((height, width, 3), dtype=np.uint8, buffer=view, offset=msg.IMAGE_HEADER)
+        array = self._loans[port.index] = np.ndarray(
+            (height, width, 3), dtype=np.uint8, buffer=view, offset=msg.IMAGE_HEADER
+        )
+        return array
 
     def send(self, port):
-        """Sends what was loaned on ``port``."""
+        """Sends what was loaned on ``port``. The loaned array turns read-only: the sample is
+        the readers' now."""
         self._check(port, False)
         self._raw.send(port.index)
+        self._close(port.index)
+
+    def _close(self, index):
+        """Makes the array loaned on output ``index`` read-only: it was sent, given back (a
+        new loan on the same output), or its step ended."""
+        array = self._loans.pop(index, None)
+        if array is not None:
+            array.flags.writeable = False
+
+    def _end_step(self):
+        for index in list(self._loans):
+            self._close(index)
 
 
 class _Stepped:
-    """The runtime's handle on a module object: one `Io` for all its steps, pointing at each
-    step's inputs and outputs while the step runs."""
+    """The runtime's handle on a module object: the runtime calls ``step(io)`` itself, with
+    one `Io` for all the steps, pointing at each step's inputs and outputs while it runs."""
 
     __slots__ = ("module", "io", "step")
 
@@ -340,14 +371,6 @@ class _Stepped:
 
     def _bind(self, raw_io):
         self.io = Io(raw_io)
-
-    def _step(self):
-        try:
-            self.io.loan_address = None
-            self.step(self.io)
-        except BaseException as e:
-            e.__dnm_traceback__ = _traceback(e)
-            raise
 
 
 def _traceback(e):

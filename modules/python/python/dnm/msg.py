@@ -138,7 +138,19 @@ class Message:
         try:
             return self._struct.pack(*values)
         except struct.error as e:
-            raise TypeError(f"{type(self).__name__}: {e}") from None
+            raise TypeError(f"{type(self).__name__}: {self._bad_field() or e}") from None
+
+    def _bad_field(self):
+        """Which field does not fit its type, and why (for an encoding error)."""
+        for name, ty, count in self.FIELDS:
+            code = _PRIMITIVES[ty][0]
+            v = getattr(self, name)
+            for x in list(v) if count else [v]:
+                try:
+                    struct.pack("<" + code, x)
+                except struct.error as e:
+                    return f"field `{name}` ({ty}) cannot hold {x!r}: {e}"
+        return None
 
     @classmethod
     def decode(cls, data):

@@ -117,6 +117,21 @@ impl<'a> Setup<'a> {
     }
 
     fn param_value(&self, name: &str) -> Result<&ParamValue, ModuleError> {
+        if self.spec.param(name).is_none() {
+            let declared: Vec<&str> = self.spec.params.iter().map(|p| p.name.as_str()).collect();
+            return Err(ModuleError::Param {
+                name: name.into(),
+                problem: format!(
+                    "not declared by kind `{}` (it declares: {}); declare it in the kind",
+                    self.spec.name,
+                    if declared.is_empty() {
+                        "none".to_string()
+                    } else {
+                        declared.join(", ")
+                    }
+                ),
+            });
+        }
         self.params
             .get(name)
             .or_else(|| self.spec.param(name).and_then(|p| p.default.as_ref()))
@@ -320,12 +335,46 @@ impl Io<'_> {
         self.sample(input.index).map(|(h, _)| h)
     }
 
+    /// Output `index`'s declaration, or the error of a port that does not exist.
+    fn output_spec(&self, index: usize) -> Result<&PortSpec, ModuleError> {
+        let spec = match &self.ports {
+            Ports::Shm(shm) => shm.output(index),
+            Ports::Offline(o) => o.output(index),
+        };
+        spec.ok_or_else(|| ModuleError::Port {
+            name: index.to_string(),
+            problem: "no such output".into(),
+        })
+    }
+
+    /// Refuses `len` bytes on output `index` unless its message type holds them: exactly a
+    /// fixed-size message's size, at most a bytes port's `max_bytes`.
+    fn check_len(&self, index: usize, len: usize) -> Result<(), ModuleError> {
+        let port = self.output_spec(index)?;
+        let problem = match port.message.payload {
+            Payload::Fixed { size_bytes } if len != size_bytes => format!(
+                "{len} bytes for {}, a message of {size_bytes} bytes",
+                port.message.schema_name
+            ),
+            Payload::Bytes { max_bytes } if len > max_bytes => format!(
+                "{len} bytes is more than the port's max_bytes ({max_bytes}): declare a larger \
+                 max_bytes for it in the kind"
+            ),
+            _ => return Ok(()),
+        };
+        Err(ModuleError::Port {
+            name: port.name.clone(),
+            problem,
+        })
+    }
+
     fn send(
         &mut self,
         index: usize,
         len: usize,
         fill: impl FnOnce(&mut [u8]),
     ) -> Result<(), ModuleError> {
+        self.check_len(index, len)?;
         let word = self.word;
         match &mut self.ports {
             Ports::Shm(shm) => shm.send(index, word, len, fill),
@@ -366,6 +415,7 @@ impl Io<'_> {
     /// For bindings: loans `len` zeroed bytes of shared memory on output `index`, to be filled
     /// in place and sent with [`Io::send_loaned`] in this step (given back otherwise).
     pub fn loan_raw(&mut self, index: usize, len: usize) -> Result<&mut [u8], ModuleError> {
+        self.check_len(index, len)?;
         match &mut self.ports {
             Ports::Shm(shm) => shm.loan(index, len),
             Ports::Offline(o) => o.loan(index, len),
@@ -374,11 +424,17 @@ impl Io<'_> {
 
     /// For bindings: sends what was loaned on output `index`.
     pub fn send_loaned(&mut self, index: usize) -> Result<(), ModuleError> {
+        let name = self.output_spec(index)?.name.clone();
         let (word, now) = (self.word, self.now_ns);
-        match &mut self.ports {
+        let sent = match &mut self.ports {
             Ports::Shm(shm) => shm.send_loaned(index, word),
             Ports::Offline(o) => o.send_loaned(index, word, now),
-        }
+        };
+        // The runtime knows outputs by index; the author, by name.
+        sent.map_err(|e| match e {
+            ModuleError::Port { problem, .. } => ModuleError::Port { name, problem },
+            e => e,
+        })
     }
 
     /// Writes `len` bytes straight into shared memory with `fill`, then sends them.
@@ -422,7 +478,8 @@ mod tests {
         );
         assert_eq!(
             setup.param_i64("missing").unwrap_err().to_string(),
-            "parameter `missing`: not given and has no default"
+            "parameter `missing`: not declared by kind `k` (it declares: gain, label); declare it \
+             in the kind"
         );
     }
 

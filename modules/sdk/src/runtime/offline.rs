@@ -1,6 +1,6 @@
 //! Stepping a module outside a module process, without a DNM or shared memory.
 
-use dnm_netlist::KindSpec;
+use dnm_netlist::{KindSpec, PortSpec};
 
 use super::author::{Io, Module, ModuleError, Ports, Setup};
 use crate::protocol::PortHeader;
@@ -23,6 +23,7 @@ pub struct Offline {
     inputs: Vec<Option<(PortHeader, Vec<u8>, u64)>>,
     seen: Vec<Option<u64>>,
     seq: Vec<u64>,
+    outputs: Vec<PortSpec>,
     written: Vec<(usize, PortHeader, Vec<u8>)>,
     next: u64,
     task: Option<String>,
@@ -37,6 +38,7 @@ impl Offline {
             inputs: vec![None; spec.inputs.len()],
             seen: vec![None; spec.inputs.len()],
             seq: vec![0; spec.outputs.len()],
+            outputs: spec.outputs.clone(),
             written: Vec::new(),
             next: 0,
             task: task.map(str::to_string),
@@ -137,6 +139,11 @@ impl Offline {
         ));
     }
 
+    /// The declaration of output `index`.
+    pub(crate) fn output(&self, index: usize) -> Option<&PortSpec> {
+        self.outputs.get(index)
+    }
+
     pub(crate) fn loan(&mut self, index: usize, len: usize) -> Result<&mut [u8], ModuleError> {
         if index >= self.seq.len() {
             return Err(ModuleError::Port {
@@ -195,7 +202,6 @@ mod tests {
     use super::*;
     use crate::Kind;
     use crate::msg::Tick;
-    use dnm_netlist::KindSpec;
 
     /// Forwards each new tick, and notes the task and the newest tick's sequence.
     struct Relay {
@@ -227,6 +233,65 @@ mod tests {
             }
             Ok(())
         }
+    }
+
+    /// Writes `len` bytes on a port of at most 64, or loans them.
+    struct Sizes {
+        out: crate::BytesOutput,
+        len: usize,
+        loan: bool,
+    }
+
+    impl Module for Sizes {
+        fn kind() -> KindSpec {
+            Kind::new("sizes", "")
+                .bytes_output::<crate::msg::Blob>("blob", 64)
+                .periodic(10.0)
+                .build()
+        }
+        fn new(setup: &mut Setup<'_>) -> Result<Self, ModuleError> {
+            Ok(Self {
+                out: setup.bytes_output("blob")?,
+                len: 0,
+                loan: false,
+            })
+        }
+        fn step(&mut self, io: &mut Io<'_>) -> Result<(), ModuleError> {
+            if self.loan {
+                io.loan_raw(0, self.len)?;
+                return io.send_loaned(0);
+            }
+            io.write_bytes(&self.out, self.len, |_| ())
+        }
+    }
+
+    #[test]
+    fn an_output_sends_at_most_its_max_bytes_and_errors_name_the_port() {
+        let spec = Sizes::kind();
+        let params = Default::default();
+        let mut m = Sizes::new(&mut Setup::new("s", &spec, &params)).unwrap();
+        let mut io = Offline::new(&spec, None);
+        for loan in [false, true] {
+            m.loan = loan;
+            m.len = 64;
+            assert_eq!(io.step(&mut m, 1).unwrap()[0].2.len(), 64);
+            m.len = 65;
+            assert_eq!(
+                io.step(&mut m, 2).unwrap_err().to_string(),
+                "port `blob`: 65 bytes is more than the port's max_bytes (64): declare a larger \
+                 max_bytes for it in the kind"
+            );
+        }
+        let mut step = Offline::new(&spec, None);
+        let mut io = Io {
+            word: 0,
+            now_ns: 0,
+            ports: Ports::Offline(&mut step),
+        };
+        assert_eq!(
+            io.send_loaned(0).unwrap_err().to_string(),
+            "port `blob`: nothing loaned on this output in this step"
+        );
     }
 
     fn tick(seq: u64) -> Vec<u8> {

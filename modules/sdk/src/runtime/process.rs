@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use dnm_netlist::{KindSpec, Payload, Trigger};
+use dnm_netlist::{KindSpec, Payload, PortSpec, Trigger};
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -134,6 +134,8 @@ struct Switches {
 }
 
 struct OutPort {
+    /// Its declaration (name, message type, the most it sends).
+    port: PortSpec,
     publisher: PortPublisher,
     notifier: Notifier<Svc>,
     seq: u64,
@@ -726,6 +728,7 @@ fn open_outputs(
             .create()
             .map_err(ipc("notifier"))?;
         outputs.push(OutPort {
+            port: port.clone(),
             publisher,
             notifier,
             seq: 0,
@@ -764,6 +767,11 @@ impl Routes {
 }
 
 impl Shm<'_> {
+    /// The declaration of output `index`.
+    pub(crate) fn output(&self, index: usize) -> Option<&PortSpec> {
+        self.outputs.get(index).map(|o| &o.port)
+    }
+
     /// The task of this step's word, by the plan serving it.
     pub(crate) fn task(&self, word: u64) -> Option<&str> {
         let (_, slot) = split_task_word(word);
