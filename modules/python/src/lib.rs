@@ -55,8 +55,8 @@ fn module_error(e: ModuleError) -> PyErr {
 #[pyclass(unsendable, module = "dnm._dnm")]
 struct RawIo {
     io: *mut Io<'static>,
-    /// Whether something was loaned in this step (its array is locked when the step ends).
-    loaned: bool,
+    /// Outputs loaned in this step and not sent (their arrays are locked when it ends).
+    loaned: Vec<usize>,
 }
 
 impl RawIo {
@@ -133,7 +133,9 @@ impl RawIo {
         index: usize,
         len: usize,
     ) -> PyResult<(Bound<'py, PyAny>, u64)> {
-        self.loaned = true;
+        if !self.loaned.contains(&index) {
+            self.loaned.push(index);
+        }
         let buf = self.io()?.loan_raw(index, len).map_err(module_error)?;
         let ptr = buf.as_mut_ptr();
         // SAFETY: the loaned sample stays in the output until it is sent or the step ends;
@@ -144,6 +146,7 @@ impl RawIo {
 
     /// Sends what was loaned on output `index`.
     fn send(&mut self, index: usize) -> PyResult<()> {
+        self.loaned.retain(|&i| i != index);
         self.io()?.send_loaned(index).map_err(module_error)
     }
 }
@@ -208,7 +211,7 @@ impl PyStepper {
                 py,
                 RawIo {
                     io: std::ptr::null_mut(),
-                    loaned: false,
+                    loaned: Vec::new(),
                 },
             )?,
         })
@@ -273,7 +276,9 @@ impl Stepper for PyStepper {
             let loaned = {
                 let mut raw = self.raw.borrow_mut(py);
                 raw.io = std::ptr::null_mut();
-                std::mem::take(&mut raw.loaned)
+                let open = !raw.loaned.is_empty();
+                raw.loaned.clear();
+                open
             };
             // What was loaned and not sent went back to the pool: its arrays turn read-only.
             let closed = match (&self.io, loaned) {

@@ -343,8 +343,9 @@ class Io:
         """Sends what was loaned on ``port``. The loaned array turns read-only: the sample is
         the readers' now."""
         self._check(port, False)
-        self._raw.send(port.index)
+        # Locked first, so nothing runs between the send and the readers' wake-up.
         self._close(port.index)
+        self._raw.send(port.index)
 
     def _close(self, index):
         """Makes the array loaned on output ``index`` read-only: it was sent, given back (a
