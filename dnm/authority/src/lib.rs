@@ -470,17 +470,17 @@ fn decided_state(
     Ok(state)
 }
 
-/// The moment of the last uplink the store took, on this process's monotonic clock (now if
-/// none, or if it is in the future).
+/// The moment the ground's silence counts from, on this process's monotonic clock: the last
+/// uplink the store took (now if it is in the future). A store that never took one belongs to a
+/// rover starting up for the first time: its silence counts from [`safing::START_GRACE`] after
+/// now, so the rover waits that long for its first contact before loss of signal makes it safe.
 fn last_contact(store: &Store) -> Instant {
     let now = Instant::now();
-    store
-        .last_contact_unix_ns()
-        .ok()
-        .flatten()
-        .and_then(|at| {
-            let ago = Duration::from_nanos(now_unix_ns().checked_sub(at)?);
-            now.checked_sub(ago)
-        })
-        .unwrap_or(now)
+    match store.last_contact_unix_ns().ok().flatten() {
+        Some(at) => now_unix_ns()
+            .checked_sub(at)
+            .and_then(|ago| now.checked_sub(Duration::from_nanos(ago)))
+            .unwrap_or(now),
+        None => now + safing::START_GRACE,
+    }
 }

@@ -343,6 +343,19 @@ mod tests {
     }
 
     #[test]
+    fn a_rover_that_never_heard_a_station_waits_the_start_up_grace_for_it() {
+        let dir = std::env::temp_dir().join(format!("dnm-safing-grace-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let store = crate::store::Store::open(&dir.join("a.redb")).unwrap();
+        let before = Instant::now();
+        let contact = crate::last_contact(&store);
+        assert!(contact >= before + START_GRACE);
+        // Silence counts from then: none yet.
+        assert_eq!(contact.elapsed(), Duration::ZERO);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn an_authority_restarted_on_a_running_rover_gives_no_grace() {
         // `rover` answers with a netlist in force from before: the rover was running, and
         // `vision` not answering is a fault, not a slow start.

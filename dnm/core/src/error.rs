@@ -17,7 +17,7 @@ pub enum DnmError {
     )]
     DnmMissing(String),
     #[error(
-        "modules did not prepare revision {revision} within {timeout_ms} ms: {modules}; the previous revision stays active"
+        "modules did not prepare revision {revision} within {timeout_ms} ms: {modules}; {}", stays(*revision)
     )]
     PrepareTimeout {
         revision: u64,
@@ -25,7 +25,7 @@ pub enum DnmError {
         modules: String,
     },
     #[error(
-        "module `{module}` exited while preparing revision {revision} ({exit}); the previous revision stays active"
+        "module `{module}` exited while preparing revision {revision} ({exit}); {}", stays(*revision)
     )]
     PrepareExit {
         module: String,
@@ -33,7 +33,7 @@ pub enum DnmError {
         exit: String,
     },
     #[error(
-        "module `{module}` could not prepare revision {revision} (its log says why); the previous revision stays active"
+        "module `{module}` could not prepare revision {revision} (its log says why); {}", stays(*revision)
     )]
     PrepareFailed { module: String, revision: u64 },
     #[error("{plugin}: {why}; the previous revision stays active")]
@@ -95,4 +95,13 @@ pub enum DnmError {
 /// Maps an iceoryx2 error to [`DnmError::Ipc`], naming what failed.
 pub(crate) fn ipc<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> DnmError {
     move |e| DnmError::Ipc(format!("{what}: {e:?}"))
+}
+
+/// What a failed prepare of `revision` leaves running.
+fn stays(revision: u64) -> &'static str {
+    if revision <= 1 {
+        "nothing was running before it, and none of it runs"
+    } else {
+        "the previous revision stays active"
+    }
 }

@@ -623,7 +623,8 @@ impl Validation<'_, '_> {
 // ---------------------------------------------------------------------------------------------
 // Checks of single fields.
 
-fn valid_name(name: &str) -> Result<(), String> {
+/// Whether `name` may name a DNM, a module, a kind, a port or a parameter: why not if not.
+pub fn valid_name(name: &str) -> Result<(), String> {
     if name.is_empty() {
         return Err("is empty".into());
     }

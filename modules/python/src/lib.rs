@@ -425,6 +425,16 @@ fn offline(py: Python<'_>, launch: &str, spec: &str, factory: Py<PyAny>) -> PyRe
 fn check_kind(spec: &str) -> PyResult<String> {
     let spec: KindSpec = serde_json::from_str(spec)
         .map_err(|e| PyValueError::new_err(format!("bad kind declaration: {e}")))?;
+    // Names as a netlist takes them, so a kind is refused where it is declared.
+    let named = std::iter::once(("kind", &spec.name))
+        .chain(spec.inputs.iter().map(|p| ("input", &p.name)))
+        .chain(spec.outputs.iter().map(|p| ("output", &p.name)))
+        .chain(spec.params.iter().map(|p| ("parameter", &p.name)));
+    for (what, name) in named {
+        dnm_netlist::valid_name(name).map_err(|why| {
+            PyValueError::new_err(format!("kind `{}`: {what} name `{name}` {why}", spec.name))
+        })?;
+    }
     serde_json::to_string(&spec).map_err(|e| PyValueError::new_err(e.to_string()))
 }
 

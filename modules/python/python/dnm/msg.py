@@ -97,6 +97,8 @@ class Message:
     FIELDS = ()
     _struct = struct.Struct("<")
     _standard = None
+    # Field defaults a `@message` class gives (zero otherwise).
+    _defaults = {}
 
     __slots__ = ()
 
@@ -108,8 +110,14 @@ class Message:
                 f"its fields: {', '.join(f[0] for f in self.FIELDS)}"
             )
         for name, ty, count in self.FIELDS:
-            default = [0] * count if count else (False if ty == "bool" else 0)
-            setattr(self, name, fields.get(name, default))
+            if name in fields:
+                value = fields[name]
+            elif name in self._defaults:
+                value = self._defaults[name]
+                value = list(value) if count else value
+            else:
+                value = [0] * count if count else (False if ty == "bool" else 0)
+            setattr(self, name, value)
 
     @classmethod
     def message_type(cls):
@@ -208,8 +216,16 @@ def message(schema_name):
         if not lines:
             raise TypeError(f"{cls.__name__}: declare its fields as annotations (x: \"float64\")")
         schema = "\n".join(lines) + "\n"
-        ns = {k: v for k, v in vars(cls).items() if k not in ("__annotations__",)}
-        return _make(cls.__name__, schema_name, schema, namespace=ns)
+        fields = cls.__annotations__
+        # `x: "float64" = 1.0`: a default, not a class attribute (the fields are slots).
+        ns = {k: v for k, v in vars(cls).items() if k != "__annotations__" and k not in fields}
+        ns["_defaults"] = {k: v for k, v in vars(cls).items() if k in fields}
+        made = _make(cls.__name__, schema_name, schema, namespace=ns)
+        try:
+            made().encode()
+        except (TypeError, ValueError) as e:
+            raise TypeError(f"{cls.__name__}: a default does not fit its field: {e}") from None
+        return made
 
     return wrap
 
