@@ -500,6 +500,11 @@ fn a_dnm_an_aborted_apply_added_takes_the_next_apply() {
     eventually("arm holds nothing", || {
         report(&session, &rig.system, "arm").filter(|r| r.holding.is_none())
     });
+    // `drive`, stopped for longer than its Zenoh lease, may need a moment to be back on the
+    // network: the next apply is for a rover whose computers all answer.
+    eventually("drive answers again", || {
+        report(&session, &rig.system, "drive").filter(|r| r.holding.is_none())
+    });
 
     // The next apply takes `arm` in like any DNM.
     let e = api.submit(&Order::Apply {

@@ -36,6 +36,9 @@ impl Dnm {
         let json = serde_json::to_string(&launch).map_err(|e| DnmError::Ipc(e.to_string()))?;
         let mut command = std::process::Command::new(&exec);
         command.arg("run").arg(json);
+        // A process group of its own: Ctrl-C in the terminal reaches the DNM, which stops its
+        // modules in order, not every module at once behind its back.
+        std::os::unix::process::CommandExt::process_group(&mut command, 0);
         // A module must not outlive its DNM: if the DNM's thread dies (even by SIGKILL of the
         // whole process), the kernel sends the module SIGTERM.
         // SAFETY: prctl is async-signal-safe and touches only the child's own state.

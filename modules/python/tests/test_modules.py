@@ -588,3 +588,53 @@ links = []
     out = r.stdout + r.stderr
     assert "kind.py_bad_kind.exec" in out, out
     assert "TypeError: port `in`" in out, out
+
+
+def test_ctrl_c_in_a_terminal_stops_the_modules_in_order(system):
+    """A terminal's Ctrl-C signals its whole foreground process group: the DNM stops its
+    modules itself, and none of them is seen exiting on its own behind its back."""
+    import os
+    import signal as sig
+    import subprocess
+
+    system.module("relay.py", RELAY)
+    n = system.netlist('''
+default_task = "a"
+
+[[dnm]]
+name = "main"
+
+[kind.py_relay]
+exec = "relay.py"
+
+[[module]]
+name = "src"
+kind = "ticker"
+rate_hz = 50
+
+[[module]]
+name = "py"
+kind = "py_relay"
+
+[task.a]
+links = ["src.out -> py.in"]
+''')
+    args = [str(system.dnm), "--no-multicast", "up", str(n),
+            "--state-dir", str(system.dir / "state"),
+            "--record-dir", str(system.dir / "recordings")]
+    from conftest import env
+    system.proc = subprocess.Popen(args, stdout=open(system.log, "w"), stderr=subprocess.STDOUT,
+                                   env=env(), start_new_session=True)
+    system.running("src", "py")
+    eventually("traffic", lambda: system.modules()["py"]["sent"] > 20)
+    # Out of the terminal's reach: each module in a process group of its own.
+    for name, m in system.modules().items():
+        assert os.getpgid(m["pid"]) != os.getpgid(system.proc.pid), name
+    os.killpg(system.proc.pid, sig.SIGINT)
+    assert system.proc.wait(timeout=60) == 0, system.log.read_text()[-3000:]
+    system.proc = None
+    log = system.log.read_text()
+    assert "module exited" not in log and "gave_up" not in log, log[-3000:]
+    events = [data for _, data in system.messages("/main/_events")]
+    bad = [e for e in events if b"gave_up" in e or b"\"exited\"" in e]
+    assert not bad, bad

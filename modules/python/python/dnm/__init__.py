@@ -181,7 +181,13 @@ class Setup:
 
     def _port(self, name, input):
         index, message_type = self._raw.port(name, input)
-        return Port(name, index, input, json.loads(message_type))
+        port = Port(name, index, input, json.loads(message_type))
+        if not port.fixed:
+            # Imported now, not in the first step that reads or loans it (a stall of a few
+            # hundred milliseconds there).
+            global _np
+            _np = _np or _numpy()
+        return port
 
     def input(self, name):
         return self._port(name, True)
