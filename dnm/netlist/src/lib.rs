@@ -37,5 +37,5 @@ pub use spec::{
     MIN_LARGE_SUBSCRIBERS, MIN_SUBSCRIBERS, MessageType, POD_ENCODING, ParamKind, ParamSpec,
     ParamValue, Payload, PortSpec, Standard, Trigger,
 };
-pub use validate::valid_name;
+pub use validate::{BadName, valid_name};
 pub use wiring::{WiredModule, Wiring};

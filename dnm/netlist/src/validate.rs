@@ -623,22 +623,32 @@ impl Validation<'_, '_> {
 // ---------------------------------------------------------------------------------------------
 // Checks of single fields.
 
+/// Why a name is refused (see [`valid_name`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BadName {
+    #[error("is empty")]
+    Empty,
+    #[error("is longer than {MAX_NAME_LEN} characters")]
+    TooLong,
+    #[error("must start with a letter and use only letters, digits, `_` and `-`")]
+    Characters,
+}
+
 /// Whether `name` may name a DNM, a module, a kind, a port or a parameter: why not if not.
-pub fn valid_name(name: &str) -> Result<(), String> {
+pub fn valid_name(name: &str) -> Result<(), BadName> {
     if name.is_empty() {
-        return Err("is empty".into());
+        return Err(BadName::Empty);
     }
     if name.len() > MAX_NAME_LEN {
-        return Err(format!("is longer than {MAX_NAME_LEN} characters"));
+        return Err(BadName::TooLong);
     }
-    let mut chars = name.chars();
-    let first_ok = chars.next().is_some_and(|c| c.is_ascii_alphabetic());
+    let first_ok = name.chars().next().is_some_and(|c| c.is_ascii_alphabetic());
     if !first_ok
         || !name
             .chars()
             .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
     {
-        return Err("must start with a letter and use only letters, digits, `_` and `-`".into());
+        return Err(BadName::Characters);
     }
     Ok(())
 }
