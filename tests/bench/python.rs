@@ -28,7 +28,10 @@ use std::time::{Duration, Instant};
 use common::{human, latencies_after, percentiles, tree_cpu_seconds, unique, up};
 
 const SIZES: [usize; 3] = [64, 4096, 1 << 20];
-const SAMPLES: usize = 2000;
+/// Samples per round; each pair runs [`ROUNDS`] times, the pairs taking turns, and its samples
+/// are pooled (the machine's noise then falls on every pair alike).
+const SAMPLES: usize = 700;
+const ROUNDS: usize = 3;
 const RATE_HZ: f64 = 500.0;
 const SKIP: usize = 100;
 
@@ -106,6 +109,30 @@ struct Hop {
     cpu_us: f64,
 }
 
+/// One round of a pair: its latencies (ns) and the CPU its processes used meanwhile (s).
+#[derive(Default)]
+struct Round {
+    lat: Vec<u64>,
+    cpu_s: f64,
+}
+
+impl Round {
+    fn add(&mut self, other: Round) {
+        self.lat.extend(other.lat);
+        self.cpu_s += other.cpu_s;
+    }
+
+    fn hop(self) -> Hop {
+        let n = self.lat.len().max(1) as f64;
+        let (p50_us, p99_us) = percentiles(self.lat);
+        Hop {
+            p50_us,
+            p99_us,
+            cpu_us: self.cpu_s * 1e6 / n,
+        }
+    }
+}
+
 impl Hop {
     fn cell(&self) -> String {
         format!(
@@ -116,7 +143,7 @@ impl Hop {
 }
 
 /// One hop through a DNM.
-fn hop(size: usize, exec: Option<&PathBuf>) -> Hop {
+fn hop(size: usize, exec: Option<&PathBuf>) -> Round {
     let system = unique(&format!("py{size}"));
     let (source, sink, kinds) = match exec {
         None => ("blob_source", "latency", String::new()),
@@ -150,13 +177,8 @@ links = ["src.out -> lat.in"]
     let lat = latencies_after(&system, "local", "lat", SAMPLES, SKIP, || {
         cpu0 = tree_cpu_seconds(up.pid());
     });
-    let cpu = tree_cpu_seconds(up.pid()) - cpu0;
-    let (p50_us, p99_us) = percentiles(lat);
-    Hop {
-        p50_us,
-        p99_us,
-        cpu_us: cpu * 1e6 / SAMPLES as f64,
-    }
+    let cpu_s = tree_cpu_seconds(up.pid()) - cpu0;
+    Round { lat, cpu_s }
 }
 
 const DORA_SOURCE: &str = r#"
@@ -237,7 +259,7 @@ fn dora() -> PathBuf {
 }
 
 /// One hop between two dora Python nodes, and how many samples the sink missed.
-fn dora_hop(dora: &PathBuf, size: usize, dir: &std::path::Path) -> (Hop, u64) {
+fn dora_hop(dora: &PathBuf, size: usize, dir: &std::path::Path) -> (Round, u64) {
     let run = dir.join(format!("dora-{size}"));
     std::fs::create_dir_all(&run).unwrap();
     std::fs::write(run.join("source.py"), DORA_SOURCE).unwrap();
@@ -281,7 +303,7 @@ fn dora_hop(dora: &PathBuf, size: usize, dir: &std::path::Path) -> (Hop, u64) {
     wait_for(&run.join("latencies.txt.warm"));
     let cpu0 = tree_cpu_seconds(child.id());
     wait_for(&out);
-    let cpu = tree_cpu_seconds(child.id()) - cpu0;
+    let cpu_s = tree_cpu_seconds(child.id()) - cpu0;
     // SAFETY: kill(2) on our own child; `dora run` stops its nodes on SIGINT.
     unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
     let _ = child.wait();
@@ -289,15 +311,8 @@ fn dora_hop(dora: &PathBuf, size: usize, dir: &std::path::Path) -> (Hop, u64) {
     let mut lines = text.lines();
     let missed = lines.next().unwrap().parse().unwrap();
     let lat: Vec<u64> = lines.map(|l| l.parse().unwrap()).collect();
-    let (p50_us, p99_us) = percentiles(lat);
-    (
-        Hop {
-            p50_us,
-            p99_us,
-            cpu_us: cpu * 1e6 / SAMPLES as f64,
-        },
-        missed,
-    )
+    let _ = std::fs::remove_dir_all(&run);
+    (Round { lat, cpu_s }, missed)
 }
 
 fn main() {
@@ -315,7 +330,7 @@ fn main() {
     let dora = dora();
     println!(
         "# One hop: Python → Python against Rust → Rust through a DNM, and dora's Python nodes \
-         ({SAMPLES} samples at {RATE_HZ} Hz)\n"
+         ({ROUNDS} rounds of {SAMPLES} samples at {RATE_HZ} Hz, the pairs taking turns)\n"
     );
     println!("p50 / p99 µs (CPU µs per message, every process of the system)\n");
     println!(
@@ -324,24 +339,32 @@ fn main() {
     println!("|---|---|---|---|---|---|");
     let mut missed = Vec::new();
     for size in SIZES {
-        let rust = hop(size, None);
-        let python = hop(size, Some(&exec));
-        let (dora, lost) = dora_hop(&dora, size, &dir);
+        let (mut rust, mut python, mut dora_r) =
+            (Round::default(), Round::default(), Round::default());
+        let mut lost = 0;
+        for _ in 0..ROUNDS {
+            rust.add(hop(size, None));
+            python.add(hop(size, Some(&exec)));
+            let (d, l) = dora_hop(&dora, size, &dir);
+            dora_r.add(d);
+            lost += l;
+        }
         if lost > 0 {
             missed.push(format!("{lost} at {}", human(size)));
         }
+        let (rust, python, dora_h) = (rust.hop(), python.hop(), dora_r.hop());
         println!(
             "| {} | {} | {} | {} | {:.2} | {:.2} |",
             human(size),
             rust.cell(),
             python.cell(),
-            dora.cell(),
+            dora_h.cell(),
             python.p50_us / rust.p50_us,
-            dora.p50_us / python.p50_us,
+            dora_h.p50_us / python.p50_us,
         );
     }
     if !missed.is_empty() {
-        println!("\ndora's sink missed samples: {}", missed.join(", "));
+        println!("\ndora's sinks missed samples: {}", missed.join(", "));
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
