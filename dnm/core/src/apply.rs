@@ -348,15 +348,7 @@ impl Dnm {
                     && let Ok(Some(exit)) = child.try_wait()
                 {
                     // Its last status may say why (a module that failed to build).
-                    let pid = slot.pid();
-                    while let Ok(Some(s)) = slot.status_sub.receive() {
-                        if Some(s.pid) == pid {
-                            slot.status = *s;
-                        }
-                    }
-                    let error = pid
-                        .filter(|p| *p == slot.status.pid)
-                        .and_then(|_| slot.status.error());
+                    let error = slot.last_error();
                     slot.child = None;
                     let why = match error {
                         Some(e) => format!("{exit}; its last error: {e}"),

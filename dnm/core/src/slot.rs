@@ -60,6 +60,20 @@ impl ModuleSlot {
         self.child.as_ref().map(Child::id)
     }
 
+    /// The error its process posted in its last status before it exited (a failed build, a
+    /// step's fatal error): the statuses still queued are taken first, and only the exited
+    /// process's own counts. Call it before the child is dropped.
+    pub(crate) fn last_error(&mut self) -> Option<String> {
+        let pid = self.pid();
+        while let Ok(Some(s)) = self.status_sub.receive() {
+            if Some(s.pid) == pid {
+                self.status = *s;
+            }
+        }
+        pid.filter(|p| *p == self.status.pid)
+            .and_then(|_| self.status.error())
+    }
+
     /// Opens the module's control services; starts nothing.
     pub(crate) fn open(
         node: &Node<Svc>,

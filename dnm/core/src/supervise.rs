@@ -369,16 +369,7 @@ fn exited(
     now: Instant,
 ) -> Event {
     // Its last status, posted before it exited, may say why (a step's fatal error).
-    let pid = slot.pid();
-    while let Ok(Some(s)) = slot.status_sub.receive() {
-        if Some(s.pid) == pid {
-            slot.status = *s;
-        }
-    }
-    let error = pid
-        .filter(|p| *p == slot.status.pid)
-        .and_then(|_| slot.status.error())
-        .filter(|_| !exit.success());
+    let error = slot.last_error().filter(|_| !exit.success());
     slot.child = None;
     let why = match slot.killed_hung.take() {
         Some(h) => format!("{h}; killed ({exit})"),

@@ -424,16 +424,18 @@ impl Io<'_> {
 
     /// For bindings: sends what was loaned on output `index`.
     pub fn send_loaned(&mut self, index: usize) -> Result<(), ModuleError> {
-        let name = self.output_spec(index)?.name.clone();
         let (word, now) = (self.word, self.now_ns);
         let sent = match &mut self.ports {
             Ports::Shm(shm) => shm.send_loaned(index, word),
             Ports::Offline(o) => o.send_loaned(index, word, now),
         };
         // The runtime knows outputs by index; the author, by name.
-        sent.map_err(|e| match e {
-            ModuleError::Port { problem, .. } => ModuleError::Port { name, problem },
-            e => e,
+        sent.map_err(|e| match (e, self.output_spec(index)) {
+            (ModuleError::Port { problem, .. }, Ok(port)) => ModuleError::Port {
+                name: port.name.clone(),
+                problem,
+            },
+            (e, _) => e,
         })
     }
 
