@@ -440,3 +440,92 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
         }
     }
 }
+
+/// The messages of `topic` in the MCAP files under `dir`: (log time, sequence, bytes), by time.
+fn recorded(dir: &std::path::Path, topic: &str) -> Vec<(u64, u32, Vec<u8>)> {
+    let mut out = Vec::new();
+    for f in support::mcap_files(dir) {
+        let bytes = std::fs::read(&f).unwrap();
+        // Files still being written end with their last whole chunk.
+        for m in dnm_record::messages(&bytes).map_while(Result::ok) {
+            if m.channel.topic == topic {
+                out.push((m.log_time, m.sequence, m.data.into_owned()));
+            }
+        }
+    }
+    out.sort();
+    out.dedup();
+    out
+}
+
+#[test]
+fn the_ground_keeps_its_own_record_of_the_rover_through_loss_outages_and_a_restart() {
+    let _one = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let rig = Rig::new("downlink", "");
+    let plan = "\n[[downlink]]\noutput = \"src_a.out\"\nrate_hz = 5\npriority = 1\n\n\
+                [[downlink]]\noutput = \"src_b.out\"\nrate_hz = 2\n";
+    let text = std::fs::read_to_string(&rig.netlist).unwrap() + plan;
+    std::fs::write(&rig.netlist, text).unwrap();
+    let _routers = rig.routers();
+    // The whole rover in one process, recording.
+    let rover_rec = rig.dir.join("rover-rec");
+    let mut args = support::ground::zenoh_args("peer", rig.rover_port);
+    args.extend(["up".into(), rig.netlist.display().to_string()]);
+    for d in ROVER {
+        args.extend(["--dnm".into(), d.into()]);
+    }
+    args.extend([
+        "--record-dir".into(),
+        rover_rec.display().to_string(),
+        "--state-dir".into(),
+        rig.dir.join("state").display().to_string(),
+    ]);
+    let _rover = support::ground::Proc::dnm(&rig.dir, "rover", &args);
+    // A fifth of the packets lost each way, and 5 s without a link every 15 s.
+    let _radio = rig.linksim(&[
+        "--delay", "100ms", "--loss", "0.2", "--outage", "5s/15s", "--seed", "3",
+    ]);
+    let (station, _api) = rig.station();
+    std::thread::sleep(Duration::from_secs(12));
+    // The station dies and comes back: it resumes its session.
+    station.kill();
+    std::thread::sleep(Duration::from_secs(3));
+    let (_station, _api) = rig.station();
+    std::thread::sleep(Duration::from_secs(20));
+    let cut = dnm_ground::now_unix_ns() - 2_000_000_000;
+
+    let ground = rig.dir.join(format!("{}-ground-1-record", rig.system));
+    for (topic, rate_hz) in [("/rover/src_a/out", 5.0), ("/drive/src_b/out", 2.0)] {
+        // What the plan asks for: the rover's recording, decimated as the rover decimates.
+        let mut d = dnm_netlist::Decimator::new((1e9 / rate_hz) as u64);
+        let rover: Vec<_> = recorded(&rover_rec, topic)
+            .into_iter()
+            .filter(|(t, _, _)| d.keep(*t))
+            .filter(|(t, _, _)| *t <= cut)
+            .collect();
+        assert!(
+            rover.len() as f64 >= rate_hz * 20.0,
+            "{topic}: {}",
+            rover.len()
+        );
+        // Everything the ground holds is the rover's, byte for byte; it holds at least 99 %
+        // of what the plan asks for, once the link let it catch up.
+        let all = recorded(&rover_rec, topic);
+        let held = eventually("the ground caught up", || {
+            let ground = recorded(&ground, topic);
+            for g in &ground {
+                assert!(
+                    all.contains(g),
+                    "{topic}: the ground holds what the rover never sent: {:?}",
+                    (g.0, g.1)
+                );
+            }
+            let held = rover.iter().filter(|r| ground.contains(r)).count();
+            (held as f64 >= 0.99 * rover.len() as f64).then_some(held)
+        });
+        println!(
+            "{topic}: the ground holds {held} of {} planned samples",
+            rover.len()
+        );
+    }
+}

@@ -37,6 +37,14 @@ pub enum GroundCmd {
         /// (rerun+http://HOST:PORT/proxy) or a path to save an .rrd to.
         #[arg(long)]
         monitor: Option<String>,
+        /// The ground's own record of the rover: the session folder the downlink plan's
+        /// outputs, switches and events are written to as they arrive (default:
+        /// <system>-<station>-record beside the outbox; a folder of an earlier run is resumed).
+        #[arg(long, conflicts_with = "no_record")]
+        record: Option<PathBuf>,
+        /// Keep no record of the rover at this station.
+        #[arg(long)]
+        no_record: bool,
     },
     /// Switch the rover to TASK, now or at a rover time.
     Switch {
@@ -365,6 +373,99 @@ fn print_link(l: &LinkStatus) {
     }
 }
 
+/// What `dnm ground serve` was given.
+struct Serve {
+    system: String,
+    station: String,
+    db: Option<PathBuf>,
+    http: std::net::SocketAddr,
+    token: Option<String>,
+    monitor: Option<String>,
+    record: Option<PathBuf>,
+    no_record: bool,
+}
+
+/// Runs a ground station (its outbox, link, API, the ground's record of the rover and
+/// optionally a monitor) until Ctrl-C.
+fn serve(z: &dnm::ZenohOptions, args: Serve) -> anyhow::Result<ExitCode> {
+    let Serve {
+        system,
+        station,
+        db,
+        http,
+        token,
+        monitor,
+        record,
+        no_record,
+    } = args;
+
+    let db = match db {
+        Some(db) => db,
+        None => dnm::default_state_dir()
+            .context(dnm::NO_STATE_DIR)?
+            .join(format!("{system}-{station}.redb")),
+    };
+    // The ground router may come up after the station: wait for it.
+    let session = loop {
+        match z.open() {
+            Ok(s) => break s,
+            Err(e) => {
+                tracing::warn!("no Zenoh yet ({e}); trying again in 1 s");
+                std::thread::sleep(Duration::from_secs(1));
+            }
+        }
+    };
+    let st = Arc::new(Station::start(
+        session,
+        StationOptions::new(&system, &station, &db),
+    )?);
+    let record = if no_record {
+        None
+    } else {
+        // Beside the outbox by default: a station's state in one place.
+        let dir = match record {
+            Some(d) => d,
+            None => db
+                .parent()
+                .unwrap_or(std::path::Path::new("."))
+                .join(format!("{system}-{station}-record")),
+        };
+        let r = dnm_downlink::GroundRecord::start(st.session(), &system, &dir)?;
+        println!("the rover's downlink is recorded in {}", dir.display());
+        Some(r)
+    };
+    let api =
+        dnm_ground::http::Api::serve_with(st.clone(), http, token).map_err(anyhow::Error::msg)?;
+    println!(
+        "ground station `{station}` of `{system}`: outbox {}, API http://{}; Ctrl-C to stop",
+        db.display(),
+        api.addr()
+    );
+    let monitor = match monitor {
+        Some(m) => {
+            let mut args = crate::monitor_cmd::zenoh_flags(z);
+            args.extend(["--system".into(), system.clone()]);
+            if m == "spawn" {
+                args.push("--spawn".into());
+            } else if m.contains("://") {
+                args.extend(["--viewer".into(), m]);
+            } else {
+                args.extend(["--save".into(), m]);
+            }
+            Some(crate::monitor_cmd::start(&args)?)
+        }
+        None => None,
+    };
+    wait_for_signal();
+    if let Some(m) = monitor {
+        crate::monitor_cmd::stop(m);
+    }
+    drop(api);
+    // Its file finished and the session's manifest written.
+    drop(record);
+    Ok(ExitCode::SUCCESS)
+}
+
 pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
     match cmd {
         GroundCmd::Serve {
@@ -374,56 +475,21 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             http,
             token,
             monitor,
-        } => {
-            let db = match db {
-                Some(db) => db,
-                None => dnm::default_state_dir()
-                    .context(dnm::NO_STATE_DIR)?
-                    .join(format!("{system}-{station}.redb")),
-            };
-            // The ground router may come up after the station: wait for it.
-            let session = loop {
-                match z.open() {
-                    Ok(s) => break s,
-                    Err(e) => {
-                        tracing::warn!("no Zenoh yet ({e}); trying again in 1 s");
-                        std::thread::sleep(Duration::from_secs(1));
-                    }
-                }
-            };
-            let st = Arc::new(Station::start(
-                session,
-                StationOptions::new(&system, &station, &db),
-            )?);
-            let api = dnm_ground::http::Api::serve_with(st.clone(), http, token)
-                .map_err(anyhow::Error::msg)?;
-            println!(
-                "ground station `{station}` of `{system}`: outbox {}, API http://{}; Ctrl-C to stop",
-                db.display(),
-                api.addr()
-            );
-            let monitor = match monitor {
-                Some(m) => {
-                    let mut args = crate::monitor_cmd::zenoh_flags(z);
-                    args.extend(["--system".into(), system.clone()]);
-                    if m == "spawn" {
-                        args.push("--spawn".into());
-                    } else if m.contains("://") {
-                        args.extend(["--viewer".into(), m]);
-                    } else {
-                        args.extend(["--save".into(), m]);
-                    }
-                    Some(crate::monitor_cmd::start(&args)?)
-                }
-                None => None,
-            };
-            wait_for_signal();
-            if let Some(m) = monitor {
-                crate::monitor_cmd::stop(m);
-            }
-            drop(api);
-            Ok(ExitCode::SUCCESS)
-        }
+            record,
+            no_record,
+        } => serve(
+            z,
+            Serve {
+                system,
+                station,
+                db,
+                http,
+                token,
+                monitor,
+                record,
+                no_record,
+            },
+        ),
         GroundCmd::Switch {
             task,
             at,

@@ -359,6 +359,9 @@ impl DnmStart {
     fn set_up(self) -> anyhow::Result<(Dnm, Commander)> {
         let (netlist, name) = (&self.netlist, self.name.as_str());
         let mut dnm = Dnm::new(&netlist.system, name, self.options.dnm)?;
+        // What the recorder writes of the downlink plan (and every switch and event) goes
+        // to the ground too.
+        let tap = dnm_downlink::DownlinkTap::new(self.session.clone(), &netlist.system);
         let bridge = dnm_zenoh::Bridge::new(
             self.session,
             &netlist.system,
@@ -372,7 +375,8 @@ impl DnmStart {
             None => bridge,
         };
         dnm.add_plugin(Box::new(bridge));
-        if let Some(r) = self.options.record {
+        if let Some(mut r) = self.options.record {
+            r.tap = Some(Arc::new(tap));
             let recorder = crate::record::Recorder::start(name, dnm.prefix(), r)?;
             if let Some(slot) = &self.sequences
                 && let Ok(mut slot) = slot.lock()

@@ -16,6 +16,7 @@
 //! placement and routing reuse.
 
 mod door;
+pub mod downlink;
 mod error;
 mod model;
 pub mod sequence;
@@ -25,11 +26,12 @@ pub mod values;
 pub mod wiring;
 
 pub use door::{AcceptError, NetlistDoor, ParseNetlist};
+pub use downlink::Decimator;
 pub use error::{Describe, DescribeError, Diagnostic, NetlistError};
 pub use model::{
-    Connection, DEFAULT_DNM, DnmDecl, Link, LinkLoss, MAX_HUNG_AFTER_MS, MAX_NAME_LEN, MAX_RATE_HZ,
-    MIN_HUNG_AFTER_MS, MIN_RATE_HZ, Module, ModuleGraph, ModuleNode, Netlist, PortRef, RestartMode,
-    RestartPolicy, Task, parse_duration_ms,
+    Backfill, Connection, DEFAULT_DNM, DnmDecl, DownlinkEntry, Link, LinkLoss, MAX_HUNG_AFTER_MS,
+    MAX_NAME_LEN, MAX_RATE_HZ, MIN_HUNG_AFTER_MS, MIN_RATE_HZ, Module, ModuleGraph, ModuleNode,
+    Netlist, PortRef, RestartMode, RestartPolicy, Task, parse_duration_ms,
 };
 pub use sequence::Sequence;
 pub use spec::{

@@ -173,6 +173,8 @@ pub struct Netlist {
     pub dnms: Vec<DnmDecl>,
     pub modules: Vec<Module>,
     pub tasks: BTreeMap<String, Task>,
+    /// The downlink plan: the outputs the ground keeps a record of (`[[downlink]]`).
+    pub downlink: Vec<DownlinkEntry>,
     /// Every kind the netlist can use: the catalog it was validated against plus its own.
     pub catalog: Catalog,
     pub(crate) graph: ModuleGraph,
@@ -302,5 +304,33 @@ mod tests {
         assert_eq!(parse_duration_ms("1h"), Some(3_600_000));
         assert_eq!(parse_duration_ms("5"), None);
         assert_eq!(parse_duration_ms("-1s"), None);
+    }
+}
+
+/// In which order what the ground missed of an entry is sent again.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Backfill {
+    /// The newest first: the current state reaches the ground soonest.
+    #[default]
+    NewestFirst,
+    /// The oldest first: the record fills in the order it happened.
+    OldestFirst,
+}
+
+/// One entry of the downlink plan.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DownlinkEntry {
+    pub output: PortRef,
+    pub rate_hz: f64,
+    /// 1 (sent again first) to [`crate::downlink::LOWEST_PRIORITY`].
+    pub priority: u8,
+    pub backfill: Backfill,
+}
+
+impl DownlinkEntry {
+    /// The least time between two samples the ground keeps, ns.
+    pub fn period_ns(&self) -> u64 {
+        (1e9 / self.rate_hz) as u64
     }
 }

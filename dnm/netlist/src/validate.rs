@@ -75,6 +75,8 @@ pub(crate) struct RawNetlist {
     module: Vec<Spanned<RawModule>>,
     #[serde(default)]
     task: BTreeMap<Spanned<String>, Spanned<RawTask>>,
+    #[serde(default)]
+    downlink: Vec<Spanned<crate::downlink::RawDownlink>>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -163,6 +165,7 @@ pub(crate) fn validate(
     v.default_task(&system);
     v.authority(&system);
     let on_link_loss = v.on_link_loss(&system);
+    let downlink = crate::downlink::validate(v.r, &raw.downlink, &v.modules, &v.kinds);
     let (graph, nodes) = v.module_graph();
 
     Netlist {
@@ -175,6 +178,7 @@ pub(crate) fn validate(
         dnms: v.dnms,
         modules: v.modules,
         tasks: v.tasks,
+        downlink,
         catalog: v.kinds,
         graph,
         nodes,

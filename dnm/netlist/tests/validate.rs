@@ -434,3 +434,71 @@ fn durations_read_with_their_units() {
     assert_eq!(parse_duration_ms("-1s"), None);
     assert_eq!(parse_duration_ms("1e300s"), None);
 }
+
+#[test]
+fn a_downlink_plan_is_read_with_its_defaults() {
+    let text = format!(
+        "{GOOD}\n[[downlink]]\noutput = \"drive.ticks\"\nrate_hz = 10\npriority = 2\n\
+         backfill = \"oldest_first\"\n\n[[downlink]]\noutput = \"joystick.twist\"\nrate_hz = 0.2\n"
+    );
+    let n = parse(&text).unwrap();
+    assert_eq!(n.downlink.len(), 2);
+    let ticks = &n.downlink[0];
+    assert_eq!(ticks.output.to_string(), "drive.ticks");
+    assert_eq!((ticks.priority, ticks.backfill), (2, Backfill::OldestFirst));
+    assert_eq!(ticks.period_ns(), 100_000_000);
+    let twist = &n.downlink[1];
+    assert_eq!((twist.priority, twist.backfill), (5, Backfill::NewestFirst));
+    assert!(parse(GOOD).unwrap().downlink.is_empty());
+}
+
+#[test]
+fn a_bad_downlink_entry_names_its_line_field_and_fix() {
+    let cases = [
+        (
+            "output = \"drive.cmd\"\nrate_hz = 1",
+            "downlink[0].output",
+            "has no output `cmd`",
+        ),
+        (
+            "output = \"driv.ticks\"\nrate_hz = 1",
+            "downlink[0].output",
+            "did you mean `drive`",
+        ),
+        (
+            "output = \"drive\"\nrate_hz = 1",
+            "downlink[0].output",
+            "not `module.output`",
+        ),
+        (
+            "output = \"drive.ticks\"\nrate_hz = 500",
+            "downlink[0].rate_hz",
+            "out of range",
+        ),
+        (
+            "output = \"drive.ticks\"\nrate_hz = 1\npriority = 0",
+            "downlink[0].priority",
+            "use 1",
+        ),
+        (
+            "output = \"drive.ticks\"\nrate_hz = 1\nbackfill = \"random\"",
+            "downlink[0].backfill",
+            "newest_first",
+        ),
+        (
+            "output = \"drive.ticks\"\nrate_hz = 1\n[[downlink]]\noutput = \"drive.ticks\"\nrate_hz = 2",
+            "downlink[1].output",
+            "in the downlink plan twice",
+        ),
+    ];
+    for (entry, field, says) in cases {
+        let text = format!("{GOOD}\n[[downlink]]\n{entry}\n");
+        let err = error_of(&text);
+        assert!(err.contains(field), "{entry}: {err}");
+        assert!(err.contains(says), "{entry}: {err}");
+        assert!(
+            err.contains("configs/test.toml:"),
+            "{entry}: names the line: {err}"
+        );
+    }
+}

@@ -146,6 +146,56 @@ pub fn parse_watch(system: &str, key: &str) -> Option<(String, String, String, W
     Some((d.into(), m.into(), p.into(), WatchRate::parse(r)?))
 }
 
+/// A recorded channel `topic` (`/<dnm>/<module>/<port>`, `/<dnm>/_events`...) as the downlink
+/// sends it to the ground: `<system>/downlink/<dnm>/<module>/<port>`.
+pub fn downlink(system: &str, topic: &str) -> String {
+    format!("{system}/downlink/{}", topic.trim_start_matches('/'))
+}
+
+/// Every channel of a system's downlink: `<system>/downlink/**`.
+pub fn downlink_all(system: &str) -> String {
+    format!("{system}/downlink/**")
+}
+
+/// The description of downlinked channel `topic` (schema, encodings), published once:
+/// `<system>/downlink_channels/<dnm>/<module>/<port>`.
+pub fn downlink_channel(system: &str, topic: &str) -> String {
+    format!(
+        "{system}/downlink_channels/{}",
+        topic.trim_start_matches('/')
+    )
+}
+
+/// Every downlinked channel's description: `<system>/downlink_channels/**`.
+pub fn downlink_channels(system: &str) -> String {
+    format!("{system}/downlink_channels/**")
+}
+
+/// The recorded channel's topic of a key made by [`downlink`] or [`downlink_channel`].
+pub fn downlink_topic(system: &str, key: &str) -> Option<String> {
+    let rest = key.strip_prefix(system)?;
+    let rest = rest
+        .strip_prefix("/downlink/")
+        .or_else(|| rest.strip_prefix("/downlink_channels/"))?;
+    (!rest.is_empty() && !rest.split('/').any(str::is_empty)).then(|| format!("/{rest}"))
+}
+
+/// The attachment of a downlinked message: its log time (Unix ns) and sequence number, as
+/// the rover's recording holds them.
+pub fn encode_downlink(log_time: u64, sequence: u32) -> [u8; 12] {
+    let mut out = [0u8; 12];
+    out[0..8].copy_from_slice(&log_time.to_le_bytes());
+    out[8..12].copy_from_slice(&sequence.to_le_bytes());
+    out
+}
+
+/// Reads [`encode_downlink`]'s attachment.
+pub fn decode_downlink(bytes: &[u8]) -> Option<(u64, u32)> {
+    let time = u64::from_le_bytes(bytes.get(0..8)?.try_into().ok()?);
+    let seq = u32::from_le_bytes(bytes.get(8..12)?.try_into().ok()?);
+    (bytes.len() == 12).then_some((time, seq))
+}
+
 /// Encoding of a watched image: JPEG bytes.
 pub const JPEG_ENCODING: &str = "image/jpeg";
 
@@ -212,6 +262,26 @@ pub fn decode_header(bytes: &[u8]) -> Option<SampleHeader> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_downlinked_channel_keeps_its_topic() {
+        let k = downlink("beetle", "/drive/odometry/odom");
+        assert_eq!(k, "beetle/downlink/drive/odometry/odom");
+        assert_eq!(
+            downlink_topic("beetle", &k).as_deref(),
+            Some("/drive/odometry/odom")
+        );
+        let c = downlink_channel("beetle", "/drive/_events");
+        assert_eq!(
+            downlink_topic("beetle", &c).as_deref(),
+            Some("/drive/_events")
+        );
+        assert_eq!(downlink_topic("beetle", "beetle/downlink/"), None);
+        assert_eq!(downlink_topic("other", &k), None);
+        let a = encode_downlink(1_700_000_000_123_456_789, 42);
+        assert_eq!(decode_downlink(&a), Some((1_700_000_000_123_456_789, 42)));
+        assert_eq!(decode_downlink(&a[..11]), None);
+    }
 
     #[test]
     fn keys_nest_under_the_system() {

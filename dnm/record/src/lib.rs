@@ -19,6 +19,7 @@ pub mod replay;
 pub mod session;
 pub mod standard;
 pub mod stats;
+pub mod tap;
 
 /// Suffix of the channel that keeps a port's own bytes beside its standard message
 /// (`/<dnm>/<module>/<port>/raw`).

@@ -35,12 +35,13 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use dnm_module::port_service;
 use dnm_module::protocol::LARGE_PAYLOAD_BYTES;
 use dnm_module::protocol::{PortHeader, monotonic_ns, output_service};
-use dnm_netlist::{MessageType, Netlist};
+use dnm_netlist::{Decimator, DownlinkEntry, MessageType, Netlist};
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
 pub use crate::codec::{encode, encode_into, mcap_encoding};
 use crate::standard::{Cdr, StandardMapping};
+pub use crate::tap::{ChannelDesc, Tap, Tapped};
 use dnm_core::worker::{Control, Sets, Worker, dbg};
 use dnm_core::{Context, DnmReport, ModuleEvent, Plugin, SwitchRecord};
 pub use dnm_proto::RecordReport;
@@ -77,6 +78,9 @@ pub struct RecordOptions {
     pub rotate_after: Duration,
     /// `dir` is a session folder: keep its manifest current as files close.
     pub session: bool,
+    /// Where the downlink plan's messages (and the switches and events) go as they are
+    /// written.
+    pub tap: Option<Arc<dyn Tap>>,
 }
 
 impl RecordOptions {
@@ -92,6 +96,7 @@ impl RecordOptions {
             rotate_bytes: 1 << 30,
             rotate_after: Duration::from_secs(3600),
             session: false,
+            tap: None,
         }
     }
 
@@ -115,6 +120,7 @@ impl RecordOptions {
             only: self.only,
             rotate_bytes: self.rotate_bytes,
             rotate_after: self.rotate_after,
+            tap: self.tap,
             ..Self::session(&self.dir, system)
         }
     }
@@ -146,6 +152,8 @@ struct RecPort {
     module: String,
     port: String,
     message: MessageType,
+    /// The least time between two samples the downlink plan keeps of it, if it names it.
+    downlink_period_ns: Option<u64>,
 }
 
 enum Item {
@@ -298,6 +306,11 @@ impl Recorder {
                         module: m.name.clone(),
                         port: p.name.clone(),
                         message: p.message.clone(),
+                        downlink_period_ns: netlist
+                            .downlink
+                            .iter()
+                            .find(|d| d.output.module == m.name && d.output.port == p.name)
+                            .map(DownlinkEntry::period_ns),
                     })
                     .collect::<Vec<_>>()
             })
@@ -726,6 +739,8 @@ struct OpenFile {
     switches: u16,
     events: u16,
     sequences: u16,
+    /// The JSON channels as a [`Tap`] is told of them: switches, events, sequences.
+    json: [ChannelDesc; 3],
 }
 
 /// The JSON channels of a file.
@@ -742,6 +757,9 @@ struct Channel {
     id: u16,
     raw: Option<u16>,
     standard: Option<StandardMapping>,
+    /// The channel and its `raw` one as a [`Tap`] is told of them.
+    desc: ChannelDesc,
+    raw_desc: Option<ChannelDesc>,
 }
 
 /// Counts the bytes that reach the file (compressed chunks, indexes), for rotation by size.
@@ -817,19 +835,19 @@ fn open_file(
     let switches = add_json_channel(
         &mut writer,
         "dnm/TaskSwitch",
-        br#"{"type":"object","properties":{"dnm":{"type":"string"},"revision":{"type":"integer"},"from":{"type":["string","null"]},"to":{"type":"string"},"duration_ns":{"type":"integer"},"at_ns":{"type":"integer"}}}"#,
+        r#"{"type":"object","properties":{"dnm":{"type":"string"},"revision":{"type":"integer"},"from":{"type":["string","null"]},"to":{"type":"string"},"duration_ns":{"type":"integer"},"at_ns":{"type":"integer"}}}"#,
         &format!("/{dnm}/_switches"),
     )?;
     let events = add_json_channel(
         &mut writer,
         "dnm/ModuleEvent",
-        br#"{"type":"object","properties":{"dnm":{"type":"string"},"module":{"type":"string"},"what":{"type":"string"},"detail":{"type":"string"},"at_ns":{"type":"integer"}}}"#,
+        r#"{"type":"object","properties":{"dnm":{"type":"string"},"module":{"type":"string"},"what":{"type":"string"},"detail":{"type":"string"},"at_ns":{"type":"integer"}}}"#,
         &format!("/{dnm}/_events"),
     )?;
     let sequences = add_json_channel(
         &mut writer,
         "dnm/SequenceEvent",
-        br#"{"type":"object","properties":{"at_unix_ns":{"type":"integer"},"sequence":{"type":"string"},"run":{"type":"integer"},"what":{"type":"string"},"step":{"type":["integer","null"]},"detail":{"type":"string"}}}"#,
+        r#"{"type":"object","properties":{"at_unix_ns":{"type":"integer"},"sequence":{"type":"string"},"run":{"type":"integer"},"what":{"type":"string"},"step":{"type":["integer","null"]},"detail":{"type":"string"}}}"#,
         &format!("/{dnm}/_sequences"),
     )?;
     let mut f = OpenFile {
@@ -838,9 +856,10 @@ fn open_file(
         opened: Instant::now(),
         written,
         channels,
-        switches,
-        events,
-        sequences,
+        switches: switches.0,
+        events: events.0,
+        sequences: sequences.0,
+        json: [switches.1, events.1, sequences.1],
     };
     if let Some((revision, file, text)) = netlist {
         write_netlist(&mut f, *revision, file, text)?;
@@ -878,9 +897,17 @@ fn add_port(writer: &mut McapWriter, dnm: &str, p: &RecPort) -> Result<Channel, 
     let id = writer
         .add_channel(schema_id, &topic, message_encoding, &meta)
         .map_err(|e| e.to_string())?;
+    let desc = ChannelDesc {
+        topic: topic.clone(),
+        schema_name,
+        schema_encoding: schema_encoding.to_string(),
+        schema,
+        message_encoding: message_encoding.to_string(),
+        metadata: meta.clone(),
+    };
     // Our own bytes beside a standard message that cannot hold them exactly: what a
     // replay feeds modules.
-    let raw = match &standard {
+    let (raw, raw_desc) = match &standard {
         Some(mapping) if !mapping.exact() => {
             let (schema_name, schema_encoding, schema, message_encoding) =
                 mcap_encoding(&p.message);
@@ -889,35 +916,53 @@ fn add_port(writer: &mut McapWriter, dnm: &str, p: &RecPort) -> Result<Channel, 
                 .map_err(|e| e.to_string())?;
             let mut meta = meta.clone();
             meta.insert("dnm_raw_of".to_string(), topic.clone());
-            Some(
-                writer
-                    .add_channel(
-                        schema_id,
-                        &format!("{topic}{}", crate::RAW_SUFFIX),
-                        message_encoding,
-                        &meta,
-                    )
-                    .map_err(|e| e.to_string())?,
-            )
+            let raw_topic = format!("{topic}{}", crate::RAW_SUFFIX);
+            let id = writer
+                .add_channel(schema_id, &raw_topic, message_encoding, &meta)
+                .map_err(|e| e.to_string())?;
+            let desc = ChannelDesc {
+                topic: raw_topic,
+                schema_name,
+                schema_encoding: schema_encoding.to_string(),
+                schema,
+                message_encoding: message_encoding.to_string(),
+                metadata: meta,
+            };
+            (Some(id), Some(desc))
         }
-        _ => None,
+        _ => (None, None),
     };
-    Ok(Channel { id, raw, standard })
+    Ok(Channel {
+        id,
+        raw,
+        standard,
+        desc,
+        raw_desc,
+    })
 }
 
 /// Adds a JSON channel `topic` of JSON schema `schema` (named `name`) to the file.
 fn add_json_channel(
     writer: &mut McapWriter,
     name: &str,
-    schema: &[u8],
+    schema: &str,
     topic: &str,
-) -> Result<u16, String> {
+) -> Result<(u16, ChannelDesc), String> {
     let schema_id = writer
-        .add_schema(name, "jsonschema", schema)
+        .add_schema(name, "jsonschema", schema.as_bytes())
         .map_err(|e| e.to_string())?;
-    writer
+    let id = writer
         .add_channel(schema_id, topic, "json", &BTreeMap::new())
-        .map_err(|e| e.to_string())
+        .map_err(|e| e.to_string())?;
+    let desc = ChannelDesc {
+        topic: topic.to_string(),
+        schema_name: name.to_string(),
+        schema_encoding: "jsonschema".into(),
+        schema: schema.to_string(),
+        message_encoding: "json".into(),
+        metadata: BTreeMap::new(),
+    };
+    Ok((id, desc))
 }
 
 /// Topic of the body a module's poses move (see [`dnm_netlist::Standard::body`]):
@@ -1020,6 +1065,7 @@ fn write_loop(
         index: 0,
         file: None,
         last_flush: Instant::now(),
+        decimators: HashMap::new(),
     };
     loop {
         let item = match items.recv_timeout(CHUNK_PERIOD) {
@@ -1086,6 +1132,8 @@ struct Writer<'a> {
     index: u64,
     file: Option<OpenFile>,
     last_flush: Instant,
+    /// Per port of the downlink plan (module, port): which samples it keeps.
+    decimators: HashMap<(String, String), Decimator>,
 }
 
 impl Writer<'_> {
@@ -1120,12 +1168,13 @@ impl Writer<'_> {
     fn write_json(&mut self, json: &str, channel: Json) -> Result<(), String> {
         if let Some(f) = self.file.as_mut() {
             let now = self.clock.unix(monotonic_ns());
+            let (channel_id, desc) = match channel {
+                Json::Switch => (f.switches, &f.json[0]),
+                Json::Event => (f.events, &f.json[1]),
+                Json::Sequence => (f.sequences, &f.json[2]),
+            };
             let header = mcap::records::MessageHeader {
-                channel_id: match channel {
-                    Json::Switch => f.switches,
-                    Json::Event => f.events,
-                    Json::Sequence => f.sequences,
-                },
+                channel_id,
                 sequence: 0,
                 log_time: now,
                 publish_time: now,
@@ -1133,6 +1182,15 @@ impl Writer<'_> {
             f.writer
                 .write_to_known_channel(&header, json.as_bytes())
                 .map_err(|e| e.to_string())?;
+            if let Some(tap) = &self.options.tap {
+                tap.message(Tapped {
+                    channel: desc,
+                    log_time: now,
+                    sequence: 0,
+                    data: json.as_bytes(),
+                    period_ns: None,
+                });
+            }
         }
         Ok(())
     }
@@ -1176,6 +1234,16 @@ impl Writer<'_> {
                 &encoded_here
             }
         };
+        // The downlink plan's samples go on to the tap as they are written.
+        let tap = match (&self.options.tap, p.downlink_period_ns) {
+            (Some(tap), Some(period)) => self
+                .decimators
+                .entry((p.module.clone(), p.port.clone()))
+                .or_insert_with(|| Decimator::new(period))
+                .keep(time)
+                .then_some(tap),
+            _ => None,
+        };
         if let Some(raw) = channel.raw {
             let data = native();
             let h = mcap::records::MessageHeader {
@@ -1186,12 +1254,30 @@ impl Writer<'_> {
                 .write_to_known_channel(&h, &data)
                 .map_err(|e| e.to_string())?;
             written += data.len();
+            if let (Some(tap), Some(desc)) = (tap, &channel.raw_desc) {
+                tap.message(Tapped {
+                    channel: desc,
+                    log_time: time,
+                    sequence: head.sequence,
+                    data: &data,
+                    period_ns: p.downlink_period_ns,
+                });
+            }
         }
         head.channel_id = channel.id;
         f.writer
             .write_to_known_channel(&head, data)
             .map_err(|e| e.to_string())?;
         written += data.len();
+        if let Some(tap) = tap {
+            tap.message(Tapped {
+                channel: &channel.desc,
+                log_time: time,
+                sequence: head.sequence,
+                data,
+                period_ns: p.downlink_period_ns,
+            });
+        }
         self.counters.messages.fetch_add(1, Ordering::Relaxed);
         self.counters
             .bytes
@@ -1266,6 +1352,7 @@ mod tests {
             rotate_bytes,
             rotate_after: Duration::from_secs(3600),
             session: true,
+            tap: None,
         };
         let (tx, rx) = mpsc::sync_channel(n as usize + 2);
         tx.send(Item::Netlist {
@@ -1275,6 +1362,7 @@ mod tests {
         })
         .unwrap();
         tx.send(Item::Ports(vec![RecPort {
+            downlink_period_ns: None,
             module: "m".into(),
             port: "out".into(),
             message,
