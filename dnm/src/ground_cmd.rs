@@ -45,6 +45,10 @@ pub enum GroundCmd {
         /// Keep no record of the rover at this station.
         #[arg(long)]
         no_record: bool,
+        /// The downlink's budget, live and backfill together (e.g. `64kbit`; default: what
+        /// the link carries): what the ground missed is asked for within it.
+        #[arg(long)]
+        downlink_budget: Option<String>,
     },
     /// Switch the rover to TASK, now or at a rover time.
     Switch {
@@ -208,6 +212,50 @@ fn get(url: &str) -> anyhow::Result<String> {
         bail!("{}", error_of(&body));
     }
     Ok(body)
+}
+
+/// How complete the station's record of the rover is, a line per channel.
+fn print_record(r: &dnm_downlink::RecordStatus) {
+    let kbit = |b: f64| b * 8.0 / 1000.0;
+    let budget = r.budget_bytes_per_s.map_or("no budget".to_string(), |b| {
+        format!("budget {:.1} kbit/s", kbit(b as f64))
+    });
+    println!(
+        "record of the rover in {}: {budget}, downlink {:.1} kbit/s measured; backlog {} bytes{}",
+        r.dir,
+        kbit(r.measured_bytes_per_s),
+        r.backlog_bytes,
+        r.seconds_to_clear
+            .map_or(String::new(), |s| format!(" (~{s:.0} s to clear)"))
+    );
+    let now = dnm_proto::clock::now_unix_ns();
+    for c in &r.channels {
+        let pct = if c.expected > 0 {
+            format!(" ({:.1} %)", 100.0 * c.received as f64 / c.expected as f64)
+        } else {
+            String::new()
+        };
+        let gap = c.oldest_gap.map_or(String::new(), |g| {
+            format!(
+                ", {} gap(s), the oldest {:.0} s ago ({:.1} s long)",
+                c.gaps,
+                now.saturating_sub(g.from_ns) as f64 / 1e9,
+                g.to_ns.saturating_sub(g.from_ns) as f64 / 1e9
+            )
+        });
+        let unrecorded = if c.unrecorded.is_empty() {
+            String::new()
+        } else {
+            format!(
+                ", {} stretch(es) the rover never recorded",
+                c.unrecorded.len()
+            )
+        };
+        println!(
+            "  {}: {}/{}{pct}{gap}{unrecorded}",
+            c.topic, c.received, c.expected
+        );
+    }
 }
 
 fn error_of(body: &str) -> String {
@@ -383,6 +431,7 @@ struct Serve {
     monitor: Option<String>,
     record: Option<PathBuf>,
     no_record: bool,
+    downlink_budget: Option<String>,
 }
 
 /// Runs a ground station (its outbox, link, API, the ground's record of the rover and
@@ -397,6 +446,7 @@ fn serve(z: &dnm::ZenohOptions, args: Serve) -> anyhow::Result<ExitCode> {
         monitor,
         record,
         no_record,
+        downlink_budget,
     } = args;
 
     let db = match db {
@@ -430,12 +480,26 @@ fn serve(z: &dnm::ZenohOptions, args: Serve) -> anyhow::Result<ExitCode> {
                 .unwrap_or(std::path::Path::new("."))
                 .join(format!("{system}-{station}-record")),
         };
-        let r = dnm_downlink::GroundRecord::start(st.session(), &system, &dir)?;
+        let budget_bytes_per_s = downlink_budget
+            .as_deref()
+            .map(|b| crate::linksim::parse_rate(b).map(|r| r as u64))
+            .transpose()
+            .context("--downlink-budget")?;
+        let options = dnm_downlink::GroundRecordOptions {
+            dir: dir.clone(),
+            budget_bytes_per_s,
+        };
+        let r = dnm_downlink::GroundRecord::start(st.session(), &system, &options)?;
         println!("the rover's downlink is recorded in {}", dir.display());
         Some(r)
     };
-    let api =
-        dnm_ground::http::Api::serve_with(st.clone(), http, token).map_err(anyhow::Error::msg)?;
+    let status: Option<dnm_ground::http::DownlinkStatus> = record.as_ref().map(|r| {
+        let source = r.status_source();
+        Arc::new(move || serde_json::to_value(source.status()).unwrap_or_default())
+            as dnm_ground::http::DownlinkStatus
+    });
+    let api = dnm_ground::http::Api::serve_with_record(st.clone(), http, token, status)
+        .map_err(anyhow::Error::msg)?;
     println!(
         "ground station `{station}` of `{system}`: outbox {}, API http://{}; Ctrl-C to stop",
         db.display(),
@@ -477,6 +541,7 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             monitor,
             record,
             no_record,
+            downlink_budget,
         } => serve(
             z,
             Serve {
@@ -488,6 +553,7 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
                 monitor,
                 record,
                 no_record,
+                downlink_budget,
             },
         ),
         GroundCmd::Switch {
@@ -553,15 +619,22 @@ pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
             let base = url(&u);
             let link: LinkStatus = serde_json::from_str(&get(&format!("{base}/link"))?)?;
             let entries: Vec<Entry> = serde_json::from_str(&get(&format!("{base}/commands"))?)?;
+            // A station without a record of the rover answers 404: nothing to show.
+            let record: Option<dnm_downlink::RecordStatus> = get(&format!("{base}/downlink"))
+                .ok()
+                .and_then(|b| serde_json::from_str(&b).ok());
             if json {
                 println!(
                     "{}",
                     serde_json::to_string_pretty(
-                        &serde_json::json!({ "link": link, "commands": entries })
+                        &serde_json::json!({ "link": link, "commands": entries, "record": record })
                     )?
                 );
             } else {
                 print_link(&link);
+                if let Some(r) = &record {
+                    print_record(r);
+                }
                 for e in entries.iter().rev().take(20).rev() {
                     println!("{}", describe(e));
                 }

@@ -21,8 +21,12 @@ use crate::admin::{private_dir, serve, socket_path};
 #[derive(Debug, Clone)]
 pub struct HostOptions {
     pub dnm: DnmOptions,
-    /// Record every output port to MCAP; `None`: no recording.
+    /// Record every output port to MCAP; `None`: no recording (and no downlink to the
+    /// ground, which is served from the recording).
     pub record: Option<crate::record::RecordOptions>,
+    /// How much of each downlinked channel its publisher keeps for the ground to recover
+    /// (longer gaps are filled from the recording).
+    pub downlink_cache: Duration,
     /// Where durable state lives (the authority's database); `None`: nowhere lasting is
     /// known, and a host that needs one refuses to start.
     pub state_dir: Option<PathBuf>,
@@ -34,6 +38,7 @@ impl HostOptions {
         Ok(Self {
             dnm: DnmOptions::standard()?,
             record: None,
+            downlink_cache: Duration::from_secs(dnm_downlink::CACHE_SECONDS),
             state_dir: crate::default_state_dir(),
         })
     }
@@ -339,10 +344,11 @@ impl DnmStart {
     /// The DNM's thread: sets it up, says so on `ready`, and runs it until it stops.
     fn run(self, ready: &SyncSender<Result<Commander, String>>) {
         let name = self.name.clone();
-        let mut dnm = match self.set_up() {
-            Ok((dnm, commander)) => {
+        // The recording answers the ground while the DNM runs.
+        let (mut dnm, _history) = match self.set_up() {
+            Ok((dnm, commander, history)) => {
                 let _ = ready.send(Ok(commander));
-                dnm
+                (dnm, history)
             }
             Err(e) => {
                 let _ = ready.send(Err(e.to_string()));
@@ -355,13 +361,20 @@ impl DnmStart {
         dnm.shutdown();
     }
 
-    /// The DNM with its bridge and recorder, on the netlist (or waiting for its authority).
-    fn set_up(self) -> anyhow::Result<(Dnm, Commander)> {
+    /// The DNM with its bridge and recorder (and its recording answering the ground), on the
+    /// netlist (or waiting for its authority).
+    fn set_up(self) -> anyhow::Result<(Dnm, Commander, Option<dnm_downlink::HistoryServer>)> {
         let (netlist, name) = (&self.netlist, self.name.as_str());
         let mut dnm = Dnm::new(&netlist.system, name, self.options.dnm)?;
         // What the recorder writes of the downlink plan (and every switch and event) goes
         // to the ground too.
-        let tap = dnm_downlink::DownlinkTap::new(self.session.clone(), &netlist.system);
+        let tap = dnm_downlink::DownlinkTap::new(
+            self.session.clone(),
+            &netlist.system,
+            name,
+            self.options.downlink_cache,
+        );
+        let session = self.session.clone();
         let bridge = dnm_zenoh::Bridge::new(
             self.session,
             &netlist.system,
@@ -375,8 +388,15 @@ impl DnmStart {
             None => bridge,
         };
         dnm.add_plugin(Box::new(bridge));
+        let mut history = None;
         if let Some(mut r) = self.options.record {
             r.tap = Some(Arc::new(tap));
+            history = Some(dnm_downlink::HistoryServer::start(
+                &session,
+                &netlist.system,
+                name,
+                &r.dir,
+            )?);
             let recorder = crate::record::Recorder::start(name, dnm.prefix(), r)?;
             if let Some(slot) = &self.sequences
                 && let Ok(mut slot) = slot.lock()
@@ -393,6 +413,6 @@ impl DnmStart {
             dnm.apply(netlist)?;
         }
         let commander = dnm.commander()?;
-        Ok((dnm, commander))
+        Ok((dnm, commander, history))
     }
 }

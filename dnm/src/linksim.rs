@@ -72,21 +72,7 @@ impl Link {
         };
         let rate = match &a.rate {
             None => 0.0,
-            Some(r) => {
-                let r = r.to_ascii_lowercase();
-                let (num, unit) =
-                    r.split_at(r.find(|c: char| c.is_ascii_alphabetic()).unwrap_or(r.len()));
-                let n: f64 = num
-                    .parse()
-                    .with_context(|| format!("rate `{r}`: e.g. `256kbit`"))?;
-                let bits = match unit {
-                    "bit" | "" => n,
-                    "kbit" => n * 1e3,
-                    "mbit" => n * 1e6,
-                    _ => anyhow::bail!("rate `{r}`: use bit, kbit or mbit"),
-                };
-                bits / 8.0
-            }
+            Some(r) => parse_rate(r)?,
         };
         if !(0.0..1.0).contains(&a.loss) {
             anyhow::bail!("--loss {} must be from 0 up to (not including) 1", a.loss);
@@ -359,6 +345,22 @@ fn udp(link: Link, listen: SocketAddr, to: SocketAddr) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// A link rate such as `256kbit` or `2mbit` (bit, kbit, mbit a second), in bytes a second.
+pub(crate) fn parse_rate(r: &str) -> anyhow::Result<f64> {
+    let r = r.to_ascii_lowercase();
+    let (num, unit) = r.split_at(r.find(|c: char| c.is_ascii_alphabetic()).unwrap_or(r.len()));
+    let n: f64 = num
+        .parse()
+        .with_context(|| format!("rate `{r}`: e.g. `256kbit`"))?;
+    let bits = match unit {
+        "bit" | "" => n,
+        "kbit" => n * 1e3,
+        "mbit" => n * 1e6,
+        _ => anyhow::bail!("rate `{r}`: use bit, kbit or mbit"),
+    };
+    Ok(bits / 8.0)
 }
 
 #[cfg(test)]

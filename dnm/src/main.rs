@@ -80,9 +80,23 @@ struct RecordArgs {
     /// Record only this module or `module/port` (repeatable; default: every output).
     #[arg(long)]
     record_only: Vec<String>,
+    /// How much of each output the netlist's downlink plan names is kept for the ground to
+    /// recover from memory (e.g. `120s`); longer gaps are filled from the recording.
+    #[arg(long, default_value = "120s")]
+    downlink_cache: String,
 }
 
 impl RecordArgs {
+    fn downlink_cache(&self) -> anyhow::Result<std::time::Duration> {
+        let ms = dnm_netlist::parse_duration_ms(&self.downlink_cache).with_context(|| {
+            format!(
+                "--downlink-cache `{}`: write a duration, e.g. `120s`",
+                self.downlink_cache
+            )
+        })?;
+        Ok(std::time::Duration::from_millis(ms.max(1000)))
+    }
+
     fn options(&self) -> Option<dnm::record::RecordOptions> {
         if self.no_record {
             return None;
@@ -504,6 +518,7 @@ fn up(
     };
     let mut options = HostOptions::standard().context("locating the module host")?;
     options.record = record.options().map(|o| o.into_session(&n.system));
+    options.downlink_cache = record.downlink_cache()?;
     if let Some(d) = state_dir {
         options.state_dir = Some(d);
     }

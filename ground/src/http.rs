@@ -57,7 +57,11 @@ struct Ctx {
     token: Option<String>,
     /// The `Host` values a loopback-bound server answers (none: any, a token guards it).
     hosts: Vec<String>,
+    downlink: Option<DownlinkStatus>,
 }
+
+/// How complete the station's record of the rover is (JSON), served at `GET /downlink`.
+pub type DownlinkStatus = Arc<dyn Fn() -> serde_json::Value + Send + Sync>;
 
 /// Why the operator API did not start.
 #[derive(Debug, thiserror::Error)]
@@ -87,6 +91,17 @@ impl Api {
         station: Arc<Station>,
         addr: SocketAddr,
         token: Option<String>,
+    ) -> Result<Self, ApiStartError> {
+        Self::serve_with_record(station, addr, token, None)
+    }
+
+    /// [`Api::serve_with`], also answering `GET /downlink` with `downlink`'s status of the
+    /// station's record of the rover.
+    pub fn serve_with_record(
+        station: Arc<Station>,
+        addr: SocketAddr,
+        token: Option<String>,
+        downlink: Option<DownlinkStatus>,
     ) -> Result<Self, ApiStartError> {
         let token = token.filter(|t| !t.is_empty());
         if !addr.ip().is_loopback() && token.is_none() {
@@ -124,6 +139,7 @@ impl Api {
             web: Web::new(view),
             token,
             hosts,
+            downlink,
         });
         let thread = {
             let server = server.clone();
@@ -529,6 +545,13 @@ fn handle(ctx: &Ctx, mut request: tiny_http::Request) {
             json(200, &entries)
         }
         (Method::Get, "/link") => json(200, &station.link()),
+        (Method::Get, "/downlink") => match &ctx.downlink {
+            Some(status) => json(200, &status()),
+            None => error(
+                404,
+                "this station keeps no record of the rover (it runs with --no-record)",
+            ),
+        },
         (Method::Get, p) if p.starts_with("/commands/") => {
             match p["/commands/".len()..].parse::<u64>() {
                 Err(_) => error(400, "a command is named by its number: /commands/12"),
@@ -548,7 +571,7 @@ fn handle(ctx: &Ctx, mut request: tiny_http::Request) {
         }
         _ => error(
             404,
-            "unknown request; use POST /commands, GET /commands, GET /commands/N, GET /link",
+            "unknown request; use POST /commands, GET /commands, GET /commands/N, GET /link, GET /downlink",
         ),
     };
     if let Err(e) = request.respond(response) {

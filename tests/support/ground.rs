@@ -49,7 +49,10 @@ impl Proc {
         let child = cmd
             .args(args)
             .env("DNM_MODULE_HOST", super::system::module_host())
-            .env("RUST_LOG", "info,dnm_ground=debug,dnm_authority=debug")
+            .env(
+                "RUST_LOG",
+                "info,dnm_ground=debug,dnm_authority=debug,dnm_downlink=debug",
+            )
             .envs(env.iter().copied())
             .stdin(Stdio::null())
             .stdout(out.try_clone().unwrap())
@@ -159,6 +162,11 @@ impl Api {
     }
 
     /// The status `GET path` answers with (0: no answer).
+    /// `GET path` as JSON (waiting for the station's API if it is not answering yet).
+    pub fn get_json(&self, path: &str) -> serde_json::Value {
+        super::eventually(path, || self.get(path))
+    }
+
     pub fn status(&self, path: &str) -> u16 {
         Self::agent()
             .get(format!("{}{path}", self.0))
@@ -529,8 +537,17 @@ impl Rig {
         self.station_named("ground-1", &self.http)
     }
 
+    /// The station `ground-1` with more arguments of `dnm ground serve`.
+    pub fn station_with(&self, extra: &[&str]) -> (Proc, Api) {
+        self.station_full("ground-1", &self.http, extra)
+    }
+
     /// A station of its own name, outbox and API address.
     pub fn station_named(&self, name: &str, http: &str) -> (Proc, Api) {
+        self.station_full(name, http, &[])
+    }
+
+    fn station_full(&self, name: &str, http: &str, extra: &[&str]) -> (Proc, Api) {
         let mut args = zenoh_args("client", self.ground_port);
         args.extend([
             "ground".into(),
@@ -544,6 +561,7 @@ impl Rig {
             "--http".into(),
             http.into(),
         ]);
+        args.extend(extra.iter().map(|s| s.to_string()));
         let log = if name == "ground-1" {
             "station".to_string()
         } else {

@@ -1,21 +1,27 @@
 //! The ground's side of the downlink: what the rover sends of its recording, received live and
 //! recovered after gaps, written to the station's own session folder.
 
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::HashMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::mpsc::{self, Receiver};
+use std::sync::mpsc::{self, Receiver, SyncSender};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use dnm_proto::keys;
 use dnm_record::tap::ChannelDesc;
-use serde::Serialize;
+
+use crate::backfill;
+use crate::copy::{Copies, RecordStatus, channel_statuses};
+use crate::protocol::Announce;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedSubscriber, AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
+
+/// Topics heard of whose announcement has not arrived.
+pub(crate) type Unknown = Arc<Mutex<std::collections::BTreeSet<String>>>;
 
 /// Messages received and not written yet, at most; beyond it the newest are let go (and the
 /// publishers' caches hold them still).
@@ -43,37 +49,38 @@ pub enum GroundRecordError {
     Thread(#[source] std::io::Error),
 }
 
-/// How complete the ground's copy of one channel is.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
-pub struct ChannelStatus {
-    pub topic: String,
-    /// Messages held (written in this run or found in the session's files).
-    pub received: u64,
-    /// Rover send times of the oldest and newest held, Unix ns.
-    pub first_unix_ns: Option<u64>,
-    pub last_unix_ns: Option<u64>,
-    /// Messages received again that the session already held.
-    pub duplicates: u64,
+/// How a station keeps its record of the rover.
+#[derive(Debug, Clone)]
+pub struct GroundRecordOptions {
+    /// The session folder (made if missing; a folder of an earlier run is resumed).
+    pub dir: PathBuf,
+    /// The downlink's budget in bytes a second (live and backfill together); none: what the
+    /// link carries.
+    pub budget_bytes_per_s: Option<u64>,
 }
 
-enum Item {
-    Channel(ChannelDesc),
+pub(crate) enum Item {
+    Announce(Announce),
     Message {
         topic: String,
         log_time: u64,
         sequence: u32,
         data: Vec<u8>,
     },
+    /// Answered once everything before it is written.
+    Barrier(SyncSender<()>),
 }
 
 /// A station's record of the rover (see the crate's docs). Dropping it finishes its file and
 /// the session's manifest.
 pub struct GroundRecord {
     dir: PathBuf,
-    status: Arc<Mutex<BTreeMap<String, ChannelStatus>>>,
-    missed: Arc<AtomicU64>,
+    status: StatusSource,
     data: Option<AdvancedSubscriber<()>>,
-    channels: Option<AdvancedSubscriber<()>>,
+    channels: Option<zenoh::pubsub::Subscriber<()>>,
+    /// Dropped, the backfill stops.
+    stop_backfill: Option<SyncSender<()>>,
+    backfill: Option<JoinHandle<()>>,
     writer: Option<JoinHandle<()>>,
 }
 
@@ -86,19 +93,21 @@ impl std::fmt::Debug for GroundRecord {
 }
 
 impl GroundRecord {
-    /// Starts recording what `system`'s rover downlinks into session folder `dir` (made if
-    /// missing; a folder of an earlier run is resumed: what it holds is not written again).
+    /// Starts recording what `system`'s rover downlinks, as `options` say.
     pub fn start(
         session: &zenoh::Session,
         system: &str,
-        dir: &Path,
+        options: &GroundRecordOptions,
     ) -> Result<Self, GroundRecordError> {
+        let dir = options.dir.as_path();
         std::fs::create_dir_all(dir).map_err(|source| GroundRecordError::Folder {
             dir: dir.to_path_buf(),
             source,
         })?;
-        let (held, next_index) = held(dir);
-        let status = Arc::new(Mutex::new(status_of(&held)));
+        let (copies, next_index) = held(dir);
+        let copies = Arc::new(Mutex::new(copies));
+        let received = Arc::new(AtomicU64::new(0));
+        let unknown: Unknown = Arc::default();
         let (tx, rx) = mpsc::sync_channel::<Item>(QUEUE);
         let writer = {
             let mut w = Writer {
@@ -107,8 +116,9 @@ impl GroundRecord {
                 file: None,
                 descs: HashMap::new(),
                 pending: HashMap::new(),
-                held: held.into_iter().collect(),
-                status: status.clone(),
+                unknown: unknown.clone(),
+                copies: copies.clone(),
+                written: 0,
             };
             std::thread::Builder::new()
                 .name("ground-record".into())
@@ -119,16 +129,24 @@ impl GroundRecord {
                 })
                 .map_err(GroundRecordError::Thread)?
         };
-        let channels = subscribe(session, &keys::downlink_channels(system), {
+        // Announcements heard as they are made; the ones made before (or lost) are asked for
+        // by the backfill.
+        let channels = {
             let tx = tx.clone();
-            move |s| {
-                if let Ok(desc) = serde_json::from_slice::<ChannelDesc>(&s.payload().to_bytes()) {
-                    let _ = tx.try_send(Item::Channel(desc));
-                }
-            }
-        })?;
+            session
+                .declare_subscriber(keys::downlink_channels(system))
+                .callback(move |s| {
+                    if let Ok(a) = serde_json::from_slice::<Announce>(&s.payload().to_bytes()) {
+                        let _ = tx.try_send(Item::Announce(a));
+                    }
+                })
+                .wait()
+                .map_err(|e| GroundRecordError::Subscribe(e.to_string()))?
+        };
         let data = subscribe(session, &keys::downlink_all(system), {
             let system = system.to_string();
+            let tx = tx.clone();
+            let received = received.clone();
             move |s| {
                 let Some(topic) = keys::downlink_topic(&system, s.key_expr().as_str()) else {
                     return;
@@ -139,11 +157,13 @@ impl GroundRecord {
                 else {
                     return;
                 };
+                let data = s.payload().to_bytes().into_owned();
+                received.fetch_add(data.len() as u64, Ordering::Relaxed);
                 let _ = tx.try_send(Item::Message {
                     topic,
                     log_time,
                     sequence,
-                    data: s.payload().to_bytes().into_owned(),
+                    data,
                 });
             }
         })?;
@@ -158,12 +178,36 @@ impl GroundRecord {
                 .wait()
                 .map_err(|e| GroundRecordError::Subscribe(e.to_string()))?;
         }
+        let measured = Arc::new(AtomicU64::new(0));
+        let (stop_backfill, stop) = mpsc::sync_channel::<()>(1);
+        let backfill = {
+            let shared = backfill::Shared {
+                copies: copies.clone(),
+                received,
+                measured: measured.clone(),
+                budget_bytes_per_s: options.budget_bytes_per_s,
+                unknown,
+            };
+            let session = session.clone();
+            let system = system.to_string();
+            std::thread::Builder::new()
+                .name("ground-backfill".into())
+                .spawn(move || backfill::run(&session, &system, &shared, &tx, &stop))
+                .map_err(GroundRecordError::Thread)?
+        };
         Ok(Self {
             dir: dir.to_path_buf(),
-            status,
-            missed,
+            status: StatusSource {
+                dir: dir.to_path_buf(),
+                copies,
+                missed,
+                measured,
+                budget_bytes_per_s: options.budget_bytes_per_s,
+            },
             data: Some(data),
             channels: Some(channels),
+            stop_backfill: Some(stop_backfill),
+            backfill: Some(backfill),
             writer: Some(writer),
         })
     }
@@ -173,22 +217,67 @@ impl GroundRecord {
         &self.dir
     }
 
-    /// How complete the copy of each channel is, by topic.
-    pub fn status(&self) -> Vec<ChannelStatus> {
-        self.status
-            .lock()
-            .map(|s| s.values().cloned().collect())
-            .unwrap_or_default()
+    /// How complete the copy is: each channel, the budget, the backlog.
+    pub fn status(&self) -> RecordStatus {
+        self.status.status()
     }
 
-    /// Messages the rover's publishers could no longer give (gone from their caches).
-    pub fn missed(&self) -> u64 {
-        self.missed.load(Ordering::Relaxed)
+    /// What reads the status from elsewhere (an API's thread), without holding the record.
+    pub fn status_source(&self) -> StatusSource {
+        self.status.clone()
+    }
+}
+
+/// Reads a [`GroundRecord`]'s status; it outlives the record harmlessly.
+#[derive(Clone)]
+pub struct StatusSource {
+    dir: PathBuf,
+    copies: Arc<Mutex<Copies>>,
+    missed: Arc<AtomicU64>,
+    measured: Arc<AtomicU64>,
+    budget_bytes_per_s: Option<u64>,
+}
+
+impl std::fmt::Debug for StatusSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StatusSource")
+            .field("dir", &self.dir)
+            .finish_non_exhaustive()
+    }
+}
+
+impl StatusSource {
+    /// How complete the copy is: each channel, the budget, the backlog.
+    pub fn status(&self) -> RecordStatus {
+        let settled =
+            dnm_proto::clock::now_unix_ns().saturating_sub(backfill::SETTLE.as_nanos() as u64);
+        let channels = self
+            .copies
+            .lock()
+            .map(|c| channel_statuses(&c, settled))
+            .unwrap_or_default();
+        let backlog_bytes = channels.iter().map(|c| c.backlog_bytes).sum();
+        RecordStatus {
+            dir: self.dir.display().to_string(),
+            channels,
+            budget_bytes_per_s: self.budget_bytes_per_s,
+            measured_bytes_per_s: f64::from_bits(self.measured.load(Ordering::Relaxed)),
+            backlog_bytes,
+            seconds_to_clear: self
+                .budget_bytes_per_s
+                .filter(|b| *b > 0)
+                .map(|b| backlog_bytes as f64 / b as f64),
+            missed_live: self.missed.load(Ordering::Relaxed),
+        }
     }
 }
 
 impl Drop for GroundRecord {
     fn drop(&mut self) {
+        drop(self.stop_backfill.take());
+        if let Some(b) = self.backfill.take() {
+            let _ = b.join();
+        }
         // The subscribers hold the writer's queue: undeclared, the writer finishes its file.
         if let Some(s) = self.data.take() {
             let _ = s.undeclare().wait();
@@ -219,10 +308,9 @@ fn subscribe(
         .map_err(|e| GroundRecordError::Subscribe(format!("{key}: {e}")))
 }
 
-/// What the session's files already hold: (topic, log time, sequence) of every message, and
-/// the index of the next file.
-fn held(dir: &Path) -> (Vec<(String, u64, u32)>, u64) {
-    let mut held = Vec::new();
+/// What the session's files already hold, by channel, and the index of the next file.
+fn held(dir: &Path) -> (Copies, u64) {
+    let mut copies = Copies::new();
     let mut next = 0;
     let files = dnm_record::session::files(dir).unwrap_or_default();
     for path in files {
@@ -244,31 +332,14 @@ fn held(dir: &Path) -> (Vec<(String, u64, u32)>, u64) {
         }
         // A file of a killed station ends with its last whole chunk.
         for m in dnm_record::messages(&bytes).map_while(Result::ok) {
-            held.push((m.channel.topic.clone(), m.log_time, m.sequence));
+            copies.entry(m.channel.topic.clone()).or_default().take(
+                m.log_time,
+                m.sequence,
+                m.data.len(),
+            );
         }
     }
-    (held, next)
-}
-
-fn status_of(held: &[(String, u64, u32)]) -> BTreeMap<String, ChannelStatus> {
-    let mut out: BTreeMap<String, ChannelStatus> = BTreeMap::new();
-    for (topic, time, _) in held {
-        out.entry(topic.clone())
-            .or_insert_with(|| ChannelStatus {
-                topic: topic.clone(),
-                ..ChannelStatus::default()
-            })
-            .count(*time);
-    }
-    out
-}
-
-impl ChannelStatus {
-    fn count(&mut self, time: u64) {
-        self.received += 1;
-        self.first_unix_ns = Some(self.first_unix_ns.map_or(time, |t| t.min(time)));
-        self.last_unix_ns = Some(self.last_unix_ns.map_or(time, |t| t.max(time)));
-    }
+    (copies, next)
 }
 
 type McapWriter = mcap::Writer<BufWriter<File>>;
@@ -289,8 +360,11 @@ struct Writer {
     descs: HashMap<String, ChannelDesc>,
     /// Messages of channels whose description has not arrived yet.
     pending: HashMap<String, Vec<(u64, u32, Vec<u8>)>>,
-    held: HashSet<(String, u64, u32)>,
-    status: Arc<Mutex<BTreeMap<String, ChannelStatus>>>,
+    /// Their topics, for the backfill to ask for their announcements.
+    unknown: Unknown,
+    copies: Arc<Mutex<Copies>>,
+    /// Messages written in this run.
+    written: u64,
 }
 
 impl Writer {
@@ -298,9 +372,18 @@ impl Writer {
     fn run(&mut self, items: &Receiver<Item>) -> Result<(), String> {
         loop {
             match items.recv_timeout(CHUNK_PERIOD) {
-                Ok(Item::Channel(desc)) => {
-                    let topic = desc.topic.clone();
-                    self.descs.insert(topic.clone(), desc);
+                Ok(Item::Barrier(done)) => {
+                    let _ = done.send(());
+                }
+                Ok(Item::Announce(a)) => {
+                    let topic = a.desc.topic.clone();
+                    self.descs.insert(topic.clone(), a.desc.clone());
+                    if let Ok(mut u) = self.unknown.lock() {
+                        u.remove(&topic);
+                    }
+                    if let Ok(mut copies) = self.copies.lock() {
+                        copies.entry(topic.clone()).or_default().announce = Some(a);
+                    }
                     for (time, seq, data) in self.pending.remove(&topic).unwrap_or_default() {
                         self.write(&topic, time, seq, &data)?;
                     }
@@ -314,6 +397,9 @@ impl Writer {
                     if self.descs.contains_key(&topic) {
                         self.write(&topic, log_time, sequence, &data)?;
                     } else {
+                        if let Ok(mut u) = self.unknown.lock() {
+                            u.insert(topic.clone());
+                        }
                         let p = self.pending.entry(topic).or_default();
                         if p.len() < PENDING {
                             p.push((log_time, sequence, data));
@@ -330,23 +416,15 @@ impl Writer {
 
     /// Writes one message, unless the session holds it already.
     fn write(&mut self, topic: &str, time: u64, seq: u32, data: &[u8]) -> Result<(), String> {
-        let fresh = self.held.insert((topic.to_string(), time, seq));
-        if let Ok(mut status) = self.status.lock() {
-            let s = status
-                .entry(topic.to_string())
-                .or_insert_with(|| ChannelStatus {
-                    topic: topic.to_string(),
-                    ..ChannelStatus::default()
-                });
-            if fresh {
-                s.count(time);
-            } else {
-                s.duplicates += 1;
-            }
-        }
+        let fresh = self.copies.lock().is_ok_and(|mut c| {
+            c.entry(topic.to_string())
+                .or_default()
+                .take(time, seq, data.len())
+        });
         if !fresh {
             return Ok(());
         }
+        self.written += 1;
         if self.file.is_none() {
             self.file = Some(self.open()?);
         }

@@ -16,8 +16,14 @@
 //! Foxglove read it like a rover session. A message it already holds (a restarted station
 //! getting the cache again) is not written twice.
 
+mod backfill;
+mod copy;
 mod ground;
+mod history;
+pub mod protocol;
 mod rover;
 
-pub use ground::{ChannelStatus, GroundRecord, GroundRecordError};
+pub use copy::{ChannelStatus, Gap, RecordStatus};
+pub use ground::{GroundRecord, GroundRecordError, GroundRecordOptions, StatusSource};
+pub use history::{HistoryServer, HistoryStartError};
 pub use rover::{CACHE_SECONDS, DownlinkTap};

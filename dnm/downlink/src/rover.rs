@@ -1,11 +1,14 @@
 //! The rover's side of the downlink: the recorder's [`Tap`] publishing each recorded channel
 //! through a Zenoh advanced publisher with a cache.
 
-use std::collections::HashMap;
-use std::sync::Mutex;
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use dnm_netlist::{Backfill, DownlinkEntry};
 use dnm_proto::keys;
+
+use crate::protocol::Announce;
 use dnm_record::tap::{ChannelDesc, Tap, Tapped};
 use zenoh::Wait;
 use zenoh::qos::{CongestionControl, Priority};
@@ -13,8 +16,8 @@ use zenoh_ext::{
     AdvancedPublisher, AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig, RepliesConfig,
 };
 
-/// How much of each channel its publisher keeps for the ground to recover: a gap in the link
-/// shorter than this is filled from the cache.
+/// How much of each channel its publisher keeps for the ground to recover by default: a gap
+/// in the link shorter than this is filled from the cache, a longer one from the recording.
 pub const CACHE_SECONDS: u64 = 120;
 /// Samples kept of a channel whose rate is not known (events, switches).
 const UNTIMED_CACHE: usize = 1000;
@@ -22,17 +25,24 @@ const UNTIMED_CACHE: usize = 1000;
 /// is noticed too.
 const HEARTBEAT: Duration = Duration::from_secs(1);
 
-/// One downlinked channel: its data publisher and the publisher of its description.
+/// One downlinked channel's publisher.
 struct Channel {
     data: AdvancedPublisher<'static>,
-    _desc: AdvancedPublisher<'static>,
 }
+
+/// The announcements of a DNM's downlinked channels, by key, as its queryable answers them.
+type Announcements = Arc<Mutex<BTreeMap<String, Vec<u8>>>>;
 
 /// A recorder's [`Tap`] that sends what it is handed to the ground (see the crate's docs).
 pub struct DownlinkTap {
     session: zenoh::Session,
     system: String,
+    dnm: String,
+    cache: Duration,
     channels: Mutex<HashMap<String, Option<Channel>>>,
+    announcements: Announcements,
+    /// Answers `<system>/downlink_channels/<dnm>/**` with the announcements.
+    _queryable: Option<zenoh::query::Queryable<()>>,
 }
 
 impl std::fmt::Debug for DownlinkTap {
@@ -44,20 +54,56 @@ impl std::fmt::Debug for DownlinkTap {
 }
 
 impl DownlinkTap {
-    /// A tap of `system` publishing on `session`.
-    pub fn new(session: zenoh::Session, system: &str) -> Self {
+    /// The tap of DNM `dnm` of `system`, publishing on `session` with a cache of `cache` per
+    /// channel.
+    pub fn new(session: zenoh::Session, system: &str, dnm: &str, cache: Duration) -> Self {
+        let announcements = Announcements::default();
+        // A station that joins (or whose subscription was not there yet when a channel was
+        // announced) asks for the announcements.
+        let key = format!("{}/**", keys::downlink_channel(system, &format!("/{dnm}")));
+        let queryable = {
+            let announcements = announcements.clone();
+            session
+                .declare_queryable(key.clone())
+                .callback(move |q| {
+                    let held: Vec<(String, Vec<u8>)> = announcements
+                        .lock()
+                        .map(|a| a.iter().map(|(k, v)| (k.clone(), v.clone())).collect())
+                        .unwrap_or_default();
+                    for (k, json) in held {
+                        let matches = zenoh::key_expr::KeyExpr::try_from(k.as_str())
+                            .is_ok_and(|ke| q.key_expr().intersects(&ke));
+                        if matches {
+                            let _ = q.reply(k, json).wait();
+                        }
+                    }
+                })
+                .wait()
+        };
+        let queryable = match queryable {
+            Ok(q) => Some(q),
+            Err(e) => {
+                tracing::error!("the downlink's channels cannot be asked for ({key}): {e}");
+                None
+            }
+        };
         Self {
             session,
             system: system.to_string(),
+            dnm: dnm.to_string(),
+            cache,
             channels: Mutex::new(HashMap::new()),
+            announcements,
+            _queryable: queryable,
         }
     }
 
-    /// Declares the publishers of `desc`'s channel, with a cache of [`CACHE_SECONDS`] at one
-    /// message every `period_ns`.
-    fn open(&self, desc: &ChannelDesc, period_ns: Option<u64>) -> Result<Channel, String> {
+    /// Declares the publishers of `desc`'s channel, with a cache of `self.cache` at its plan's
+    /// rate, and announces it.
+    fn open(&self, desc: &ChannelDesc, plan: Option<&DownlinkEntry>) -> Result<Channel, String> {
+        let period_ns = plan.map(DownlinkEntry::period_ns);
         let samples = period_ns.map_or(UNTIMED_CACHE, |p| {
-            (CACHE_SECONDS * 1_000_000_000).div_ceil(p.max(1)) as usize
+            (self.cache.as_nanos() as u64).div_ceil(p.max(1)) as usize
         });
         let replies = RepliesConfig::default().priority(Priority::Background);
         let data = self
@@ -75,29 +121,25 @@ impl DownlinkTap {
             .publisher_detection()
             .wait()
             .map_err(|e| format!("downlink publisher of {}: {e}", desc.topic))?;
-        let desc_pub = self
-            .session
-            .declare_publisher(keys::downlink_channel(&self.system, &desc.topic))
+        let announce = Announce {
+            dnm: self.dnm.clone(),
+            desc: desc.clone(),
+            period_ns,
+            priority: plan.map_or(1, |p| p.priority),
+            newest_first: plan.is_none_or(|p| p.backfill == Backfill::NewestFirst),
+        };
+        let json = serde_json::to_vec(&announce).map_err(|e| e.to_string())?;
+        let key = keys::downlink_channel(&self.system, &desc.topic);
+        if let Ok(mut a) = self.announcements.lock() {
+            a.insert(key.clone(), json.clone());
+        }
+        // Stations listening now hear it at once; the others ask.
+        self.session
+            .put(key, json)
             .priority(Priority::Background)
-            .cache(
-                CacheConfig::default()
-                    .max_samples(1)
-                    .replies_config(replies),
-            )
-            // Sequence numbers rather than timestamps (which the session may not make).
-            .sample_miss_detection(MissDetectionConfig::default())
-            .publisher_detection()
             .wait()
             .map_err(|e| format!("downlink channel of {}: {e}", desc.topic))?;
-        let json = serde_json::to_vec(desc).map_err(|e| e.to_string())?;
-        desc_pub
-            .put(json)
-            .wait()
-            .map_err(|e| format!("downlink channel of {}: {e}", desc.topic))?;
-        Ok(Channel {
-            data,
-            _desc: desc_pub,
-        })
+        Ok(Channel { data })
     }
 }
 
@@ -107,7 +149,7 @@ impl Tap for DownlinkTap {
             return;
         };
         let channel = channels.entry(m.channel.topic.clone()).or_insert_with(|| {
-            match self.open(m.channel, m.period_ns) {
+            match self.open(m.channel, m.plan) {
                 Ok(c) => Some(c),
                 // Said once: the channel is not downlinked while this DNM runs.
                 Err(e) => {

@@ -29,33 +29,42 @@ pub const MIN_DOWNLINK_HZ: f64 = 0.001;
 /// Priorities run from 1 (sent again first) to this.
 pub const LOWEST_PRIORITY: u8 = 9;
 
-/// The rule that picks the samples of an entry, on their send times: a sample is kept when it
-/// was sent at least one period (less a tenth, for the jitter of periodic senders) after the
-/// last kept. It looks only at differences of send times, so it picks the same samples on the
-/// rover's monotonic clock and on the wall-clock times of its recording.
+/// The rule that picks the samples of an entry, on their send times (the rover recording's
+/// log times): a sample is kept when it is the first of its period, counted from the Unix
+/// epoch. It looks only at the sample before it on the same channel, so the rover picks the
+/// same samples live as it picks later from any stretch of its recording (given the sample
+/// just before the stretch), and the ground's copy can be compared with the recording sample
+/// for sample.
 #[derive(Debug, Clone, Copy)]
 pub struct Decimator {
-    min_gap_ns: u64,
+    period_ns: u64,
     last: Option<u64>,
 }
 
 impl Decimator {
     pub fn new(period_ns: u64) -> Self {
         Self {
-            min_gap_ns: period_ns - period_ns / 10,
+            period_ns: period_ns.max(1),
             last: None,
         }
     }
 
-    /// Whether the sample sent at `stamp_ns` is kept (it then counts as the last kept).
+    /// Whether the sample sent at `stamp_ns` is kept. Samples are given in the order sent.
     pub fn keep(&mut self, stamp_ns: u64) -> bool {
         let keep = self
             .last
-            .is_none_or(|last| stamp_ns.saturating_sub(last) >= self.min_gap_ns);
-        if keep {
-            self.last = Some(stamp_ns);
-        }
+            .is_none_or(|last| stamp_ns / self.period_ns > last / self.period_ns);
+        self.last = Some(stamp_ns);
         keep
+    }
+
+    /// A decimator that has seen the sample sent at `stamp_ns` (the one before a stretch read
+    /// on its own).
+    pub fn after(period_ns: u64, stamp_ns: u64) -> Self {
+        Self {
+            period_ns: period_ns.max(1),
+            last: Some(stamp_ns),
+        }
     }
 }
 
@@ -203,26 +212,27 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_decimator_keeps_a_sample_a_period_whatever_the_clock() {
-        // 50 Hz with jitter, kept at 10 Hz: every fifth sample, on either clock.
-        let stamps: Vec<u64> = (0..100u64)
-            .map(|i| i * 20_000_000 + (i * 7919 % 13) * 100_000)
+    fn a_decimator_keeps_the_first_sample_of_each_period_and_agrees_on_any_stretch() {
+        // 50 Hz with jitter, kept at 10 Hz: about every fifth sample.
+        let base = 1_700_000_000_000_000_000u64;
+        let stamps: Vec<u64> = (0..500u64)
+            .map(|i| base + i * 20_000_000 + (i * 7919 % 13) * 100_000)
             .collect();
-        let pick = |offset: u64| {
-            let mut d = Decimator::new(100_000_000);
-            stamps
-                .iter()
-                .enumerate()
-                .filter(|(_, s)| d.keep(*s + offset))
-                .map(|(i, _)| i)
-                .collect::<Vec<_>>()
-        };
-        let on_board = pick(0);
-        assert_eq!(on_board, pick(1_700_000_000_000_000_000));
-        assert_eq!(on_board.len(), 20);
+        let mut d = Decimator::new(100_000_000);
+        let kept: Vec<usize> = (0..stamps.len()).filter(|&i| d.keep(stamps[i])).collect();
+        assert!((99..=101).contains(&kept.len()), "{}", kept.len());
         assert!(
-            on_board.windows(2).all(|w| w[1] - w[0] == 5),
-            "{on_board:?}"
+            kept.windows(2).all(|w| (4..=6).contains(&(w[1] - w[0]))),
+            "{kept:?}"
         );
+        // A stretch read later, from the sample before it on, keeps the same samples.
+        for from in [1usize, 37, 250] {
+            let mut d = Decimator::after(100_000_000, stamps[from - 1]);
+            let again: Vec<usize> = (from..stamps.len())
+                .filter(|&i| d.keep(stamps[i]))
+                .collect();
+            let live: Vec<usize> = kept.iter().copied().filter(|&i| i >= from).collect();
+            assert_eq!(again, live, "from {from}");
+        }
     }
 }

@@ -171,6 +171,12 @@ pub fn downlink_channels(system: &str) -> String {
     format!("{system}/downlink_channels/**")
 }
 
+/// Where DNM `dnm`'s recording answers for what the ground missed:
+/// `<system>/downlink_history/<dnm>`.
+pub fn downlink_history(system: &str, dnm: &str) -> String {
+    format!("{system}/downlink_history/{dnm}")
+}
+
 /// The recorded channel's topic of a key made by [`downlink`] or [`downlink_channel`].
 pub fn downlink_topic(system: &str, key: &str) -> Option<String> {
     let rest = key.strip_prefix(system)?;

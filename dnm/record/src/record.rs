@@ -152,8 +152,8 @@ struct RecPort {
     module: String,
     port: String,
     message: MessageType,
-    /// The least time between two samples the downlink plan keeps of it, if it names it.
-    downlink_period_ns: Option<u64>,
+    /// Its entry in the downlink plan, if the plan names it.
+    downlink: Option<DownlinkEntry>,
 }
 
 enum Item {
@@ -306,11 +306,11 @@ impl Recorder {
                         module: m.name.clone(),
                         port: p.name.clone(),
                         message: p.message.clone(),
-                        downlink_period_ns: netlist
+                        downlink: netlist
                             .downlink
                             .iter()
                             .find(|d| d.output.module == m.name && d.output.port == p.name)
-                            .map(DownlinkEntry::period_ns),
+                            .cloned(),
                     })
                     .collect::<Vec<_>>()
             })
@@ -1188,7 +1188,7 @@ impl Writer<'_> {
                     log_time: now,
                     sequence: 0,
                     data: json.as_bytes(),
-                    period_ns: None,
+                    plan: None,
                 });
             }
         }
@@ -1235,11 +1235,11 @@ impl Writer<'_> {
             }
         };
         // The downlink plan's samples go on to the tap as they are written.
-        let tap = match (&self.options.tap, p.downlink_period_ns) {
-            (Some(tap), Some(period)) => self
+        let tap = match (&self.options.tap, &p.downlink) {
+            (Some(tap), Some(entry)) => self
                 .decimators
                 .entry((p.module.clone(), p.port.clone()))
-                .or_insert_with(|| Decimator::new(period))
+                .or_insert_with(|| Decimator::new(entry.period_ns()))
                 .keep(time)
                 .then_some(tap),
             _ => None,
@@ -1260,7 +1260,7 @@ impl Writer<'_> {
                     log_time: time,
                     sequence: head.sequence,
                     data: &data,
-                    period_ns: p.downlink_period_ns,
+                    plan: p.downlink.as_ref(),
                 });
             }
         }
@@ -1275,7 +1275,7 @@ impl Writer<'_> {
                 log_time: time,
                 sequence: head.sequence,
                 data,
-                period_ns: p.downlink_period_ns,
+                plan: p.downlink.as_ref(),
             });
         }
         self.counters.messages.fetch_add(1, Ordering::Relaxed);
@@ -1362,7 +1362,7 @@ mod tests {
         })
         .unwrap();
         tx.send(Item::Ports(vec![RecPort {
-            downlink_period_ns: None,
+            downlink: None,
             module: "m".into(),
             port: "out".into(),
             message,

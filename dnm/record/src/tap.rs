@@ -6,6 +6,7 @@
 
 use std::collections::BTreeMap;
 
+use dnm_netlist::DownlinkEntry;
 use serde::{Deserialize, Serialize};
 
 /// An MCAP channel as a recorder writes it: what a copy of its messages needs to write them to
@@ -30,8 +31,9 @@ pub struct Tapped<'a> {
     pub log_time: u64,
     pub sequence: u32,
     pub data: &'a [u8],
-    /// The least time between two messages of the channel (its downlink rate), if it has one.
-    pub period_ns: Option<u64>,
+    /// The downlink plan's entry of the channel's port (none for switches and events, which
+    /// all go).
+    pub plan: Option<&'a DownlinkEntry>,
 }
 
 /// Where a recorder hands the messages of the downlink plan. Called on the recorder's writer

@@ -1,0 +1,290 @@
+//! Filling the ground's gaps from the rover's recording, within the link's budget: one request
+//! at a time to the recording of the DNM that holds the channel (see [`crate::history`]),
+//! entries by priority, each newest or oldest first as its plan says, at the `background`
+//! priority. A token bucket holds the downlink to its budget: what arrives live spends it too,
+//! and a request asks for no more than what is left of it.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use dnm_proto::keys;
+use zenoh::Wait;
+use zenoh::qos::Priority;
+
+use crate::copy::{Copies, Gap};
+use crate::ground::{Item, Unknown};
+use crate::protocol::Announce;
+use crate::protocol::{HistoryAnswer, HistoryRequest, MAX_ANSWER_BYTES};
+
+/// How often the backfill looks for work when it has none.
+const TICK: Duration = Duration::from_millis(500);
+/// What arrived in the last this long is not asked for: the live downlink and the publishers'
+/// caches fill it first.
+pub(crate) const SETTLE: Duration = Duration::from_secs(10);
+/// The least a request asks for under a budget (a message of the plan may be larger: one is
+/// always sent).
+const MIN_REQUEST_BYTES: u64 = 1024;
+/// The most a bucket holds: this long at the budget.
+const BURST: Duration = Duration::from_secs(2);
+/// How often the channels heard of but not announced are asked for.
+const ASK_AGAIN: Duration = Duration::from_secs(3);
+/// How long a request waits for its answer.
+const ANSWER_TIMEOUT: Duration = Duration::from_secs(20);
+
+/// What the backfill shares with the record.
+pub(crate) struct Shared {
+    pub copies: Arc<Mutex<Copies>>,
+    /// Bytes received, live and backfill (the station's measure of the downlink).
+    pub received: Arc<AtomicU64>,
+    /// The measured rate, bytes a second (f64 bits).
+    pub measured: Arc<AtomicU64>,
+    pub budget_bytes_per_s: Option<u64>,
+    /// Topics heard of whose announcement has not arrived.
+    pub unknown: Unknown,
+}
+
+/// The rate of the downlink measured over a sliding window.
+struct Meter {
+    window: std::collections::VecDeque<(Instant, u64)>,
+}
+
+impl Meter {
+    const WINDOW: Duration = Duration::from_secs(5);
+
+    fn update(&mut self, total: u64) -> f64 {
+        let now = Instant::now();
+        self.window.push_back((now, total));
+        while self
+            .window
+            .front()
+            .is_some_and(|(t, _)| now.duration_since(*t) > Self::WINDOW)
+        {
+            self.window.pop_front();
+        }
+        match (self.window.front(), self.window.back()) {
+            (Some((t0, b0)), Some((t1, b1))) if t1 > t0 => {
+                (b1 - b0) as f64 / t1.duration_since(*t0).as_secs_f64()
+            }
+            _ => 0.0,
+        }
+    }
+}
+
+/// Runs until `stop` is dropped: fills gaps through `session`, handing what arrives to the
+/// writer's queue `items`.
+pub(crate) fn run(
+    session: &zenoh::Session,
+    system: &str,
+    shared: &Shared,
+    items: &SyncSender<Item>,
+    stop: &Receiver<()>,
+) {
+    let mut tokens = shared.budget_bytes_per_s.map(|b| b as f64);
+    let mut last = (Instant::now(), shared.received.load(Ordering::Relaxed));
+    let mut meter = Meter {
+        window: Default::default(),
+    };
+    // The channels announced before this station listened.
+    announcements(session, system, items);
+    let mut asked = Instant::now();
+    loop {
+        if asked.elapsed() >= ASK_AGAIN && shared.unknown.lock().is_ok_and(|u| !u.is_empty()) {
+            announcements(session, system, items);
+            asked = Instant::now();
+        }
+        // Refill the bucket at the budget, less what arrived since (live included).
+        let received = shared.received.load(Ordering::Relaxed);
+        let rate = meter.update(received);
+        shared.measured.store(rate.to_bits(), Ordering::Relaxed);
+        if let (Some(t), Some(budget)) = (tokens.as_mut(), shared.budget_bytes_per_s) {
+            let dt = last.0.elapsed().as_secs_f64();
+            let spent = received.saturating_sub(last.1) as f64;
+            *t = (*t + budget as f64 * dt - spent).min(budget as f64 * BURST.as_secs_f64());
+        }
+        last = (Instant::now(), received);
+        let allowance = tokens.map_or(MAX_ANSWER_BYTES, |t| t.max(0.0) as u64);
+        let work = (allowance >= MIN_REQUEST_BYTES.min(MAX_ANSWER_BYTES))
+            .then(|| next_request(shared, allowance))
+            .flatten();
+        let Some((dnm, request)) = work else {
+            match stop.recv_timeout(TICK) {
+                Err(RecvTimeoutError::Timeout) => continue,
+                _ => return,
+            }
+        };
+        match ask(session, system, &dnm, &request, items, &shared.received) {
+            Some(answer) => {
+                // What the answer brought is in the copy before the gaps are looked at again.
+                if !written(items) {
+                    return;
+                }
+                tracing::debug!(
+                    topic = %request.topic,
+                    from = request.from_ns,
+                    to = request.to_ns,
+                    max_bytes = request.max_bytes,
+                    messages = answer.messages,
+                    rest = ?answer.rest,
+                    "backfilled"
+                );
+                settle(shared, &request, &answer);
+            }
+            // No answer (the link is down): wait before asking again.
+            None => {
+                tracing::debug!(topic = %request.topic, dnm, "no answer from the recording");
+                if !matches!(stop.recv_timeout(TICK), Err(RecvTimeoutError::Timeout)) {
+                    return;
+                }
+            }
+        }
+        if !matches!(stop.try_recv(), Err(std::sync::mpsc::TryRecvError::Empty)) {
+            return;
+        }
+    }
+}
+
+/// The request that fills the most urgent gap: the entry of the highest priority (lowest
+/// number) with gaps, its newest or oldest gap as its plan says; with the DNM to ask.
+fn next_request(shared: &Shared, max_bytes: u64) -> Option<(String, HistoryRequest)> {
+    let settled = dnm_proto::clock::now_unix_ns().saturating_sub(SETTLE.as_nanos() as u64);
+    let copies = shared.copies.lock().ok()?;
+    let mut best: Option<(u8, String, Gap, String, bool, u64)> = None;
+    for (topic, c) in copies.iter() {
+        let Some(a) = &c.announce else { continue };
+        let Some(period) = a.period_ns else { continue };
+        let gaps = c.gaps(settled);
+        let gap = if a.newest_first {
+            gaps.last()
+        } else {
+            gaps.first()
+        };
+        let Some(gap) = gap else { continue };
+        if best.as_ref().is_none_or(|b| a.priority < b.0) {
+            best = Some((
+                a.priority,
+                topic.clone(),
+                *gap,
+                a.dnm.clone(),
+                a.newest_first,
+                period,
+            ));
+        }
+    }
+    let (_, topic, gap, dnm, newest_first, period) = best?;
+    Some((
+        dnm,
+        HistoryRequest {
+            topic,
+            from_ns: gap.from_ns,
+            to_ns: gap.to_ns,
+            period_ns: Some(period),
+            max_bytes,
+            newest_first,
+        },
+    ))
+}
+
+/// Sends `request` to DNM `dnm`'s recording and hands the messages of its answer to the
+/// writer; the answer, or none if none came.
+fn ask(
+    session: &zenoh::Session,
+    system: &str,
+    dnm: &str,
+    request: &HistoryRequest,
+    items: &SyncSender<Item>,
+    received: &AtomicU64,
+) -> Option<HistoryAnswer> {
+    let json = serde_json::to_vec(request).ok()?;
+    let replies = session
+        .get(keys::downlink_history(system, dnm))
+        .payload(json)
+        // Every reply comes on the same key: none may be merged away.
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .priority(Priority::Background)
+        .timeout(ANSWER_TIMEOUT)
+        .wait()
+        .ok()?;
+    let mut answer = None;
+    while let Ok(reply) = replies.recv() {
+        let Ok(sample) = reply.result() else {
+            continue;
+        };
+        let payload = sample.payload().to_bytes();
+        // Counted against the budget like what arrives live.
+        received.fetch_add(payload.len() as u64, Ordering::Relaxed);
+        match sample
+            .attachment()
+            .and_then(|a| keys::decode_downlink(&a.to_bytes()))
+        {
+            Some((log_time, sequence)) => {
+                let item = Item::Message {
+                    topic: request.topic.clone(),
+                    log_time,
+                    sequence,
+                    data: payload.into_owned(),
+                };
+                if items.send(item).is_err() {
+                    return None;
+                }
+            }
+            None => answer = serde_json::from_slice::<HistoryAnswer>(&payload).ok(),
+        }
+    }
+    answer
+}
+
+/// Asks the rover's DNMs for the announcements of their downlinked channels.
+fn announcements(session: &zenoh::Session, system: &str, items: &SyncSender<Item>) {
+    let Ok(replies) = session
+        .get(keys::downlink_channels(system))
+        .priority(Priority::Background)
+        .timeout(ANSWER_TIMEOUT)
+        .wait()
+    else {
+        return;
+    };
+    let mut heard = 0;
+    while let Ok(reply) = replies.recv() {
+        if let Ok(sample) = reply.result()
+            && let Ok(a) = serde_json::from_slice::<Announce>(&sample.payload().to_bytes())
+        {
+            heard += 1;
+            if items.send(Item::Announce(a)).is_err() {
+                return;
+            }
+        }
+    }
+    tracing::debug!(heard, "asked for the downlink's channels");
+}
+
+/// Waits until the writer wrote everything queued before; false if it is gone.
+fn written(items: &SyncSender<Item>) -> bool {
+    let (tx, rx) = std::sync::mpsc::sync_channel(1);
+    items.send(Item::Barrier(tx)).is_ok() && rx.recv().is_ok()
+}
+
+/// Takes in what the recording said of the stretch asked for: a stretch it answered in full
+/// that is still a gap of the copy (nothing in it was new) holds nothing more to have, and is
+/// marked unrecorded (a gap that stays, never asked for again).
+fn settle(shared: &Shared, request: &HistoryRequest, answer: &HistoryAnswer) {
+    let Ok(mut copies) = shared.copies.lock() else {
+        return;
+    };
+    let Some(c) = copies.get_mut(&request.topic) else {
+        return;
+    };
+    c.recorded = answer.recorded;
+    let settled = dnm_proto::clock::now_unix_ns().saturating_sub(SETTLE.as_nanos() as u64);
+    let unfilled = c
+        .gaps(settled.max(request.to_ns))
+        .iter()
+        .any(|g| g.from_ns == request.from_ns && g.to_ns >= request.to_ns);
+    if unfilled && answer.rest.is_none() {
+        c.unrecorded.push(Gap {
+            from_ns: request.from_ns,
+            to_ns: request.to_ns,
+        });
+    }
+}

@@ -1,0 +1,254 @@
+//! The ground's copy of the rover's channels: which messages it holds, where it has gaps, and
+//! how complete it is.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use serde::{Deserialize, Serialize};
+
+use crate::protocol::Announce;
+
+/// A stretch of a channel the ground does not hold: `[from_ns, to_ns]`, rover send times.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Gap {
+    pub from_ns: u64,
+    pub to_ns: u64,
+}
+
+/// What the ground holds of one channel.
+#[derive(Debug, Default)]
+pub(crate) struct ChannelCopy {
+    pub announce: Option<Announce>,
+    /// (log time, sequence) of every message held.
+    pub held: BTreeSet<(u64, u32)>,
+    /// Bytes of the messages held.
+    pub bytes: u64,
+    pub duplicates: u64,
+    /// Stretches the rover answered it recorded nothing of its plan in.
+    pub unrecorded: Vec<Gap>,
+    /// The first and last log times of the channel in the rover's recording, as last heard.
+    pub recorded: Option<(u64, u64)>,
+}
+
+impl ChannelCopy {
+    /// Takes message (time, seq) of `len` bytes; false if it was held already.
+    pub fn take(&mut self, time: u64, seq: u32, len: usize) -> bool {
+        let fresh = self.held.insert((time, seq));
+        if fresh {
+            self.bytes += len as u64;
+        } else {
+            self.duplicates += 1;
+        }
+        fresh
+    }
+
+    fn period_ns(&self) -> Option<u64> {
+        self.announce.as_ref().and_then(|a| a.period_ns)
+    }
+
+    /// Where the copy has gaps up to `settled_ns` (what is newer may still arrive live or be
+    /// recovered from the publishers' caches), oldest first, leaving out what the rover holds
+    /// nothing of. Only a plan entry with a rate has gaps that show: the plan keeps the first
+    /// message of each of its periods, so a period with none between two held is a gap (for
+    /// an output slower than its plan, an empty period is asked for once, and the rover's
+    /// answer that it holds nothing there settles it).
+    pub fn gaps(&self, settled_ns: u64) -> Vec<Gap> {
+        let Some(period) = self.period_ns().filter(|p| *p > 0) else {
+            return Vec::new();
+        };
+        let apart = |a: u64, b: u64| b / period > a / period + 1;
+        // Nothing is missing after the last message the rover recorded (as last heard): an
+        // output that stopped leaves no gap; one that goes on shows when the copy hears of
+        // newer messages.
+        let settled_ns = self.recorded.map_or(settled_ns, |r| settled_ns.min(r.1));
+        let mut out = Vec::new();
+        // Before the first message held: from where the rover's recording starts (or, until
+        // the rover has said, from the start of time).
+        let start = self.recorded.map_or(0, |r| r.0);
+        let mut prev: Option<u64> = None;
+        for &(t, _) in &self.held {
+            match prev {
+                None if t > start => out.push(Gap {
+                    from_ns: start,
+                    to_ns: t - 1,
+                }),
+                Some(p) if apart(p, t) => out.push(Gap {
+                    from_ns: p + 1,
+                    to_ns: t - 1,
+                }),
+                _ => {}
+            }
+            prev = Some(t);
+        }
+        match prev {
+            None if settled_ns > start => out.push(Gap {
+                from_ns: start,
+                to_ns: settled_ns,
+            }),
+            Some(p) if apart(p, settled_ns) => out.push(Gap {
+                from_ns: p + 1,
+                to_ns: settled_ns,
+            }),
+            _ => {}
+        }
+        out.retain(|g| g.from_ns <= settled_ns);
+        for g in &mut out {
+            g.to_ns = g.to_ns.min(settled_ns);
+        }
+        out.retain(|g| {
+            !self
+                .unrecorded
+                .iter()
+                .any(|u| u.from_ns <= g.from_ns && g.to_ns <= u.to_ns)
+        });
+        out
+    }
+}
+
+/// How complete the ground's copy of one channel is.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ChannelStatus {
+    pub topic: String,
+    /// The DNM that records it, and its plan's rate (none: every message, as switches and
+    /// events).
+    pub dnm: Option<String>,
+    pub rate_hz: Option<f64>,
+    /// Messages held (received in this run or found in the session's files).
+    pub received: u64,
+    /// Messages the plan asks for over the stretch held: those held and those in its gaps.
+    pub expected: u64,
+    /// Rover send times of the oldest and newest held, Unix ns.
+    pub first_unix_ns: Option<u64>,
+    pub last_unix_ns: Option<u64>,
+    /// The oldest stretch still missing, and how many there are.
+    pub oldest_gap: Option<Gap>,
+    pub gaps: usize,
+    /// Bytes still to come for the gaps (at the size of the messages held).
+    pub backlog_bytes: u64,
+    /// Stretches the rover recorded nothing of (shown as gaps, never filled).
+    pub unrecorded: Vec<Gap>,
+    /// Messages received again that the copy already held.
+    pub duplicates: u64,
+}
+
+/// The status of the whole copy.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RecordStatus {
+    /// The session folder.
+    pub dir: String,
+    pub channels: Vec<ChannelStatus>,
+    /// The downlink's budget (bytes a second; none: unlimited) and what the station measured
+    /// over the last seconds, live and backfill together.
+    pub budget_bytes_per_s: Option<u64>,
+    pub measured_bytes_per_s: f64,
+    pub backlog_bytes: u64,
+    /// How long the backlog takes to clear at the budget.
+    pub seconds_to_clear: Option<f64>,
+    /// Messages the rover's publishers could no longer give (gone from their caches before
+    /// the ground asked; the recording still has them).
+    pub missed_live: u64,
+}
+
+/// Every channel's copy, by topic.
+pub(crate) type Copies = BTreeMap<String, ChannelCopy>;
+
+/// Each channel's status as of `settled_ns`.
+pub(crate) fn channel_statuses(copies: &Copies, settled_ns: u64) -> Vec<ChannelStatus> {
+    copies
+        .iter()
+        .map(|(topic, c)| {
+            let gaps = c.gaps(settled_ns);
+            let period = c.period_ns();
+            let missing: u64 = period.map_or(0, |p| {
+                gaps.iter()
+                    .map(|g| (g.to_ns - g.from_ns) / p.max(1))
+                    .sum::<u64>()
+            });
+            let received = c.held.len() as u64;
+            let average = c.bytes.checked_div(received).unwrap_or(0);
+            ChannelStatus {
+                topic: topic.clone(),
+                dnm: c.announce.as_ref().map(|a| a.dnm.clone()),
+                rate_hz: period.map(|p| 1e9 / p as f64),
+                received,
+                expected: received + missing,
+                first_unix_ns: c.held.first().map(|h| h.0),
+                last_unix_ns: c.held.last().map(|h| h.0),
+                oldest_gap: gaps.first().copied(),
+                gaps: gaps.len(),
+                backlog_bytes: missing * average,
+                unrecorded: c.unrecorded.clone(),
+                duplicates: c.duplicates,
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn copy(period_ms: u64, held_ms: &[u64]) -> ChannelCopy {
+        let mut c = ChannelCopy {
+            announce: Some(Announce {
+                dnm: "rover".into(),
+                desc: dnm_record::tap::ChannelDesc {
+                    topic: "/rover/a/out".into(),
+                    schema_name: String::new(),
+                    schema_encoding: String::new(),
+                    schema: String::new(),
+                    message_encoding: String::new(),
+                    metadata: BTreeMap::new(),
+                },
+                period_ns: Some(period_ms * 1_000_000),
+                priority: 1,
+                newest_first: true,
+            }),
+            recorded: Some((1_000_000, 2_000_000_000)),
+            ..ChannelCopy::default()
+        };
+        for (i, t) in held_ms.iter().enumerate() {
+            c.take(t * 1_000_000, i as u32, 10);
+        }
+        c
+    }
+
+    #[test]
+    fn gaps_are_the_stretches_between_messages_further_apart_than_the_plan_allows() {
+        let ms = 1_000_000;
+        // 10 Hz: a period of 100 ms with no message held is a gap.
+        let c = copy(100, &[1, 101, 220, 300, 900, 1000]);
+        let gaps = c.gaps(1_300 * ms);
+        assert_eq!(
+            gaps,
+            vec![
+                Gap {
+                    from_ns: 300 * ms + 1,
+                    to_ns: 900 * ms - 1
+                },
+                Gap {
+                    from_ns: 1000 * ms + 1,
+                    to_ns: 1_300 * ms
+                }
+            ]
+        );
+        // Not settled yet: the tail is not a gap.
+        assert_eq!(c.gaps(1_150 * ms).len(), 1);
+        // What the rover recorded nothing of is no gap to fill.
+        let mut c = c;
+        c.unrecorded.push(Gap {
+            from_ns: 300 * ms,
+            to_ns: 900 * ms,
+        });
+        assert_eq!(c.gaps(1_150 * ms), vec![]);
+        let s = &channel_statuses(&BTreeMap::from([("/rover/a/out".into(), c)]), 1_300 * ms)[0];
+        assert_eq!((s.received, s.gaps, s.expected), (6, 1, 8));
+        assert_eq!(s.backlog_bytes, 20);
+    }
+
+    #[test]
+    fn a_message_held_twice_is_counted_once() {
+        let mut c = copy(100, &[1]);
+        assert!(!c.take(1_000_000, 0, 10));
+        assert_eq!((c.held.len(), c.duplicates, c.bytes), (1, 1, 10));
+    }
+}

@@ -1,0 +1,288 @@
+//! The rover's recording as the ground's second source: a DNM answers requests for stretches
+//! of what it recorded (`<system>/downlink_history/<dnm>`), decimated as the live downlink
+//! decimates, so what the ground missed for longer than the publishers' caches hold still
+//! reaches it. Requests are served one at a time on a thread of their own, from the files of
+//! the DNM's recording session, read as a stream (never a whole file in memory); the replies
+//! go at the priority of the request (the ground asks at `background`).
+
+use std::collections::VecDeque;
+use std::fs::File;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::thread::JoinHandle;
+
+use dnm_netlist::Decimator;
+use dnm_proto::keys;
+use zenoh::Wait;
+use zenoh::query::Query;
+
+use crate::protocol::{HistoryAnswer, HistoryRequest, MAX_ANSWER_BYTES};
+
+/// Requests waiting to be served, at most; beyond it they are refused (the ground asks again).
+const WAITING: usize = 8;
+/// Longest record a recording file may hold, as the recorder writes them.
+const MAX_RECORD: usize = 256 << 20;
+
+/// Why a history server did not start.
+#[derive(Debug, thiserror::Error)]
+pub enum HistoryStartError {
+    #[error("declaring the recording's queryable {key}: {reason}")]
+    Queryable { key: String, reason: String },
+    #[error("no thread for the recording's answers: {0}")]
+    Thread(#[source] std::io::Error),
+}
+
+/// A DNM's recording, answering the ground. Dropped, it stops answering.
+pub struct HistoryServer {
+    queryable: Option<zenoh::query::Queryable<()>>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for HistoryServer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("HistoryServer").finish_non_exhaustive()
+    }
+}
+
+impl HistoryServer {
+    /// Answers for DNM `dnm` of `system` from its recording files `rec-<dnm>[.n].mcap` in
+    /// `dir`.
+    pub fn start(
+        session: &zenoh::Session,
+        system: &str,
+        dnm: &str,
+        dir: &Path,
+    ) -> Result<Self, HistoryStartError> {
+        let key = keys::downlink_history(system, dnm);
+        let (tx, rx) = mpsc::sync_channel::<Query>(WAITING);
+        let queryable = session
+            .declare_queryable(key.clone())
+            .callback(move |q| {
+                if tx.try_send(q).is_err() {
+                    tracing::debug!("history request refused: busy");
+                }
+            })
+            .wait()
+            .map_err(|e| HistoryStartError::Queryable {
+                key: key.clone(),
+                reason: e.to_string(),
+            })?;
+        let files = Files {
+            dir: dir.to_path_buf(),
+            dnm: dnm.to_string(),
+        };
+        let thread = std::thread::Builder::new()
+            .name(format!("history-{dnm}"))
+            .spawn(move || {
+                while let Ok(q) = rx.recv() {
+                    serve(&files, &q);
+                }
+            })
+            .map_err(HistoryStartError::Thread)?;
+        Ok(Self {
+            queryable: Some(queryable),
+            thread: Some(thread),
+        })
+    }
+}
+
+impl Drop for HistoryServer {
+    fn drop(&mut self) {
+        // The queryable's callback holds the thread's queue.
+        if let Some(q) = self.queryable.take() {
+            let _ = q.undeclare().wait();
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// A DNM's recording files.
+struct Files {
+    dir: PathBuf,
+    dnm: String,
+}
+
+impl Files {
+    /// The DNM's files of the session, in the order written.
+    fn list(&self) -> Vec<PathBuf> {
+        let first = format!("rec-{}.mcap", self.dnm);
+        let later = format!("rec-{}.", self.dnm);
+        dnm_record::session::files(&self.dir)
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|p| {
+                p.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
+                    n == first
+                        || n.strip_prefix(&later)
+                            .and_then(|r| r.strip_suffix(".mcap"))
+                            .is_some_and(|n| n.parse::<u64>().is_ok())
+                })
+            })
+            .collect()
+    }
+}
+
+/// Answers one request: the messages, then the [`HistoryAnswer`]. A request that cannot be
+/// read is answered with an error.
+fn serve(files: &Files, q: &Query) {
+    let request = q
+        .payload()
+        .map(|p| p.to_bytes())
+        .and_then(|b| serde_json::from_slice::<HistoryRequest>(&b).ok());
+    let Some(request) = request else {
+        let _ = q
+            .reply_err("not a history request: send the JSON of a HistoryRequest")
+            .wait();
+        return;
+    };
+    let (kept, answer) = read(files, &request);
+    let key = q.key_expr().clone();
+    for (time, seq, data) in kept {
+        let sent = q
+            .reply(key.clone(), data)
+            .attachment(keys::encode_downlink(time, seq).to_vec())
+            .wait();
+        if sent.is_err() {
+            return;
+        }
+    }
+    if let Ok(json) = serde_json::to_vec(&answer) {
+        let _ = q.reply(key, json).wait();
+    }
+}
+
+/// The messages `request` asks for (log time, sequence, bytes), oldest first, and the answer
+/// that ends them.
+fn read(files: &Files, request: &HistoryRequest) -> (Vec<(u64, u32, Vec<u8>)>, HistoryAnswer) {
+    let budget = request.max_bytes.clamp(1, MAX_ANSWER_BYTES);
+    let mut decimator = request.period_ns.map(Decimator::new);
+    let mut kept: VecDeque<(u64, u32, Vec<u8>)> = VecDeque::new();
+    let (mut bytes, mut cut) = (0u64, false);
+    let mut recorded: Option<(u64, u64)> = None;
+    let widen = |recorded: &mut Option<(u64, u64)>, a: u64, b: u64| {
+        *recorded = Some(recorded.map_or((a, b), |(x, y)| (x.min(a), y.max(b))));
+    };
+    // Closed files are known by their summaries: one that holds nothing of the topic in the
+    // stretch is not read (the first message after it may then be sent though the live
+    // downlink, knowing the one before it, did not keep it).
+    let entries = dnm_record::session::index(&files.dir)
+        .map(|m| m.files)
+        .unwrap_or_default();
+    for path in files.list() {
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
+        let closed = entries
+            .iter()
+            .find(|e| e.name == name && e.complete && e.error.is_none());
+        if let Some(e) = closed {
+            let (start, end) = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
+            let holds = e.channels.get(&request.topic).is_some_and(|n| *n > 0);
+            if holds {
+                widen(&mut recorded, start, end);
+            }
+            if !holds || end < request.from_ns || start > request.to_ns {
+                decimator = request.period_ns.map(Decimator::new);
+                continue;
+            }
+        }
+        let Ok(file) = File::open(&path) else {
+            continue;
+        };
+        for m in Stream::new(file) {
+            if m.topic != request.topic {
+                continue;
+            }
+            widen(&mut recorded, m.time, m.time);
+            let keep = decimator.as_mut().is_none_or(|d| d.keep(m.time));
+            if !keep || m.time < request.from_ns || m.time > request.to_ns {
+                continue;
+            }
+            if !request.newest_first && bytes >= budget {
+                cut = true;
+                continue;
+            }
+            bytes += m.data.len() as u64;
+            kept.push_back((m.time, m.seq, m.data));
+            // Newest first: the oldest give way to newer ones beyond the budget.
+            while request.newest_first && bytes > budget && kept.len() > 1 {
+                if let Some((_, _, d)) = kept.pop_front() {
+                    bytes -= d.len() as u64;
+                    cut = true;
+                }
+            }
+        }
+    }
+    let rest = match (cut, kept.front(), kept.back()) {
+        (false, _, _) | (true, None, _) | (true, _, None) => None,
+        (true, Some(first), Some(last)) => Some(if request.newest_first {
+            (request.from_ns, first.0.saturating_sub(1))
+        } else {
+            (last.0 + 1, request.to_ns)
+        }),
+    };
+    let answer = HistoryAnswer {
+        messages: kept.len() as u64,
+        bytes,
+        rest,
+        recorded,
+    };
+    (kept.into(), answer)
+}
+
+/// One message of a recording file.
+struct Msg {
+    topic: String,
+    time: u64,
+    seq: u32,
+    data: Vec<u8>,
+}
+
+/// A recording file's messages in file order, read as a stream; a file cut short (still being
+/// written, or its DNM killed) ends with its last whole chunk.
+struct Stream {
+    file: File,
+    reader: mcap::sans_io::MessageReader,
+}
+
+impl Stream {
+    fn new(file: File) -> Self {
+        Self {
+            file,
+            reader: mcap::sans_io::MessageReader::new_with_options(
+                mcap::sans_io::LinearReaderOptions::default()
+                    .with_record_length_limit(MAX_RECORD)
+                    .with_skip_end_magic(true),
+            ),
+        }
+    }
+}
+
+impl Iterator for Stream {
+    type Item = Msg;
+
+    fn next(&mut self) -> Option<Msg> {
+        use mcap::sans_io::MessageReadEvent;
+        loop {
+            match self.reader.next_event()? {
+                Err(_) => return None,
+                Ok(MessageReadEvent::ReadRequest(n)) => {
+                    let buf = self.reader.insert(n);
+                    match self.file.read(buf) {
+                        Ok(k) => self.reader.notify_read(k),
+                        Err(_) => return None,
+                    }
+                }
+                Ok(MessageReadEvent::Message(m)) => {
+                    return Some(Msg {
+                        topic: m.channel.topic.clone(),
+                        time: m.log_time,
+                        seq: m.sequence,
+                        data: m.data.into_owned(),
+                    });
+                }
+            }
+        }
+    }
+}
