@@ -542,6 +542,20 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
                 keys::watch_all(sys, keys::WatchRate::Hz1),
             ],
         }),
+        // A station keeps its own record of the rover: it subscribes to the downlink (with
+        // history and recovery from the publishers' caches) and asks the recordings.
+        json!({
+            "id": "record",
+            "flows": ["ingress"],
+            "permission": "allow",
+            "messages": ["query", "liveliness_query", "declare_subscriber",
+                         "declare_liveliness_subscriber", "liveliness_token"],
+            "key_exprs": [
+                format!("{sys}/downlink/**"),
+                keys::downlink_channels(sys),
+                keys::downlink_history(sys, "*"),
+            ],
+        }),
         // The system's computers are asked (their DNMs' queryables) and their liveliness is
         // watched; what each may answer for is its own (below).
         json!({
@@ -579,9 +593,9 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
     let declared: BTreeSet<&str> = netlist.dnms.iter().map(|d| d.name.as_str()).collect();
     for i in &inv.identities {
         let mut granted: Vec<String> = match i.role {
-            Role::Observer => vec!["to-everyone", "read", "observe"],
-            Role::Operator if direct => vec!["to-everyone", "read", "watch", "command"],
-            Role::Operator => vec!["to-everyone", "read", "watch"],
+            Role::Observer => vec!["to-everyone", "read", "observe", "record"],
+            Role::Operator if direct => vec!["to-everyone", "read", "watch", "command", "record"],
+            Role::Operator => vec!["to-everyone", "read", "watch", "record"],
             Role::Rover => vec!["to-everyone", "read", "watch", "to-node"],
             Role::Router => vec!["forward"],
         }
@@ -652,6 +666,10 @@ fn identity_rules(netlist: &Netlist, i: &Identity, own: &[&str]) -> Vec<(String,
                 format!("{}/**", keys::dnm(sys, d)),
                 format!("{sys}/module/{d}/**"),
                 format!("{sys}/port/{d}/**"),
+                // The downlink's caches, channels and recording.
+                format!("{sys}/downlink/{d}/**"),
+                keys::downlink_channel(sys, &format!("/{d}/**")),
+                keys::downlink_history(sys, d),
             ]
         })
         .collect();
@@ -678,7 +696,14 @@ fn identity_rules(netlist: &Netlist, i: &Identity, own: &[&str]) -> Vec<(String,
     }
     let owned = own
         .iter()
-        .flat_map(|d| [format!("{sys}/port/{d}/**"), format!("{sys}/watch/{d}/**")])
+        .flat_map(|d| {
+            [
+                format!("{sys}/port/{d}/**"),
+                format!("{sys}/watch/{d}/**"),
+                format!("{sys}/downlink/{d}/**"),
+                keys::downlink_channel(sys, &format!("/{d}/**")),
+            ]
+        })
         .collect();
     out.push(ingress_rule(
         format!("publish-{}", i.name),

@@ -896,6 +896,35 @@ async function pollOutbox() {
   setTimeout(pollOutbox, 1000);
 }
 
+// How complete the station's own record of the rover is (GET /downlink): a row per output.
+function recordRow(c, now) {
+  const pct = c.expected ? ` (${(100 * c.received / c.expected).toFixed(1)} %)` : '';
+  const gap = c.oldest_gap
+    ? `${((now - c.oldest_gap.from_ns) / 1e9).toFixed(0)} s ago, ${((c.oldest_gap.to_ns - c.oldest_gap.from_ns) / 1e9).toFixed(1)} s long${c.gaps > 1 ? ` (+${c.gaps - 1})` : ''}`
+    : '–';
+  const unrec = c.unrecorded.length
+    ? c.unrecorded.map((g) => `${((g.to_ns - g.from_ns) / 1e9).toFixed(1)} s`).join(', ')
+    : '–';
+  const cls = c.gaps ? 'gappy' : 'whole';
+  return `<tr class="${cls}" data-topic="${esc(c.topic)}"><td>${esc(c.topic)}</td><td>${esc(c.dnm || '')}</td>`
+    + `<td>${c.rate_hz == null ? 'all' : `${c.rate_hz.toFixed(c.rate_hz < 1 ? 2 : 0)} Hz`}</td>`
+    + `<td>${c.received} / ${c.expected}${pct}</td><td>${esc(gap)}</td>`
+    + `<td>${(c.backlog_bytes / 1024).toFixed(1)} KiB</td><td>${esc(unrec)}</td></tr>`;
+}
+
+async function pollRecord() {
+  try {
+    const r = await api('/downlink');
+    const kbit = (b) => (b * 8 / 1000).toFixed(1);
+    const budget = r.budget_bytes_per_s == null ? 'no budget' : `budget ${kbit(r.budget_bytes_per_s)} kbit/s`;
+    const clear = r.seconds_to_clear == null ? '' : ` · ~${r.seconds_to_clear.toFixed(0)} s to clear`;
+    $('record-summary').textContent = `${r.dir} · ${budget} · downlink ${kbit(r.measured_bytes_per_s)} kbit/s · backlog ${(r.backlog_bytes / 1024).toFixed(1)} KiB${clear}`;
+    const now = Date.now() * 1e6;
+    $('record').querySelector('tbody').innerHTML = r.channels.map((c) => recordRow(c, now)).join('');
+  } catch (_) { /* none kept, or the station is away: the next poll tries again */ }
+  setTimeout(pollRecord, 2000);
+}
+
 // A command in words, as the outbox lists it.
 function orderText(o) {
   switch (o.cmd) {
@@ -1039,6 +1068,7 @@ function init() {
   if (location.hash === '#connections') setView('connections');
   pollLive();
   pollOutbox();
+  pollRecord();
 }
 
 init();
