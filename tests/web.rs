@@ -73,7 +73,9 @@ impl Rig {
         up.extend([
             "up".into(),
             file.display().to_string(),
-            "--no-record".into(),
+            // Recording: the station's record of the rover is filled from it.
+            "--record-dir".into(),
+            dir.join("rec").display().to_string(),
             "--state-dir".into(),
             dir.join("state").display().to_string(),
         ]);
@@ -348,6 +350,17 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
     let values = b.text("#watch-values");
     assert!(values.contains('x') && values.contains("yaw"), "{values}");
     b.screenshot(&shots().join("connections.png"));
+
+    // The ground's record of the rover: Beetle-One's downlink plan, what the station missed
+    // before it heard the rover filled in from the rover's recording.
+    until(
+        &b,
+        "the record panel showing the pose and the battery complete",
+        "['/rover/odometry/odom', '/rover/battery/state'].every((t) => { \
+           const r = document.querySelector(`#record tbody tr[data-topic=\"${t}\"]`); \
+           return r && r.classList.contains('whole') && +r.children[3].textContent.split(' / ')[0] > 5; })",
+    );
+    b.screenshot(&shots().join("record.png"));
 
     run_a_sequence_from_the_page(&b, &rig, &z, &dnms);
     eprintln!("screenshots in {}", shots().display());

@@ -81,8 +81,9 @@ struct RecordArgs {
     #[arg(long)]
     record_only: Vec<String>,
     /// How much of each output the netlist's downlink plan names is kept for the ground to
-    /// recover from memory (e.g. `120s`); longer gaps are filled from the recording.
-    #[arg(long, default_value = "120s")]
+    /// recover from memory at once (e.g. `10s`); longer gaps are filled from the recording,
+    /// within the station's downlink budget.
+    #[arg(long, default_value = "10s")]
     downlink_cache: String,
 }
 
@@ -90,7 +91,7 @@ impl RecordArgs {
     fn downlink_cache(&self) -> anyhow::Result<std::time::Duration> {
         let ms = dnm_netlist::parse_duration_ms(&self.downlink_cache).with_context(|| {
             format!(
-                "--downlink-cache `{}`: write a duration, e.g. `120s`",
+                "--downlink-cache `{}`: write a duration, e.g. `10s`",
                 self.downlink_cache
             )
         })?;

@@ -355,3 +355,43 @@ pub fn tree_cpu_seconds(root: u32) -> f64 {
         .map(|&p| cpu_seconds(p))
         .sum()
 }
+
+/// A TCP proxy on a free loopback port to `to`, adding every byte it carries toward `to` to
+/// `toward` and every byte back to `back` (the same counter for both counts both ways).
+/// Returns its port.
+pub fn counting_proxy(
+    to: u16,
+    toward: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    back: std::sync::Arc<std::sync::atomic::AtomicU64>,
+) -> u16 {
+    use std::sync::atomic::Ordering;
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        for client in listener.incoming().flatten() {
+            let Ok(server) = std::net::TcpStream::connect(("127.0.0.1", to)) else {
+                continue;
+            };
+            for (mut from, mut into, count) in [
+                (
+                    client.try_clone().unwrap(),
+                    server.try_clone().unwrap(),
+                    toward.clone(),
+                ),
+                (server, client, back.clone()),
+            ] {
+                std::thread::spawn(move || {
+                    let mut buf = vec![0u8; 64 * 1024];
+                    while let Ok(n) = std::io::Read::read(&mut from, &mut buf) {
+                        if n == 0 || std::io::Write::write_all(&mut into, &buf[..n]).is_err() {
+                            break;
+                        }
+                        count.fetch_add(n as u64, Ordering::Relaxed);
+                    }
+                    let _ = into.shutdown(std::net::Shutdown::Both);
+                });
+            }
+        }
+    });
+    port
+}

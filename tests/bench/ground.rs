@@ -1,7 +1,10 @@
 //! Commanding the rover through the ground station: from an operator's command to the switch
 //! in force on every DNM of the rover, on a clean link and through the emulated radio, against
 //! the link's round trip measured in the same run; and the spread of the switch instants
-//! across the rover's DNMs (one machine, one clock).
+//! across the rover's DNMs (one machine, one clock). A third run commands through the same
+//! radio while the ground's record of the rover drains a backlog (the station came up after a
+//! minute of the rover's recording, its downlink held to a budget): the downlink's bytes are
+//! counted on the link, rover to ground, by a proxy in front of the rover's router.
 //!
 //! Run: `cargo build --release --workspace && cargo bench --workspace --bench ground`
 //! (results to stdout as a Markdown table).
@@ -11,6 +14,10 @@
 #[path = "../support/mod.rs"]
 mod support;
 
+mod common;
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use dnm_module::TaskWatch;
@@ -33,6 +40,36 @@ struct Run {
     spread_us: Vec<f64>,
 }
 
+/// The radio profile: 300 ms each way, 256 kbit/s, a fifth of the packets lost each way.
+const RADIO: [&str; 8] = [
+    "--delay", "300ms", "--rate", "256kbit", "--loss", "0.2", "--seed", "3",
+];
+/// The downlink's budget while a backlog drains (a quarter of the radio).
+const BUDGET: &str = "64kbit";
+const BUDGET_BYTES_PER_S: f64 = 8000.0;
+/// How long the rover records before the station comes up: the backlog.
+const BACKLOG: Duration = Duration::from_secs(60);
+/// The downlink plan of the backlog run: a 2 KB payload at 2 Hz (about half the budget live),
+/// and the tickers.
+const PLAN: &str = r#"
+[[module]]
+name = "blob"
+kind = "blob_source"
+dnm = "rover"
+rate_hz = 10
+params = { bytes = 2000 }
+
+[[downlink]]
+output = "blob.out"
+rate_hz = 2
+priority = 1
+
+[[downlink]]
+output = "src_a.out"
+rate_hz = 5
+priority = 2
+"#;
+
 fn run(name: &'static str, radio: &[&str], commands: usize) -> Run {
     let rig = Rig::new(name, "");
     let _routers = rig.routers();
@@ -42,6 +79,53 @@ fn run(name: &'static str, radio: &[&str], commands: usize) -> Run {
     let session = zenoh_client(rig.rover_port);
     wait_in_step(&session, &rig.system, &ROVER, "a");
     let (_station, api) = rig.station();
+    command(name, &rig, &api, commands)
+}
+
+/// What the backlog run measured besides the commands: the downlink's bytes a second on the
+/// link while the commands ran, and the backlog left (bytes) when they were done.
+struct Drain {
+    downlink_bytes_per_s: f64,
+    backlog_before: u64,
+    backlog_after: u64,
+}
+
+fn run_draining(name: &'static str, commands: usize) -> (Run, Drain) {
+    let rig = Rig::new("drain", "");
+    let text = std::fs::read_to_string(&rig.netlist).unwrap() + PLAN;
+    std::fs::write(&rig.netlist, text).unwrap();
+    let _routers = rig.routers();
+    let rec = rig.dir.join("rover-rec");
+    let _rover = rig.up_recording(&["rover"], &rec, &[]);
+    let _others = rig.up_recording(&["drive", "vision"], &rec, &[]);
+    let (toward, back) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let proxy = common::counting_proxy(rig.rover_port, toward, back.clone());
+    let _radio = rig.linksim_to(proxy, &RADIO);
+    let session = zenoh_client(rig.rover_port);
+    wait_in_step(&session, &rig.system, &ROVER, "a");
+    std::thread::sleep(BACKLOG);
+    let (_station, api) = rig.station_with(&["--downlink-budget", BUDGET]);
+    // The backlog is known once the station heard of the channels and asked the recording.
+    let backlog = |api: &support::ground::Api| {
+        api.get_json("/downlink")["backlog_bytes"]
+            .as_u64()
+            .unwrap_or(0)
+    };
+    let backlog_before =
+        support::eventually("a backlog", || Some(backlog(&api)).filter(|b| *b > 0));
+    let (b0, t0) = (back.load(Ordering::Relaxed), Instant::now());
+    let run = command(name, &rig, &api, commands);
+    let down = (back.load(Ordering::Relaxed) - b0) as f64 / t0.elapsed().as_secs_f64();
+    let drain = Drain {
+        downlink_bytes_per_s: down,
+        backlog_before,
+        backlog_after: backlog(&api),
+    };
+    (run, drain)
+}
+
+/// Times `commands` switches given through the station `api` of `rig`.
+fn command(name: &'static str, rig: &Rig, api: &support::ground::Api, commands: usize) -> Run {
     let watches: Vec<TaskWatch> = ROVER
         .iter()
         .map(|d| TaskWatch::open(&rig.system, d).unwrap())
@@ -96,16 +180,8 @@ fn run(name: &'static str, radio: &[&str], commands: usize) -> Run {
 }
 
 fn main() {
-    let runs = [
-        run("clean", &[], 60),
-        run(
-            "radio",
-            &[
-                "--delay", "300ms", "--rate", "256kbit", "--loss", "0.2", "--seed", "3",
-            ],
-            40,
-        ),
-    ];
+    let (draining, drain) = run_draining("radio, backlog draining", 40);
+    let runs = [run("clean", &[], 60), run("radio", &RADIO, 40), draining];
     println!("# Ground station to every DNM of the rover (switches, one machine)\n");
     println!(
         "| link | commands | link RTT p50 (ms) | command → in force on every DNM p50 / p99 (ms) | p50 / RTT p50 | spread of switch instants p50 / p99 / max (µs) |"
@@ -127,4 +203,16 @@ fn main() {
             quantile(&r.spread_us, 1.0),
         );
     }
+    let p50 = |i: usize| quantile(&runs[i].latency_ms, 0.5);
+    println!(
+        "\nWhile the backlog drained: command p50 {:.2}x the radio's without one; the downlink \
+         {:.1} kbit/s on the link, rover to ground (budget {BUDGET}: {:.2}x, Zenoh's framing and \
+         the station's pings' answers included); backlog {:.0} KiB when the commands began, \
+         {:.0} KiB when they ended.",
+        p50(2) / p50(1),
+        drain.downlink_bytes_per_s * 8.0 / 1000.0,
+        drain.downlink_bytes_per_s / BUDGET_BYTES_PER_S,
+        drain.backlog_before as f64 / 1024.0,
+        drain.backlog_after as f64 / 1024.0,
+    );
 }

@@ -24,7 +24,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
-use common::{cpu_seconds, free_port, unique, up};
+use common::{counting_proxy, cpu_seconds, free_port, unique, up};
 use dnm::admin::{Request, request};
 use zenoh::Wait;
 
@@ -49,37 +49,6 @@ fn steps(system: &str) -> BTreeMap<String, u64> {
         .iter()
         .flat_map(|d| d.modules.iter().map(|m| (m.name.clone(), m.steps)))
         .collect()
-}
-
-/// A TCP proxy on a free loopback port to `to`, adding every byte it carries (both ways) to
-/// `count`. Returns its port.
-fn counting_proxy(to: u16, count: Arc<AtomicU64>) -> u16 {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let port = listener.local_addr().unwrap().port();
-    std::thread::spawn(move || {
-        for client in listener.incoming().flatten() {
-            let Ok(server) = std::net::TcpStream::connect(("127.0.0.1", to)) else {
-                continue;
-            };
-            for (mut from, mut into) in [
-                (client.try_clone().unwrap(), server.try_clone().unwrap()),
-                (server, client),
-            ] {
-                let count = count.clone();
-                std::thread::spawn(move || {
-                    let mut buf = vec![0u8; 64 * 1024];
-                    while let Ok(n) = std::io::Read::read(&mut from, &mut buf) {
-                        if n == 0 || std::io::Write::write_all(&mut into, &buf[..n]).is_err() {
-                            break;
-                        }
-                        count.fetch_add(n as u64, Ordering::Relaxed);
-                    }
-                    let _ = into.shutdown(std::net::Shutdown::Both);
-                });
-            }
-        }
-    });
-    port
 }
 
 fn measure(
@@ -192,7 +161,7 @@ fn main() {
 
     // The link between the ground and the rover: a proxy that counts every byte both ways.
     let radio_bytes = Arc::new(AtomicU64::new(0));
-    let radio_port = counting_proxy(port, radio_bytes.clone());
+    let radio_port = counting_proxy(port, radio_bytes.clone(), radio_bytes.clone());
     let rrd = std::env::temp_dir().join(format!("{system}.rrd"));
     let mut rrd_bytes = 0;
     for (name, extra) in [

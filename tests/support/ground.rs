@@ -521,13 +521,36 @@ impl Rig {
         Proc::dnm_env(&self.dir, &dnms.join("-"), &args, env)
     }
 
+    /// `dnm up` of some rover DNMs recording into `record_dir` (their sessions there), with
+    /// more arguments of `dnm up`.
+    pub fn up_recording(&self, dnms: &[&str], record_dir: &Path, extra: &[&str]) -> Proc {
+        let mut args = zenoh_args("peer", self.rover_port);
+        args.extend(["up".into(), self.netlist.display().to_string()]);
+        for d in dnms {
+            args.extend(["--dnm".into(), d.to_string()]);
+        }
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args.extend([
+            "--record-dir".into(),
+            record_dir.display().to_string(),
+            "--state-dir".into(),
+            self.dir.join("state").display().to_string(),
+        ]);
+        Proc::dnm(&self.dir, &dnms.join("-"), &args)
+    }
+
     pub fn linksim(&self, extra: &[&str]) -> Proc {
+        self.linksim_to(self.rover_port, extra)
+    }
+
+    /// The radio to `port` (a proxy in front of the rover's router) instead of the router.
+    pub fn linksim_to(&self, port: u16, extra: &[&str]) -> Proc {
         let mut args: Vec<String> = vec![
             "linksim".into(),
             "--bind".into(),
             format!("127.0.0.1:{}", self.radio_port),
             "--to".into(),
-            format!("127.0.0.1:{}", self.rover_port),
+            format!("127.0.0.1:{port}"),
         ];
         args.extend(extra.iter().map(|s| s.to_string()));
         Proc::dnm(&self.dir, "linksim", &args)

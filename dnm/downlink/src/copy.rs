@@ -158,9 +158,16 @@ pub(crate) fn channel_statuses(copies: &Copies, settled_ns: u64) -> Vec<ChannelS
         .map(|(topic, c)| {
             let gaps = c.gaps(settled_ns);
             let period = c.period_ns();
+            // Before the rover said where its recording starts, a gap from the start of time
+            // counts from the first message held.
+            let floor = c
+                .recorded
+                .map(|r| r.0)
+                .or_else(|| c.held.first().map(|h| h.0))
+                .unwrap_or(u64::MAX);
             let missing: u64 = period.map_or(0, |p| {
                 gaps.iter()
-                    .map(|g| (g.to_ns - g.from_ns) / p.max(1))
+                    .map(|g| g.to_ns.saturating_sub(g.from_ns.max(floor)) / p.max(1))
                     .sum::<u64>()
             });
             let received = c.held.len() as u64;

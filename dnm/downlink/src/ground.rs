@@ -292,7 +292,7 @@ impl Drop for GroundRecord {
 }
 
 /// An advanced subscriber on `key` with history (publishers that join late, a restarted
-/// station) and recovery of lost samples.
+/// station: their last seconds) and recovery of lost samples.
 fn subscribe(
     session: &zenoh::Session,
     key: &str,
@@ -301,7 +301,13 @@ fn subscribe(
     session
         .declare_subscriber(key.to_string())
         .callback(callback)
-        .history(HistoryConfig::default().detect_late_publishers())
+        // The publishers' caches give what is newer than what the recording is asked for;
+        // older messages come from the recording, within the budget.
+        .history(
+            HistoryConfig::default()
+                .detect_late_publishers()
+                .max_age(backfill::SETTLE.as_secs_f64()),
+        )
         .recovery(RecoveryConfig::default().heartbeat())
         .subscriber_detection()
         .wait()

@@ -17,8 +17,9 @@ use zenoh_ext::{
 };
 
 /// How much of each channel its publisher keeps for the ground to recover by default: a gap
-/// in the link shorter than this is filled from the cache, a longer one from the recording.
-pub const CACHE_SECONDS: u64 = 120;
+/// in the link shorter than this is filled from the cache at once, a longer one from the
+/// recording, within the downlink's budget.
+pub const CACHE_SECONDS: u64 = 10;
 /// Samples kept of a channel whose rate is not known (events, switches).
 const UNTIMED_CACHE: usize = 1000;
 /// How often a publisher tells subscribers its last sequence number, so a lost last sample

@@ -79,6 +79,10 @@ pub fn check_layout(bytes: &[u8]) -> Result<(), LayoutError> {
         let Some(len) = u64_at(at + 1) else { break };
         let body = at + 9;
         let left = (bytes.len() - body) as u64;
+        // A chunk still being written declares no length yet: the readers stop there.
+        if len == u64::MAX {
+            break;
+        }
         if len > left {
             if len > MAX_RECORD {
                 return Err(LayoutError::RecordTooLong { at, len });
@@ -205,6 +209,11 @@ mod tests {
                 2 * MAX_RECORD
             )
         );
+        // A chunk the writer has not finished (its length still the placeholder): the end.
+        file.truncate(9);
+        file.extend_from_slice(&u64::MAX.to_le_bytes());
+        file.extend_from_slice(&[0; 64]);
+        assert_eq!(check_layout(&file), Ok(()));
         // Cut short, but by a length a record may have: read up to there.
         file.truncate(9);
         file.extend_from_slice(&100u64.to_le_bytes());
