@@ -529,6 +529,26 @@ fn the_ground_keeps_its_own_record_of_beetle_one_through_loss_a_minute_long_outa
             rover.len()
         );
     }
+    // The station's page shows the minute filled in from the rover's recording.
+    let b = support::webdriver::Browser::start(&rig.dir, 1500, 900);
+    b.goto(&format!("{}/#connections", api.0));
+    let shown = "(() => { const r = document.querySelector('#record tbody tr[data-topic=\"/rover/odometry/odom\"]'); \
+                 return r && r.querySelectorAll('rect.tl-back').length > 0 \
+                   && document.querySelectorAll('#record tbody tr').length >= 4 \
+                   && !document.querySelector('#record tbody tr.gappy'); })()";
+    support::eventually("the record panel showing the outage filled in", || {
+        b.js(&format!("return {shown};"), serde_json::json!([]))
+            .as_bool()
+            .filter(|ok| *ok)
+    });
+    b.js(
+        "document.querySelector('footer').style.maxHeight = '70vh'; \
+         document.querySelector('#record-panel').scrollIntoView(); return true;",
+        serde_json::json!([]),
+    );
+    let shots = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("web");
+    std::fs::create_dir_all(&shots).unwrap();
+    b.screenshot_element("#record-panel", &shots.join("record-outage.png"));
     // The station says how complete its copy is...
     let status: serde_json::Value = api.get_json("/downlink");
     let channels = status["channels"].as_array().unwrap();

@@ -896,6 +896,24 @@ async function pollOutbox() {
   setTimeout(pollOutbox, 1000);
 }
 
+// A channel's copy over time: a bar per stretch, what arrived live (green) under what was
+// filled in from the rover's recording (blue), what is still missing (red).
+function timelineSvg(t) {
+  if (!t) return '';
+  const n = t.live.length, w = 3, h = 16;
+  const most = t.expected_per_bin || Math.max(1, ...t.live.map((l, i) => l + t.backfilled[i]));
+  let bars = '';
+  for (let i = 0; i < n; i++) {
+    const live = Math.min(1, t.live[i] / most), back = Math.min(1 - live, t.backfilled[i] / most);
+    const x = i * w;
+    if (t.expected_per_bin && live + back < 0.9) bars += `<rect x="${x}" y="0" width="${w - 0.5}" height="${h}" class="tl-missing"/>`;
+    bars += `<rect x="${x}" y="${h * (1 - live)}" width="${w - 0.5}" height="${h * live}" class="tl-live"/>`;
+    bars += `<rect x="${x}" y="${h * (1 - live - back)}" width="${w - 0.5}" height="${h * back}" class="tl-back"/>`;
+  }
+  const span = ((t.to_ns - t.from_ns) / 1e9).toFixed(0);
+  return `<svg class="timeline" width="${n * w}" height="${h}" viewBox="0 0 ${n * w} ${h}"><title>the last ${span} s: live (green), filled in from the rover's recording (blue), missing (red)</title>${bars}</svg>`;
+}
+
 // How complete the station's own record of the rover is (GET /downlink): a row per output.
 function recordRow(c, now) {
   const pct = c.expected ? ` (${(100 * c.received / c.expected).toFixed(1)} %)` : '';
@@ -908,7 +926,7 @@ function recordRow(c, now) {
   const cls = c.gaps ? 'gappy' : 'whole';
   return `<tr class="${cls}" data-topic="${esc(c.topic)}"><td>${esc(c.topic)}</td><td>${esc(c.dnm || '')}</td>`
     + `<td>${c.rate_hz == null ? 'all' : `${c.rate_hz.toFixed(c.rate_hz < 1 ? 2 : 0)} Hz`}</td>`
-    + `<td>${c.received} / ${c.expected}${pct}</td><td>${esc(gap)}</td>`
+    + `<td>${c.received} / ${c.expected}${pct}</td><td>${timelineSvg(c.timeline)}</td><td>${esc(gap)}</td>`
     + `<td>${(c.backlog_bytes / 1024).toFixed(1)} KiB</td><td>${esc(unrec)}</td></tr>`;
 }
 
@@ -920,7 +938,9 @@ async function pollRecord() {
     const clear = r.seconds_to_clear == null ? '' : ` · ~${r.seconds_to_clear.toFixed(0)} s to clear`;
     $('record-summary').textContent = `${r.dir} · ${budget} · downlink ${kbit(r.measured_bytes_per_s)} kbit/s · backlog ${(r.backlog_bytes / 1024).toFixed(1)} KiB${clear}`;
     const now = Date.now() * 1e6;
-    $('record').querySelector('tbody').innerHTML = r.channels.map((c) => recordRow(c, now)).join('');
+    // The plan's outputs first, then switches and events.
+    const rows = r.channels.slice().sort((a, b) => (a.rate_hz == null) - (b.rate_hz == null) || a.topic.localeCompare(b.topic));
+    $('record').querySelector('tbody').innerHTML = rows.map((c) => recordRow(c, now)).join('');
   } catch (_) { /* none kept, or the station is away: the next poll tries again */ }
   setTimeout(pollRecord, 2000);
 }

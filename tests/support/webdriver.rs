@@ -256,7 +256,19 @@ impl Browser {
 
     /// A PNG of the window, written to `path`.
     pub fn screenshot(&self, path: &Path) {
-        let b64 = self.call("GET", "/screenshot", None);
+        self.save_png(&self.call("GET", "/screenshot", None), path);
+    }
+
+    /// A PNG of the element `css` alone, written to `path`.
+    pub fn screenshot_element(&self, css: &str, path: &Path) {
+        let e = self.element(css);
+        self.save_png(
+            &self.call("GET", &format!("/element/{e}/screenshot"), None),
+            path,
+        );
+    }
+
+    fn save_png(&self, b64: &Value, path: &Path) {
         let png = base64::engine::general_purpose::STANDARD
             .decode(b64.as_str().unwrap())
             .unwrap();

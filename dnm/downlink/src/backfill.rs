@@ -224,6 +224,7 @@ fn ask(
                     log_time,
                     sequence,
                     data: payload.into_owned(),
+                    backfilled: true,
                 };
                 if items.send(item).is_err() {
                     return None;

@@ -20,6 +20,8 @@ pub(crate) struct ChannelCopy {
     pub announce: Option<Announce>,
     /// (log time, sequence) of every message held.
     pub held: BTreeSet<(u64, u32)>,
+    /// Log times of the messages that came from the rover's recording (filled in later).
+    pub backfilled: BTreeSet<u64>,
     /// Bytes of the messages held.
     pub bytes: u64,
     pub duplicates: u64,
@@ -30,11 +32,15 @@ pub(crate) struct ChannelCopy {
 }
 
 impl ChannelCopy {
-    /// Takes message (time, seq) of `len` bytes; false if it was held already.
-    pub fn take(&mut self, time: u64, seq: u32, len: usize) -> bool {
+    /// Takes message (time, seq) of `len` bytes (`backfilled`: from the rover's recording);
+    /// false if it was held already.
+    pub fn take(&mut self, time: u64, seq: u32, len: usize, backfilled: bool) -> bool {
         let fresh = self.held.insert((time, seq));
         if fresh {
             self.bytes += len as u64;
+            if backfilled {
+                self.backfilled.insert(time);
+            }
         } else {
             self.duplicates += 1;
         }
@@ -128,6 +134,47 @@ pub struct ChannelStatus {
     pub unrecorded: Vec<Gap>,
     /// Messages received again that the copy already held.
     pub duplicates: u64,
+    /// Where in time the copy's messages lie, from the first held to now (settled).
+    pub timeline: Option<Timeline>,
+}
+
+/// A channel's copy over time: [`TIMELINE_BINS`] stretches of equal length, each with the
+/// messages held that arrived live and those filled in from the recording.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Timeline {
+    pub from_ns: u64,
+    pub to_ns: u64,
+    pub live: Vec<u32>,
+    pub backfilled: Vec<u32>,
+    /// Messages the plan asks for in a stretch (none: an output without a rate).
+    pub expected_per_bin: Option<f64>,
+}
+
+/// Stretches of a [`Timeline`].
+pub const TIMELINE_BINS: usize = 60;
+
+impl ChannelCopy {
+    fn timeline(&self, settled_ns: u64) -> Option<Timeline> {
+        let from = self.held.first()?.0;
+        let to = self.held.last()?.0.max(settled_ns).max(from + 1);
+        let width = (to - from).div_ceil(TIMELINE_BINS as u64).max(1);
+        let (mut live, mut backfilled) = (vec![0u32; TIMELINE_BINS], vec![0u32; TIMELINE_BINS]);
+        for &(t, _) in &self.held {
+            let bin = (((t - from) / width) as usize).min(TIMELINE_BINS - 1);
+            if self.backfilled.contains(&t) {
+                backfilled[bin] += 1;
+            } else {
+                live[bin] += 1;
+            }
+        }
+        Some(Timeline {
+            from_ns: from,
+            to_ns: from + width * TIMELINE_BINS as u64,
+            live,
+            backfilled,
+            expected_per_bin: self.period_ns().map(|p| width as f64 / p as f64),
+        })
+    }
 }
 
 /// The status of the whole copy.
@@ -185,6 +232,7 @@ pub(crate) fn channel_statuses(copies: &Copies, settled_ns: u64) -> Vec<ChannelS
                 backlog_bytes: missing * average,
                 unrecorded: c.unrecorded.clone(),
                 duplicates: c.duplicates,
+                timeline: c.timeline(settled_ns),
             }
         })
         .collect()
@@ -214,7 +262,7 @@ mod tests {
             ..ChannelCopy::default()
         };
         for (i, t) in held_ms.iter().enumerate() {
-            c.take(t * 1_000_000, i as u32, 10);
+            c.take(t * 1_000_000, i as u32, 10, i % 2 == 1);
         }
         c
     }
@@ -250,12 +298,17 @@ mod tests {
         let s = &channel_statuses(&BTreeMap::from([("/rover/a/out".into(), c)]), 1_300 * ms)[0];
         assert_eq!((s.received, s.gaps, s.expected), (6, 1, 8));
         assert_eq!(s.backlog_bytes, 20);
+        // Held messages over time, live and filled in (every other one here).
+        let t = s.timeline.as_ref().unwrap();
+        assert_eq!(t.live.iter().sum::<u32>(), 3);
+        assert_eq!(t.backfilled.iter().sum::<u32>(), 3);
+        assert!(t.to_ns >= 1_300 * ms);
     }
 
     #[test]
     fn a_message_held_twice_is_counted_once() {
         let mut c = copy(100, &[1]);
-        assert!(!c.take(1_000_000, 0, 10));
+        assert!(!c.take(1_000_000, 0, 10, true));
         assert_eq!((c.held.len(), c.duplicates, c.bytes), (1, 1, 10));
     }
 }

@@ -66,6 +66,8 @@ pub(crate) enum Item {
         log_time: u64,
         sequence: u32,
         data: Vec<u8>,
+        /// It came from the rover's recording, not live.
+        backfilled: bool,
     },
     /// Answered once everything before it is written.
     Barrier(SyncSender<()>),
@@ -164,6 +166,7 @@ impl GroundRecord {
                     log_time,
                     sequence,
                     data,
+                    backfilled: false,
                 });
             }
         })?;
@@ -342,6 +345,7 @@ fn held(dir: &Path) -> (Copies, u64) {
                 m.log_time,
                 m.sequence,
                 m.data.len(),
+                false,
             );
         }
     }
@@ -365,7 +369,7 @@ struct Writer {
     file: Option<OpenFile>,
     descs: HashMap<String, ChannelDesc>,
     /// Messages of channels whose description has not arrived yet.
-    pending: HashMap<String, Vec<(u64, u32, Vec<u8>)>>,
+    pending: HashMap<String, Vec<(u64, u32, Vec<u8>, bool)>>,
     /// Their topics, for the backfill to ask for their announcements.
     unknown: Unknown,
     copies: Arc<Mutex<Copies>>,
@@ -390,8 +394,10 @@ impl Writer {
                     if let Ok(mut copies) = self.copies.lock() {
                         copies.entry(topic.clone()).or_default().announce = Some(a);
                     }
-                    for (time, seq, data) in self.pending.remove(&topic).unwrap_or_default() {
-                        self.write(&topic, time, seq, &data)?;
+                    for (time, seq, data, backfilled) in
+                        self.pending.remove(&topic).unwrap_or_default()
+                    {
+                        self.write(&topic, time, seq, &data, backfilled)?;
                     }
                 }
                 Ok(Item::Message {
@@ -399,16 +405,17 @@ impl Writer {
                     log_time,
                     sequence,
                     data,
+                    backfilled,
                 }) => {
                     if self.descs.contains_key(&topic) {
-                        self.write(&topic, log_time, sequence, &data)?;
+                        self.write(&topic, log_time, sequence, &data, backfilled)?;
                     } else {
                         if let Ok(mut u) = self.unknown.lock() {
                             u.insert(topic.clone());
                         }
                         let p = self.pending.entry(topic).or_default();
                         if p.len() < PENDING {
-                            p.push((log_time, sequence, data));
+                            p.push((log_time, sequence, data, backfilled));
                         }
                     }
                 }
@@ -421,11 +428,18 @@ impl Writer {
     }
 
     /// Writes one message, unless the session holds it already.
-    fn write(&mut self, topic: &str, time: u64, seq: u32, data: &[u8]) -> Result<(), String> {
+    fn write(
+        &mut self,
+        topic: &str,
+        time: u64,
+        seq: u32,
+        data: &[u8],
+        backfilled: bool,
+    ) -> Result<(), String> {
         let fresh = self.copies.lock().is_ok_and(|mut c| {
             c.entry(topic.to_string())
                 .or_default()
-                .take(time, seq, data.len())
+                .take(time, seq, data.len(), backfilled)
         });
         if !fresh {
             return Ok(());

@@ -138,7 +138,15 @@ fn serve(files: &Files, q: &Query) {
             .wait();
         return;
     };
+    let started = std::time::Instant::now();
     let (kept, answer) = read(files, &request);
+    tracing::debug!(
+        topic = %request.topic,
+        messages = answer.messages,
+        bytes = answer.bytes,
+        ms = started.elapsed().as_millis() as u64,
+        "recording asked for a stretch"
+    );
     let key = q.key_expr().clone();
     for (time, seq, data) in kept {
         let sent = q
@@ -270,8 +278,9 @@ impl Iterator for Stream {
                 Ok(MessageReadEvent::ReadRequest(n)) => {
                     let buf = self.reader.insert(n);
                     match self.file.read(buf) {
+                        // The end of what is written (a chunk still open ends it too).
+                        Ok(0) | Err(_) => return None,
                         Ok(k) => self.reader.notify_read(k),
-                        Err(_) => return None,
                     }
                 }
                 Ok(MessageReadEvent::Message(m)) => {

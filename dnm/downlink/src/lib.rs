@@ -28,7 +28,7 @@ mod history;
 pub mod protocol;
 mod rover;
 
-pub use copy::{ChannelStatus, Gap, RecordStatus};
+pub use copy::{ChannelStatus, Gap, RecordStatus, TIMELINE_BINS, Timeline};
 pub use ground::{GroundRecord, GroundRecordError, GroundRecordOptions, StatusSource};
 pub use history::{HistoryServer, HistoryStartError};
 pub use rover::{CACHE_SECONDS, DownlinkTap};
