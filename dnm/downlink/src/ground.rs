@@ -361,6 +361,9 @@ struct OpenFile {
     last_flush: Instant,
 }
 
+/// A message waiting for its channel's announcement: (log time, sequence, bytes, backfilled).
+type Pending = (u64, u32, Vec<u8>, bool);
+
 /// The writer thread's state.
 struct Writer {
     dir: PathBuf,
@@ -369,7 +372,7 @@ struct Writer {
     file: Option<OpenFile>,
     descs: HashMap<String, ChannelDesc>,
     /// Messages of channels whose description has not arrived yet.
-    pending: HashMap<String, Vec<(u64, u32, Vec<u8>, bool)>>,
+    pending: HashMap<String, Vec<Pending>>,
     /// Their topics, for the backfill to ask for their announcements.
     unknown: Unknown,
     copies: Arc<Mutex<Copies>>,
