@@ -550,8 +550,10 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
             "permission": "allow",
             "messages": ["query", "liveliness_query", "declare_subscriber",
                          "declare_liveliness_subscriber", "liveliness_token"],
+            // (`**` never matches a verbatim chunk: zenoh-ext's `@adv` keys are named.)
             "key_exprs": [
                 format!("{sys}/downlink/**"),
+                format!("{sys}/downlink/**/@adv/**"),
                 keys::downlink_channels(sys),
                 keys::downlink_history(sys, "*"),
             ],
@@ -593,7 +595,9 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
     let declared: BTreeSet<&str> = netlist.dnms.iter().map(|d| d.name.as_str()).collect();
     for i in &inv.identities {
         let mut granted: Vec<String> = match i.role {
-            Role::Observer => vec!["to-everyone", "read", "observe", "record"],
+            // An observer keeps no record: what it would ask of the recordings is the
+            // operators' radio budget.
+            Role::Observer => vec!["to-everyone", "read", "observe"],
             Role::Operator if direct => vec!["to-everyone", "read", "watch", "command", "record"],
             Role::Operator => vec!["to-everyone", "read", "watch", "record"],
             Role::Rover => vec!["to-everyone", "read", "watch", "to-node"],
@@ -666,8 +670,9 @@ fn identity_rules(netlist: &Netlist, i: &Identity, own: &[&str]) -> Vec<(String,
                 format!("{}/**", keys::dnm(sys, d)),
                 format!("{sys}/module/{d}/**"),
                 format!("{sys}/port/{d}/**"),
-                // The downlink's caches, channels and recording.
+                // The downlink's caches (zenoh-ext's `@adv` keys), channels and recording.
                 format!("{sys}/downlink/{d}/**"),
+                format!("{sys}/downlink/{d}/**/@adv/**"),
                 keys::downlink_channel(sys, &format!("/{d}/**")),
                 keys::downlink_history(sys, d),
             ]
@@ -701,6 +706,7 @@ fn identity_rules(netlist: &Netlist, i: &Identity, own: &[&str]) -> Vec<(String,
                 format!("{sys}/port/{d}/**"),
                 format!("{sys}/watch/{d}/**"),
                 format!("{sys}/downlink/{d}/**"),
+                format!("{sys}/downlink/{d}/**/@adv/**"),
                 keys::downlink_channel(sys, &format!("/{d}/**")),
             ]
         })

@@ -360,6 +360,9 @@ pub(crate) fn parse_rate(r: &str) -> anyhow::Result<f64> {
         "mbit" => n * 1e6,
         _ => anyhow::bail!("rate `{r}`: use bit, kbit or mbit"),
     };
+    if !(bits.is_finite() && bits > 0.0) {
+        anyhow::bail!("rate `{r}`: give a rate above zero, e.g. `256kbit`");
+    }
     Ok(bits / 8.0)
 }
 

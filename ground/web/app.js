@@ -911,7 +911,7 @@ function timelineSvg(t) {
     bars += `<rect x="${x}" y="${h * (1 - live - back)}" width="${w - 0.5}" height="${h * back}" class="tl-back"/>`;
   }
   const span = ((t.to_ns - t.from_ns) / 1e9).toFixed(0);
-  return `<svg class="timeline" width="${n * w}" height="${h}" viewBox="0 0 ${n * w} ${h}"><title>the last ${span} s: live (green), filled in from the rover's recording (blue), missing (red)</title>${bars}</svg>`;
+  return `<svg class="timeline" width="${n * w}" height="${h}" viewBox="0 0 ${n * w} ${h}"><title>${span} s from the first message held: live (green), filled in from the rover's recording (blue), missing (red)</title>${bars}</svg>`;
 }
 
 // How complete the station's own record of the rover is (GET /downlink): a row per output.

@@ -31,7 +31,9 @@ const BURST: Duration = Duration::from_secs(2);
 /// How often the channels heard of but not announced are asked for.
 const ASK_AGAIN: Duration = Duration::from_secs(3);
 /// How long a request waits for its answer.
-const ANSWER_TIMEOUT: Duration = Duration::from_secs(20);
+const ANSWER_TIMEOUT: Duration = Duration::from_secs(10);
+/// How long a DNM that did not answer is left alone (the others' gaps go first meanwhile).
+const BACK_OFF: Duration = Duration::from_secs(5);
 
 /// What the backfill shares with the record.
 pub(crate) struct Shared {
@@ -89,6 +91,8 @@ pub(crate) fn run(
     // The channels announced before this station listened.
     announcements(session, system, items);
     let mut asked = Instant::now();
+    // DNMs that did not answer, until when they are left alone.
+    let mut quiet: std::collections::HashMap<String, Instant> = Default::default();
     loop {
         if asked.elapsed() >= ASK_AGAIN && shared.unknown.lock().is_ok_and(|u| !u.is_empty()) {
             announcements(session, system, items);
@@ -106,7 +110,10 @@ pub(crate) fn run(
         last = (Instant::now(), received);
         let allowance = tokens.map_or(MAX_ANSWER_BYTES, |t| t.max(0.0) as u64);
         let work = (allowance >= MIN_REQUEST_BYTES.min(MAX_ANSWER_BYTES))
-            .then(|| next_request(shared, allowance))
+            .then(|| {
+                quiet.retain(|_, until| *until > Instant::now());
+                next_request(shared, allowance, &quiet)
+            })
             .flatten();
         let Some((dnm, request)) = work else {
             match stop.recv_timeout(TICK) {
@@ -115,7 +122,7 @@ pub(crate) fn run(
             }
         };
         match ask(session, system, &dnm, &request, items, &shared.received) {
-            Some(answer) => {
+            Some((answer, got)) => {
                 // What the answer brought is in the copy before the gaps are looked at again.
                 if !written(items) {
                     return;
@@ -126,17 +133,19 @@ pub(crate) fn run(
                     to = request.to_ns,
                     max_bytes = request.max_bytes,
                     messages = answer.messages,
+                    got,
                     rest = ?answer.rest,
                     "backfilled"
                 );
-                settle(shared, &request, &answer);
+                // Replies the link dropped: the stretch is asked for again, not settled.
+                if got == answer.messages {
+                    settle(shared, &request, &answer);
+                }
             }
             // No answer (the link is down): wait before asking again.
             None => {
                 tracing::debug!(topic = %request.topic, dnm, "no answer from the recording");
-                if !matches!(stop.recv_timeout(TICK), Err(RecvTimeoutError::Timeout)) {
-                    return;
-                }
+                quiet.insert(dnm, Instant::now() + BACK_OFF);
             }
         }
         if !matches!(stop.try_recv(), Err(std::sync::mpsc::TryRecvError::Empty)) {
@@ -146,13 +155,20 @@ pub(crate) fn run(
 }
 
 /// The request that fills the most urgent gap: the entry of the highest priority (lowest
-/// number) with gaps, its newest or oldest gap as its plan says; with the DNM to ask.
-fn next_request(shared: &Shared, max_bytes: u64) -> Option<(String, HistoryRequest)> {
+/// number) with gaps, its newest or oldest gap as its plan says; with the DNM to ask (none of
+/// the `quiet` ones, which did not answer lately).
+fn next_request(
+    shared: &Shared,
+    max_bytes: u64,
+    quiet: &std::collections::HashMap<String, Instant>,
+) -> Option<(String, HistoryRequest)> {
     let settled = dnm_proto::clock::now_unix_ns().saturating_sub(SETTLE.as_nanos() as u64);
     let copies = shared.copies.lock().ok()?;
     let mut best: Option<(u8, String, Gap, String, bool, u64)> = None;
     for (topic, c) in copies.iter() {
-        let Some(a) = &c.announce else { continue };
+        let Some(a) = c.announce.as_ref().filter(|a| !quiet.contains_key(&a.dnm)) else {
+            continue;
+        };
         let Some(period) = a.period_ns else { continue };
         let gaps = c.gaps(settled);
         let gap = if a.newest_first {
@@ -195,18 +211,21 @@ fn ask(
     request: &HistoryRequest,
     items: &SyncSender<Item>,
     received: &AtomicU64,
-) -> Option<HistoryAnswer> {
+) -> Option<(HistoryAnswer, u64)> {
     let json = serde_json::to_vec(request).ok()?;
     let replies = session
         .get(keys::downlink_history(system, dnm))
         .payload(json)
+        // Replies the link cannot take now are dropped (and the stretch asked for again), never
+        // waited for on the rover.
+        .congestion_control(zenoh::qos::CongestionControl::Drop)
         // Every reply comes on the same key: none may be merged away.
         .consolidation(zenoh::query::ConsolidationMode::None)
         .priority(Priority::Background)
         .timeout(ANSWER_TIMEOUT)
         .wait()
         .ok()?;
-    let mut answer = None;
+    let (mut answer, mut messages) = (None, 0u64);
     while let Ok(reply) = replies.recv() {
         let Ok(sample) = reply.result() else {
             continue;
@@ -219,6 +238,7 @@ fn ask(
             .and_then(|a| keys::decode_downlink(&a.to_bytes()))
         {
             Some((log_time, sequence)) => {
+                messages += 1;
                 let item = Item::Message {
                     topic: request.topic.clone(),
                     log_time,
@@ -233,7 +253,7 @@ fn ask(
             None => answer = serde_json::from_slice::<HistoryAnswer>(&payload).ok(),
         }
     }
-    answer
+    answer.map(|a| (a, messages))
 }
 
 /// Asks the rover's DNMs for the announcements of their downlinked channels.
@@ -283,7 +303,7 @@ fn settle(shared: &Shared, request: &HistoryRequest, answer: &HistoryAnswer) {
         .iter()
         .any(|g| g.from_ns == request.from_ns && g.to_ns >= request.to_ns);
     if unfilled && answer.rest.is_none() {
-        c.unrecorded.push(Gap {
+        c.unrecorded(Gap {
             from_ns: request.from_ns,
             to_ns: request.to_ns,
         });

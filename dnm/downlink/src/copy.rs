@@ -14,6 +14,9 @@ pub struct Gap {
     pub to_ns: u64,
 }
 
+/// Empty periods of a plan entry between two messages held that make a gap.
+const GAP_PERIODS: u64 = 2;
+
 /// What the ground holds of one channel.
 #[derive(Debug, Default)]
 pub(crate) struct ChannelCopy {
@@ -54,18 +57,15 @@ impl ChannelCopy {
     /// Where the copy has gaps up to `settled_ns` (what is newer may still arrive live or be
     /// recovered from the publishers' caches), oldest first, leaving out what the rover holds
     /// nothing of. Only a plan entry with a rate has gaps that show: the plan keeps the first
-    /// message of each of its periods, so a period with none between two held is a gap (for
-    /// an output slower than its plan, an empty period is asked for once, and the rover's
-    /// answer that it holds nothing there settles it).
+    /// message of each of its periods, so two periods or more with none between two messages
+    /// held are a gap. (A single lost message is the live recovery's to fill, from the
+    /// publishers' caches; a single empty period is also what an output at its plan's rate
+    /// shows now and then.)
     pub fn gaps(&self, settled_ns: u64) -> Vec<Gap> {
         let Some(period) = self.period_ns().filter(|p| *p > 0) else {
             return Vec::new();
         };
-        let apart = |a: u64, b: u64| b / period > a / period + 1;
-        // Nothing is missing after the last message the rover recorded (as last heard): an
-        // output that stopped leaves no gap; one that goes on shows when the copy hears of
-        // newer messages.
-        let settled_ns = self.recorded.map_or(settled_ns, |r| settled_ns.min(r.1));
+        let apart = |a: u64, b: u64| b / period > (a / period).saturating_add(GAP_PERIODS);
         let mut out = Vec::new();
         // Before the first message held: from where the rover's recording starts (or, until
         // the rover has said, from the start of time).
@@ -78,21 +78,24 @@ impl ChannelCopy {
                     to_ns: t - 1,
                 }),
                 Some(p) if apart(p, t) => out.push(Gap {
-                    from_ns: p + 1,
+                    from_ns: p.saturating_add(1),
                     to_ns: t - 1,
                 }),
                 _ => {}
             }
             prev = Some(t);
         }
+        // After the last message held, up to the last the rover recorded as last heard (an
+        // output that stopped leaves no gap; newer messages, live or not, show new gaps).
+        let tail_end = self.recorded.map_or(settled_ns, |r| settled_ns.min(r.1));
         match prev {
-            None if settled_ns > start => out.push(Gap {
+            None if tail_end > start => out.push(Gap {
                 from_ns: start,
-                to_ns: settled_ns,
+                to_ns: tail_end,
             }),
-            Some(p) if apart(p, settled_ns) => out.push(Gap {
-                from_ns: p + 1,
-                to_ns: settled_ns,
+            Some(p) if apart(p, tail_end) => out.push(Gap {
+                from_ns: p.saturating_add(1),
+                to_ns: tail_end,
             }),
             _ => {}
         }
@@ -107,6 +110,20 @@ impl ChannelCopy {
                 .any(|u| u.from_ns <= g.from_ns && g.to_ns <= u.to_ns)
         });
         out
+    }
+
+    /// Marks `gap` as a stretch the rover holds nothing of, merged with those it touches.
+    pub fn unrecorded(&mut self, gap: Gap) {
+        self.unrecorded.push(gap);
+        self.unrecorded.sort_by_key(|g| g.from_ns);
+        let mut merged: Vec<Gap> = Vec::with_capacity(self.unrecorded.len());
+        for g in self.unrecorded.drain(..) {
+            match merged.last_mut() {
+                Some(m) if g.from_ns <= m.to_ns.saturating_add(1) => m.to_ns = m.to_ns.max(g.to_ns),
+                _ => merged.push(g),
+            }
+        }
+        self.unrecorded = merged;
     }
 }
 
@@ -156,7 +173,12 @@ pub const TIMELINE_BINS: usize = 60;
 impl ChannelCopy {
     fn timeline(&self, settled_ns: u64) -> Option<Timeline> {
         let from = self.held.first()?.0;
-        let to = self.held.last()?.0.max(settled_ns).max(from + 1);
+        let to = self
+            .held
+            .last()?
+            .0
+            .max(settled_ns)
+            .max(from.saturating_add(1));
         let width = (to - from).div_ceil(TIMELINE_BINS as u64).max(1);
         let (mut live, mut backfilled) = (vec![0u32; TIMELINE_BINS], vec![0u32; TIMELINE_BINS]);
         for &(t, _) in &self.held {
@@ -169,7 +191,7 @@ impl ChannelCopy {
         }
         Some(Timeline {
             from_ns: from,
-            to_ns: from + width * TIMELINE_BINS as u64,
+            to_ns: from.saturating_add(width.saturating_mul(TIMELINE_BINS as u64)),
             live,
             backfilled,
             expected_per_bin: self.period_ns().map(|p| width as f64 / p as f64),
@@ -303,6 +325,35 @@ mod tests {
         assert_eq!(t.live.iter().sum::<u32>(), 3);
         assert_eq!(t.backfilled.iter().sum::<u32>(), 3);
         assert!(t.to_ns >= 1_300 * ms);
+    }
+
+    #[test]
+    fn a_later_outage_is_a_gap_though_the_rover_last_said_it_recorded_less() {
+        let ms = 1_000_000;
+        // The recording said it ends at 1000 ms; then the link went down and came back.
+        let mut c = copy(100, &[1, 101, 201, 301, 401, 501, 601, 701, 801, 901, 1000]);
+        for (i, t) in [2000u64, 2100, 2200].iter().enumerate() {
+            c.take(t * ms, 100 + i as u32, 10, false);
+        }
+        c.recorded = Some((ms, 1000 * ms));
+        assert_eq!(
+            c.gaps(3000 * ms),
+            vec![Gap {
+                from_ns: 1000 * ms + 1,
+                to_ns: 2000 * ms - 1
+            }]
+        );
+        // What the rover answered it holds nothing of merges into one stretch.
+        c.unrecorded(Gap {
+            from_ns: 1000 * ms + 1,
+            to_ns: 1500 * ms,
+        });
+        c.unrecorded(Gap {
+            from_ns: 1500 * ms + 1,
+            to_ns: 2000 * ms - 1,
+        });
+        assert_eq!(c.unrecorded.len(), 1);
+        assert_eq!(c.gaps(3000 * ms), vec![]);
     }
 
     #[test]

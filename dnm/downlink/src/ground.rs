@@ -23,8 +23,8 @@ use zenoh_ext::{AdvancedSubscriber, AdvancedSubscriberBuilderExt, HistoryConfig,
 /// Topics heard of whose announcement has not arrived.
 pub(crate) type Unknown = Arc<Mutex<std::collections::BTreeSet<String>>>;
 
-/// Messages received and not written yet, at most; beyond it the newest are let go (and the
-/// publishers' caches hold them still).
+/// Messages received and not written yet, at most; beyond it the newest are let go (a plan
+/// entry's show as a gap, filled in from the recording; a switch or an event is lost).
 const QUEUE: usize = 65_536;
 /// Messages of a channel whose description has not arrived yet, kept until it does.
 const PENDING: usize = 10_000;
@@ -33,6 +33,10 @@ const PENDING: usize = 10_000;
 const CHUNK_PERIOD: Duration = Duration::from_secs(1);
 /// File names of the ground's session: `ground-<n>.mcap`.
 const STEM: &str = "ground";
+/// A file of the session is closed and the next begun after this many bytes of messages...
+const ROTATE_BYTES: u64 = 512 << 20;
+/// ...or this long.
+const ROTATE_AFTER: Duration = Duration::from_secs(3600);
 
 /// Why the ground's record did not start.
 #[derive(Debug, thiserror::Error)]
@@ -304,8 +308,9 @@ fn subscribe(
     session
         .declare_subscriber(key.to_string())
         .callback(callback)
-        // The publishers' caches give what is newer than what the recording is asked for;
-        // older messages come from the recording, within the budget.
+        // The publishers' caches give their last seconds (what the recording is not asked
+        // for yet); older messages come from the recording, within the budget. (Samples of
+        // sessions without timestamps carry none: the whole cache comes, a few seconds' worth.)
         .history(
             HistoryConfig::default()
                 .detect_late_publishers()
@@ -359,6 +364,9 @@ struct OpenFile {
     /// Channel ids by topic.
     channels: HashMap<String, u16>,
     last_flush: Instant,
+    opened: Instant,
+    /// Bytes of messages written to it.
+    bytes: u64,
 }
 
 /// A message waiting for its channel's announcement: (log time, sequence, bytes, backfilled).
@@ -484,7 +492,13 @@ impl Writer {
         };
         f.writer
             .write_to_known_channel(&header, data)
-            .map_err(|e| e.to_string())
+            .map_err(|e| e.to_string())?;
+        f.bytes += data.len() as u64;
+        // A session that runs for weeks is a series of files, each closed whole.
+        if f.bytes >= ROTATE_BYTES || f.opened.elapsed() >= ROTATE_AFTER {
+            self.finish_file()?;
+        }
+        Ok(())
     }
 
     /// Opens the next file of the session.
@@ -508,6 +522,8 @@ impl Writer {
             writer,
             channels: HashMap::new(),
             last_flush: Instant::now(),
+            opened: Instant::now(),
+            bytes: 0,
         })
     }
 
@@ -522,14 +538,22 @@ impl Writer {
         Ok(())
     }
 
-    /// Finishes the file (summary, footer) and the session's manifest.
-    fn close(&mut self) -> Result<(), String> {
+    /// Finishes the file open (summary, footer) and the session's manifest; the next message
+    /// begins the next file.
+    fn finish_file(&mut self) -> Result<(), String> {
         use std::io::Write;
         if let Some(f) = self.file.take() {
             let mut writer = f.writer;
             writer.finish().map_err(|e| e.to_string())?;
             writer.into_inner().flush().map_err(|e| e.to_string())?;
+            dnm_record::session::write_manifest(&self.dir).map_err(|e| e.to_string())?;
         }
+        Ok(())
+    }
+
+    /// Finishes the file and the session's manifest.
+    fn close(&mut self) -> Result<(), String> {
+        self.finish_file()?;
         dnm_record::session::write_manifest(&self.dir).map_err(|e| e.to_string())?;
         Ok(())
     }

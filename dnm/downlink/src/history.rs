@@ -47,7 +47,7 @@ impl std::fmt::Debug for HistoryServer {
 
 impl HistoryServer {
     /// Answers for DNM `dnm` of `system` from its recording files `rec-<dnm>[.n].mcap` in
-    /// `dir`.
+    /// session folder `dir` and in the system's earlier sessions beside it.
     pub fn start(
         session: &zenoh::Session,
         system: &str,
@@ -70,11 +70,15 @@ impl HistoryServer {
             })?;
         let files = Files {
             dir: dir.to_path_buf(),
+            system: system.to_string(),
             dnm: dnm.to_string(),
         };
         let thread = std::thread::Builder::new()
             .name(format!("history-{dnm}"))
             .spawn(move || {
+                // Reading recordings gives way to the modules, as the recorder's writer does.
+                // SAFETY: setpriority(2) on the calling thread (Linux: `who` 0 is the thread).
+                unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, 10) };
                 while let Ok(q) = rx.recv() {
                     serve(&files, &q);
                 }
@@ -99,18 +103,46 @@ impl Drop for HistoryServer {
     }
 }
 
-/// A DNM's recording files.
+/// A DNM's recording files: those of its session now, and of the system's earlier sessions
+/// beside it (a rover that restarted still answers for what it recorded before).
 struct Files {
     dir: PathBuf,
+    system: String,
     dnm: String,
 }
 
 impl Files {
-    /// The DNM's files of the session, in the order written.
-    fn list(&self) -> Vec<PathBuf> {
+    /// The system's session folders beside the one now, oldest first, the one now last.
+    fn sessions(&self) -> Vec<PathBuf> {
+        let prefix = format!("{}-", self.system);
+        // `<system>-<YYYYMMDD>T<HHMMSS>Z`: another system whose name extends this one's is
+        // not taken for it.
+        let ours = |name: &str| {
+            name.strip_prefix(&prefix)
+                .is_some_and(|t| t.len() == 16 && t.as_bytes()[8] == b'T' && t.ends_with('Z'))
+        };
+        let mut out: Vec<PathBuf> = self
+            .dir
+            .parent()
+            .and_then(|root| std::fs::read_dir(root).ok())
+            .into_iter()
+            .flatten()
+            .filter_map(|e| e.ok())
+            .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+            .map(|e| e.path())
+            .filter(|p| *p != self.dir)
+            .filter(|p| p.file_name().and_then(|n| n.to_str()).is_some_and(ours))
+            .collect();
+        out.sort();
+        out.push(self.dir.clone());
+        out
+    }
+
+    /// The DNM's files of session `dir`, in the order written.
+    fn list(&self, dir: &Path) -> Vec<PathBuf> {
         let first = format!("rec-{}.mcap", self.dnm);
         let later = format!("rec-{}.", self.dnm);
-        dnm_record::session::files(&self.dir)
+        dnm_record::session::files(dir)
             .unwrap_or_default()
             .into_iter()
             .filter(|p| {
@@ -163,80 +195,112 @@ fn serve(files: &Files, q: &Query) {
 }
 
 /// The messages `request` asks for (log time, sequence, bytes), oldest first, and the answer
-/// that ends them.
+/// that ends them: every session of the system in turn, each DNM's files in the order written.
 fn read(files: &Files, request: &HistoryRequest) -> (Vec<(u64, u32, Vec<u8>)>, HistoryAnswer) {
-    let budget = request.max_bytes.clamp(1, MAX_ANSWER_BYTES);
-    let mut decimator = request.period_ns.map(Decimator::new);
-    let mut kept: VecDeque<(u64, u32, Vec<u8>)> = VecDeque::new();
-    let (mut bytes, mut cut) = (0u64, false);
-    let mut recorded: Option<(u64, u64)> = None;
-    let widen = |recorded: &mut Option<(u64, u64)>, a: u64, b: u64| {
-        *recorded = Some(recorded.map_or((a, b), |(x, y)| (x.min(a), y.max(b))));
+    let mut c = Collect {
+        request,
+        budget: request.max_bytes.clamp(1, MAX_ANSWER_BYTES),
+        decimator: None,
+        kept: VecDeque::new(),
+        bytes: 0,
+        cut: false,
+        recorded: None,
     };
-    // Closed files are known by their summaries: one that holds nothing of the topic in the
-    // stretch is not read (the first message after it may then be sent though the live
-    // downlink, knowing the one before it, did not keep it).
-    let entries = dnm_record::session::index(&files.dir)
-        .map(|m| m.files)
-        .unwrap_or_default();
-    for path in files.list() {
-        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
-        let closed = entries
-            .iter()
-            .find(|e| e.name == name && e.complete && e.error.is_none());
-        if let Some(e) = closed {
-            let (start, end) = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
-            let holds = e.channels.get(&request.topic).is_some_and(|n| *n > 0);
-            if holds {
-                widen(&mut recorded, start, end);
-            }
-            if !holds || end < request.from_ns || start > request.to_ns {
-                decimator = request.period_ns.map(Decimator::new);
-                continue;
-            }
-        }
-        let Ok(file) = File::open(&path) else {
-            continue;
-        };
-        for m in Stream::new(file) {
-            if m.topic != request.topic {
-                continue;
-            }
-            widen(&mut recorded, m.time, m.time);
-            let keep = decimator.as_mut().is_none_or(|d| d.keep(m.time));
-            if !keep || m.time < request.from_ns || m.time > request.to_ns {
-                continue;
-            }
-            if !request.newest_first && bytes >= budget {
-                cut = true;
-                continue;
-            }
-            bytes += m.data.len() as u64;
-            kept.push_back((m.time, m.seq, m.data));
-            // Newest first: the oldest give way to newer ones beyond the budget.
-            while request.newest_first && bytes > budget && kept.len() > 1 {
-                if let Some((_, _, d)) = kept.pop_front() {
-                    bytes -= d.len() as u64;
-                    cut = true;
+    for dir in files.sessions() {
+        // Each session was recorded by a recorder of its own: its decimation starts afresh.
+        c.decimator = request.period_ns.map(Decimator::new);
+        let entries = dnm_record::session::index(&dir)
+            .map(|m| m.files)
+            .unwrap_or_default();
+        for path in files.list(&dir) {
+            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            // Closed files are known by their summaries: one that holds nothing of the topic
+            // in the stretch is not read (the first message after it may then be sent though
+            // the live downlink, knowing the one before it, did not keep it).
+            let closed = entries
+                .iter()
+                .find(|e| e.name == name && e.complete && e.error.is_none());
+            if let Some(e) = closed {
+                let (start, end) = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
+                let holds = e.channels.get(&request.topic).is_some_and(|n| *n > 0);
+                if holds {
+                    c.widen(start, end);
                 }
+                if !holds || end < request.from_ns || start > request.to_ns {
+                    c.decimator = request.period_ns.map(Decimator::new);
+                    continue;
+                }
+            }
+            let Ok(file) = File::open(&path) else {
+                continue;
+            };
+            for m in Stream::new(file).filter(|m| m.topic == request.topic) {
+                c.offer(m);
             }
         }
     }
-    let rest = match (cut, kept.front(), kept.back()) {
-        (false, _, _) | (true, None, _) | (true, _, None) => None,
-        (true, Some(first), Some(last)) => Some(if request.newest_first {
-            (request.from_ns, first.0.saturating_sub(1))
-        } else {
-            (last.0 + 1, request.to_ns)
-        }),
-    };
-    let answer = HistoryAnswer {
-        messages: kept.len() as u64,
-        bytes,
-        rest,
-        recorded,
-    };
-    (kept.into(), answer)
+    c.finish()
+}
+
+/// What a request's answer gathers as the recording is read.
+struct Collect<'r> {
+    request: &'r HistoryRequest,
+    budget: u64,
+    decimator: Option<Decimator>,
+    kept: VecDeque<(u64, u32, Vec<u8>)>,
+    bytes: u64,
+    /// The budget left some of the stretch out.
+    cut: bool,
+    /// First and last log times of the topic seen.
+    recorded: Option<(u64, u64)>,
+}
+
+impl Collect<'_> {
+    fn widen(&mut self, a: u64, b: u64) {
+        self.recorded = Some(self.recorded.map_or((a, b), |(x, y)| (x.min(a), y.max(b))));
+    }
+
+    /// A message of the topic, in the order recorded.
+    fn offer(&mut self, m: Msg) {
+        self.widen(m.time, m.time);
+        let keep = self.decimator.as_mut().is_none_or(|d| d.keep(m.time));
+        let r = self.request;
+        if !keep || m.time < r.from_ns || m.time > r.to_ns {
+            return;
+        }
+        if !r.newest_first && self.bytes >= self.budget {
+            self.cut = true;
+            return;
+        }
+        self.bytes += m.data.len() as u64;
+        self.kept.push_back((m.time, m.seq, m.data));
+        // Newest first: the oldest give way to newer ones beyond the budget.
+        while r.newest_first && self.bytes > self.budget && self.kept.len() > 1 {
+            if let Some((_, _, d)) = self.kept.pop_front() {
+                self.bytes -= d.len() as u64;
+                self.cut = true;
+            }
+        }
+    }
+
+    fn finish(self) -> (Vec<(u64, u32, Vec<u8>)>, HistoryAnswer) {
+        let r = self.request;
+        let rest = match (self.cut, self.kept.front(), self.kept.back()) {
+            (true, Some(first), Some(last)) => Some(if r.newest_first {
+                (r.from_ns, first.0.saturating_sub(1))
+            } else {
+                (last.0.saturating_add(1), r.to_ns)
+            }),
+            _ => None,
+        };
+        let answer = HistoryAnswer {
+            messages: self.kept.len() as u64,
+            bytes: self.bytes,
+            rest,
+            recorded: self.recorded,
+        };
+        (self.kept.into(), answer)
+    }
 }
 
 /// One message of a recording file.

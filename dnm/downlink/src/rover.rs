@@ -106,7 +106,12 @@ impl DownlinkTap {
         let samples = period_ns.map_or(UNTIMED_CACHE, |p| {
             (self.cache.as_nanos() as u64).div_ceil(p.max(1)) as usize
         });
-        let replies = RepliesConfig::default().priority(Priority::Background);
+        // A recovery answer the link cannot take now is dropped, never waited for: a waiting
+        // reply would hold the cache (and the recorder's writer putting into it) and Zenoh's
+        // own receive task. What it dropped is asked for again, or from the recording.
+        let replies = RepliesConfig::default()
+            .priority(Priority::Background)
+            .congestion_control(CongestionControl::Drop);
         let data = self
             .session
             .declare_publisher(keys::downlink(&self.system, &desc.topic))
