@@ -16,40 +16,7 @@ pub const DEFAULT_URL: &str = "http://127.0.0.1:7480";
 #[derive(Subcommand, Debug)]
 pub enum GroundCmd {
     /// Run the ground station until Ctrl-C: its outbox, the link to the rover, its API.
-    Serve {
-        #[arg(long)]
-        system: String,
-        /// The station's name, unique among the system's stations.
-        #[arg(long, default_value = "ground-1")]
-        station: String,
-        /// The outbox database (default: <state dir>/<system>-<station>.redb).
-        #[arg(long)]
-        db: Option<PathBuf>,
-        /// Where the operator API and the web interface listen.
-        #[arg(long, default_value = "127.0.0.1:7480")]
-        http: std::net::SocketAddr,
-        /// The login for an API other machines can reach (required unless `--http` is a
-        /// loopback address): clients send `Authorization: Bearer TOKEN`; a browser opens
-        /// `/?token=TOKEN` once.
-        #[arg(long, env = "DNM_GROUND_TOKEN", hide_env_values = true)]
-        token: Option<String>,
-        /// Also watch the rover in Rerun: `spawn` (start a viewer), a viewer's URL
-        /// (rerun+http://HOST:PORT/proxy) or a path to save an .rrd to.
-        #[arg(long)]
-        monitor: Option<String>,
-        /// The ground's own record of the rover: the session folder the downlink plan's
-        /// outputs, switches and events are written to as they arrive (default:
-        /// <system>-<station>-record beside the outbox; a folder of an earlier run is resumed).
-        #[arg(long, conflicts_with = "no_record")]
-        record: Option<PathBuf>,
-        /// Keep no record of the rover at this station.
-        #[arg(long)]
-        no_record: bool,
-        /// The downlink's budget, live and backfill together (e.g. `64kbit`; default: what
-        /// the link carries): what the ground missed is asked for within it.
-        #[arg(long)]
-        downlink_budget: Option<String>,
-    },
+    Serve(Serve),
     /// Switch the rover to TASK, now or at a rover time.
     Switch {
         task: String,
@@ -421,16 +388,40 @@ fn print_link(l: &LinkStatus) {
     }
 }
 
-/// What `dnm ground serve` was given.
-struct Serve {
+/// What `dnm ground serve` is given.
+#[derive(clap::Args, Debug)]
+pub struct Serve {
+    #[arg(long)]
     system: String,
+    /// The station's name, unique among the system's stations.
+    #[arg(long, default_value = "ground-1")]
     station: String,
+    /// The outbox database (default: <state dir>/<system>-<station>.redb).
+    #[arg(long)]
     db: Option<PathBuf>,
+    /// Where the operator API and the web interface listen.
+    #[arg(long, default_value = "127.0.0.1:7480")]
     http: std::net::SocketAddr,
+    /// The login for an API other machines can reach (required unless `--http` is a
+    /// loopback address): clients send `Authorization: Bearer TOKEN`; a browser opens
+    /// `/?token=TOKEN` once.
+    #[arg(long, env = "DNM_GROUND_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// Also watch the rover in Rerun: `spawn` (start a viewer), a viewer's URL
+    /// (rerun+http://HOST:PORT/proxy) or a path to save an .rrd to.
+    #[arg(long)]
     monitor: Option<String>,
+    /// The ground's own record of the rover: the session folder the downlink plan's
+    /// outputs, switches and events are written to as they arrive (default:
+    /// <system>-<station>-record beside the outbox; a folder of an earlier run is resumed).
+    #[arg(long, conflicts_with = "no_record")]
     record: Option<PathBuf>,
+    /// Keep no record of the rover at this station.
+    #[arg(long)]
     no_record: bool,
+    /// The downlink's budget, live and backfill together (e.g. `64kbit`; default: what
+    /// the link carries): what the ground missed is asked for within it.
+    #[arg(long)]
     downlink_budget: Option<String>,
 }
 
@@ -532,30 +523,7 @@ fn serve(z: &dnm::ZenohOptions, args: Serve) -> anyhow::Result<ExitCode> {
 
 pub fn run(z: &dnm::ZenohOptions, cmd: GroundCmd) -> anyhow::Result<ExitCode> {
     match cmd {
-        GroundCmd::Serve {
-            system,
-            station,
-            db,
-            http,
-            token,
-            monitor,
-            record,
-            no_record,
-            downlink_budget,
-        } => serve(
-            z,
-            Serve {
-                system,
-                station,
-                db,
-                http,
-                token,
-                monitor,
-                record,
-                no_record,
-                downlink_budget,
-            },
-        ),
+        GroundCmd::Serve(args) => serve(z, args),
         GroundCmd::Switch {
             task,
             at,

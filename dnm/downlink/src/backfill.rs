@@ -28,8 +28,11 @@ pub(crate) const SETTLE: Duration = Duration::from_secs(10);
 const MIN_REQUEST_BYTES: u64 = 1024;
 /// The most a bucket holds: this long at the budget.
 const BURST: Duration = Duration::from_secs(2);
-/// How often the channels heard of but not announced are asked for.
+/// How often the channels heard of but not announced are asked for...
 const ASK_AGAIN: Duration = Duration::from_secs(3);
+/// ...and every channel, in case an announcement and the channel's messages were all missed
+/// (a station whose subscription was not in place yet when they went).
+const ASK_ALL: Duration = Duration::from_secs(30);
 /// How long a request waits for its answer.
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(10);
 /// How long a DNM that did not answer is left alone (the others' gaps go first meanwhile).
@@ -94,7 +97,8 @@ pub(crate) fn run(
     // DNMs that did not answer, until when they are left alone.
     let mut quiet: std::collections::HashMap<String, Instant> = Default::default();
     loop {
-        if asked.elapsed() >= ASK_AGAIN && shared.unknown.lock().is_ok_and(|u| !u.is_empty()) {
+        let unknown = shared.unknown.lock().is_ok_and(|u| !u.is_empty());
+        if (unknown && asked.elapsed() >= ASK_AGAIN) || asked.elapsed() >= ASK_ALL {
             announcements(session, system, items);
             asked = Instant::now();
         }

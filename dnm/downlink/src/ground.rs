@@ -124,7 +124,6 @@ impl GroundRecord {
                 pending: HashMap::new(),
                 unknown: unknown.clone(),
                 copies: copies.clone(),
-                written: 0,
             };
             std::thread::Builder::new()
                 .name("ground-record".into())
@@ -384,8 +383,6 @@ struct Writer {
     /// Their topics, for the backfill to ask for their announcements.
     unknown: Unknown,
     copies: Arc<Mutex<Copies>>,
-    /// Messages written in this run.
-    written: u64,
 }
 
 impl Writer {
@@ -455,7 +452,6 @@ impl Writer {
         if !fresh {
             return Ok(());
         }
-        self.written += 1;
         if self.file.is_none() {
             self.file = Some(self.open()?);
         }

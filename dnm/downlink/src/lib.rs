@@ -14,8 +14,8 @@
 //! - **Ground** ([`GroundRecord`]): advanced subscribers with history (the publishers' last
 //!   seconds: late joiners, a restarted station) and recovery (what the radio lost, from the
 //!   caches) write what arrives to the station's own session folder: MCAP files with the
-//!   rover's channels, the rover's bytes, at the rover's send times, so `dnm stats`,
-//!   `dnm replay`, Rerun and Foxglove read it like a rover session. A backfill thread finds the
+//!   rover's channels, the rover's bytes, at the rover's send times: a session in the
+//!   rover's format. A backfill thread finds the
 //!   gaps the caches could not fill and asks the recordings for them, entries by priority,
 //!   newest or oldest first, at the `background` priority, within the byte budget the operator
 //!   sets (live traffic spends it too). A message held already is never written twice; a

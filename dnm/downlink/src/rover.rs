@@ -154,16 +154,19 @@ impl Tap for DownlinkTap {
         let Ok(mut channels) = self.channels.lock() else {
             return;
         };
-        let channel = channels.entry(m.channel.topic.clone()).or_insert_with(|| {
-            match self.open(m.channel, m.plan) {
+        // Opened at a channel's first message (its topic copied once, not per message).
+        if !channels.contains_key(&m.channel.topic) {
+            let opened = match self.open(m.channel, m.plan) {
                 Ok(c) => Some(c),
                 // Said once: the channel is not downlinked while this DNM runs.
                 Err(e) => {
                     tracing::error!("not downlinked: {e}");
                     None
                 }
-            }
-        });
+            };
+            channels.insert(m.channel.topic.clone(), opened);
+        }
+        let channel = channels.get(&m.channel.topic).and_then(Option::as_ref);
         if let Some(c) = channel
             && let Err(e) = c
                 .data

@@ -1065,7 +1065,7 @@ fn write_loop(
         index: 0,
         file: None,
         last_flush: Instant::now(),
-        decimators: HashMap::new(),
+        decimators: Vec::new(),
     };
     loop {
         let item = match items.recv_timeout(CHUNK_PERIOD) {
@@ -1077,6 +1077,7 @@ fn write_loop(
             Some(Item::Ports(p)) => {
                 // A new port set starts a new file: channels are fixed per file.
                 w.close_file()?;
+                w.decimators = carried_decimators(&w.ports, &w.decimators, &p);
                 w.ports = p;
                 // Nothing to record (yet): no file.
                 if w.ports.is_empty() {
@@ -1116,6 +1117,26 @@ fn write_loop(
     w.close_file()
 }
 
+/// The decimators of port set `new` for the downlink plan: a port kept at the same rate goes on
+/// from where it was (its next sample is judged by the last it saw), a new or re-rated one
+/// starts afresh.
+fn carried_decimators(
+    old: &[RecPort],
+    decimators: &[Option<Decimator>],
+    new: &[RecPort],
+) -> Vec<Option<Decimator>> {
+    new.iter()
+        .map(|p| {
+            let entry = p.downlink.as_ref()?;
+            let before = old
+                .iter()
+                .position(|o| o.module == p.module && o.port == p.port && o.downlink == p.downlink)
+                .and_then(|i| decimators.get(i).copied().flatten());
+            Some(before.unwrap_or_else(|| Decimator::new(entry.period_ns())))
+        })
+        .collect()
+}
+
 /// The writer thread's state: the port set, the netlist each new file starts with, and the
 /// file open.
 struct Writer<'a> {
@@ -1132,8 +1153,8 @@ struct Writer<'a> {
     index: u64,
     file: Option<OpenFile>,
     last_flush: Instant,
-    /// Per port of the downlink plan (module, port): which samples it keeps.
-    decimators: HashMap<(String, String), Decimator>,
+    /// Per port (as `ports`): which samples the downlink plan keeps, for the ports it names.
+    decimators: Vec<Option<Decimator>>,
 }
 
 impl Writer<'_> {
@@ -1235,13 +1256,8 @@ impl Writer<'_> {
             }
         };
         // The downlink plan's samples go on to the tap as they are written.
-        let tap = match (&self.options.tap, &p.downlink) {
-            (Some(tap), Some(entry)) => self
-                .decimators
-                .entry((p.module.clone(), p.port.clone()))
-                .or_insert_with(|| Decimator::new(entry.period_ns()))
-                .keep(time)
-                .then_some(tap),
+        let tap = match (&self.options.tap, self.decimators.get_mut(port)) {
+            (Some(tap), Some(Some(d))) => d.keep(time).then_some(tap),
             _ => None,
         };
         if let Some(raw) = channel.raw {
