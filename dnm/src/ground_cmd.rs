@@ -188,8 +188,10 @@ fn print_record(r: &dnm_downlink::RecordStatus) {
         format!("budget {:.1} kbit/s", kbit(b as f64))
     });
     println!(
-        "record of the rover in {}: {budget}, downlink {:.1} kbit/s measured; backlog {} bytes{}",
+        "record of the rover in {}: {budget}, requests of {} bytes at most, downlink {:.1} \
+         kbit/s measured; backlog {} bytes{}",
         r.dir,
+        r.request_bytes,
         kbit(r.measured_bytes_per_s),
         r.backlog_bytes,
         r.seconds_to_clear
@@ -476,9 +478,23 @@ fn serve(z: &dnm::ZenohOptions, args: Serve) -> anyhow::Result<ExitCode> {
             .map(|b| crate::linksim::parse_rate(b).map(|r| r as u64))
             .transpose()
             .context("--downlink-budget")?;
+        // The backfill keeps out of the commands' way: it slows down when their round trips
+        // grow.
+        let link = {
+            let st = st.clone();
+            dnm_downlink::LinkProbe::new(move || {
+                let l = st.link();
+                dnm_downlink::LinkSample {
+                    uplinks: l.uplinks,
+                    answered: l.answered,
+                    rtt: l.rtt_ms.map(|ms| Duration::from_secs_f64(ms / 1e3)),
+                }
+            })
+        };
         let options = dnm_downlink::GroundRecordOptions {
             dir: dir.clone(),
             budget_bytes_per_s,
+            link: Some(link),
         };
         let r = dnm_downlink::GroundRecord::start(st.session(), &system, &options)?;
         println!("the rover's downlink is recorded in {}", dir.display());

@@ -936,7 +936,8 @@ async function pollRecord() {
     const kbit = (b) => (b * 8 / 1000).toFixed(1);
     const budget = r.budget_bytes_per_s == null ? 'no budget' : `budget ${kbit(r.budget_bytes_per_s)} kbit/s`;
     const clear = r.seconds_to_clear == null ? '' : ` · ~${r.seconds_to_clear.toFixed(0)} s to clear`;
-    $('record-summary').textContent = `${r.dir} · ${budget} · downlink ${kbit(r.measured_bytes_per_s)} kbit/s · backlog ${(r.backlog_bytes / 1024).toFixed(1)} KiB${clear}`;
+    const paced = r.request_bytes ? ` · requests ≤ ${(r.request_bytes / 1024).toFixed(1)} KiB` : '';
+    $('record-summary').textContent = `${r.dir} · ${budget}${paced} · downlink ${kbit(r.measured_bytes_per_s)} kbit/s · backlog ${(r.backlog_bytes / 1024).toFixed(1)} KiB${clear}`;
     const now = Date.now() * 1e6;
     // The plan's outputs first, then switches and events.
     const rows = r.channels.slice().sort((a, b) => (a.rate_hz == null) - (b.rate_hz == null) || a.topic.localeCompare(b.topic));

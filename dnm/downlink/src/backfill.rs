@@ -1,8 +1,10 @@
 //! Filling the ground's gaps from the rover's recording, within the link's budget: one request
 //! at a time to the recording of the DNM that holds the channel (see [`crate::history`]),
 //! entries by priority, each newest or oldest first as its plan says, at the `background`
-//! priority. A token bucket holds the downlink to its budget: what arrives live spends it too,
-//! and a request asks for no more than what is left of it.
+//! priority. A token bucket holds the downlink to the operator's budget: what arrives live
+//! spends it too, and a request asks for no more than what is left of it, nor more than the
+//! link drains in about a second (see [`crate::pace`]), so that what the backfill puts in the
+//! link's queues never holds a command up long.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender};
@@ -15,6 +17,7 @@ use zenoh::qos::Priority;
 
 use crate::copy::{Copies, Gap};
 use crate::ground::{Item, Unknown};
+use crate::pace::{LinkProbe, MIN_REQUEST_BYTES, Pace};
 use crate::protocol::Announce;
 use crate::protocol::{HistoryAnswer, HistoryRequest, MAX_ANSWER_BYTES};
 
@@ -23,9 +26,6 @@ const TICK: Duration = Duration::from_millis(500);
 /// What arrived in the last this long is not asked for: the live downlink and the publishers'
 /// caches fill it first.
 pub(crate) const SETTLE: Duration = Duration::from_secs(10);
-/// The least a request asks for under a budget (a message of the plan may be larger: one is
-/// always sent).
-const MIN_REQUEST_BYTES: u64 = 1024;
 /// The most a bucket holds: this long at the budget.
 const BURST: Duration = Duration::from_secs(2);
 /// How often the channels heard of but not announced are asked for...
@@ -46,6 +46,12 @@ pub(crate) struct Shared {
     /// The measured rate, bytes a second (f64 bits).
     pub measured: Arc<AtomicU64>,
     pub budget_bytes_per_s: Option<u64>,
+    /// What the station measures of its command link, for the backfill to keep out of its way.
+    pub probe: Option<LinkProbe>,
+    /// The most a request asks for now, bytes; what the answers delivered lately, bytes a
+    /// second (f64 bits).
+    pub request_bytes: Arc<AtomicU64>,
+    pub delivered: Arc<AtomicU64>,
     /// Topics heard of whose announcement has not arrived.
     pub unknown: Unknown,
 }
@@ -61,10 +67,12 @@ impl Meter {
     fn update(&mut self, total: u64) -> f64 {
         let now = Instant::now();
         self.window.push_back((now, total));
+        // The newest reading at least a window old stays: after a long wait (an answer that
+        // took long) the rate is over that wait, not nothing.
         while self
             .window
-            .front()
-            .is_some_and(|(t, _)| now.duration_since(*t) > Self::WINDOW)
+            .get(1)
+            .is_some_and(|(t, _)| now.duration_since(*t) >= Self::WINDOW)
         {
             self.window.pop_front();
         }
@@ -87,6 +95,10 @@ pub(crate) fn run(
     stop: &Receiver<()>,
 ) {
     let mut tokens = shared.budget_bytes_per_s.map(|b| b as f64);
+    let ceiling = shared.budget_bytes_per_s.map_or(MAX_ANSWER_BYTES, |b| {
+        (b as f64 * BURST.as_secs_f64()) as u64
+    });
+    let mut pace = Pace::new(shared.budget_bytes_per_s, ceiling, shared.probe.clone());
     let mut last = (Instant::now(), shared.received.load(Ordering::Relaxed));
     let mut meter = Meter {
         window: Default::default(),
@@ -96,11 +108,20 @@ pub(crate) fn run(
     let mut asked = Instant::now();
     // DNMs that did not answer, until when they are left alone.
     let mut quiet: std::collections::HashMap<String, Instant> = Default::default();
+    // When each channel was last asked for: entries of one priority take turns.
+    let mut turns: std::collections::HashMap<String, Instant> = Default::default();
     loop {
         let unknown = shared.unknown.lock().is_ok_and(|u| !u.is_empty());
         if (unknown && asked.elapsed() >= ASK_AGAIN) || asked.elapsed() >= ASK_ALL {
             announcements(session, system, items);
             asked = Instant::now();
+        }
+        pace.observe();
+        shared
+            .request_bytes
+            .store(pace.request_bytes(), Ordering::Relaxed);
+        if let Some(d) = pace.delivered() {
+            shared.delivered.store(d.to_bits(), Ordering::Relaxed);
         }
         // Refill the bucket at the budget, less what arrived since (live included).
         let received = shared.received.load(Ordering::Relaxed);
@@ -112,11 +133,13 @@ pub(crate) fn run(
             *t = (*t + budget as f64 * dt - spent).min(budget as f64 * BURST.as_secs_f64());
         }
         last = (Instant::now(), received);
-        let allowance = tokens.map_or(MAX_ANSWER_BYTES, |t| t.max(0.0) as u64);
-        let work = (allowance >= MIN_REQUEST_BYTES.min(MAX_ANSWER_BYTES))
+        let allowance = tokens
+            .map_or(MAX_ANSWER_BYTES, |t| t.max(0.0) as u64)
+            .min(pace.request_bytes());
+        let work = (allowance >= MIN_REQUEST_BYTES)
             .then(|| {
                 quiet.retain(|_, until| *until > Instant::now());
-                next_request(shared, allowance, &quiet)
+                next_request(shared, allowance, &quiet, &turns)
             })
             .flatten();
         let Some((dnm, request)) = work else {
@@ -125,6 +148,8 @@ pub(crate) fn run(
                 _ => return,
             }
         };
+        turns.insert(request.topic.clone(), Instant::now());
+        let asked = Instant::now();
         match ask(session, system, &dnm, &request, items, &shared.received) {
             Some((answer, got)) => {
                 // What the answer brought is in the copy before the gaps are looked at again.
@@ -141,15 +166,21 @@ pub(crate) fn run(
                     rest = ?answer.rest,
                     "backfilled"
                 );
-                // Replies the link dropped: the stretch is asked for again, not settled.
+                // Replies the link dropped: the stretch is asked for again, not settled, and
+                // the link is asked for less.
                 if got == answer.messages {
+                    pace.answered(request.max_bytes, answer.bytes, asked.elapsed());
                     settle(shared, &request, &answer);
+                } else {
+                    recheck(shared, &request);
+                    pace.lost();
                 }
             }
             // No answer (the link is down): wait before asking again.
             None => {
                 tracing::debug!(topic = %request.topic, dnm, "no answer from the recording");
                 quiet.insert(dnm, Instant::now() + BACK_OFF);
+                pace.unheard();
             }
         }
         if !matches!(stop.try_recv(), Err(std::sync::mpsc::TryRecvError::Empty)) {
@@ -160,15 +191,19 @@ pub(crate) fn run(
 
 /// The request that fills the most urgent gap: the entry of the highest priority (lowest
 /// number) with gaps, its newest or oldest gap as its plan says; with the DNM to ask (none of
-/// the `quiet` ones, which did not answer lately).
+/// the `quiet` ones, which did not answer lately). Entries of one priority take turns (the
+/// one asked for longest ago first): a port's standard message and its `/raw` twin fill in
+/// together.
 fn next_request(
     shared: &Shared,
     max_bytes: u64,
     quiet: &std::collections::HashMap<String, Instant>,
+    turns: &std::collections::HashMap<String, Instant>,
 ) -> Option<(String, HistoryRequest)> {
     let settled = dnm_proto::clock::now_unix_ns().saturating_sub(SETTLE.as_nanos() as u64);
     let copies = shared.copies.lock().ok()?;
     let mut best: Option<(u8, String, Gap, String, bool, u64)> = None;
+    let last_turn = |topic: &str| turns.get(topic).copied();
     for (topic, c) in copies.iter() {
         let Some(a) = c.announce.as_ref().filter(|a| !quiet.contains_key(&a.dnm)) else {
             continue;
@@ -181,7 +216,10 @@ fn next_request(
             gaps.first()
         };
         let Some(gap) = gap else { continue };
-        if best.as_ref().is_none_or(|b| a.priority < b.0) {
+        let before = |b: &(u8, String, Gap, String, bool, u64)| {
+            a.priority < b.0 || (a.priority == b.0 && last_turn(topic) < last_turn(&b.1))
+        };
+        if best.as_ref().is_none_or(before) {
             best = Some((
                 a.priority,
                 topic.clone(),
@@ -290,6 +328,18 @@ fn written(items: &SyncSender<Item>) -> bool {
     items.send(Item::Barrier(tx)).is_ok() && rx.recv().is_ok()
 }
 
+/// An answer to `request` came back short: its stretch is asked for again.
+fn recheck(shared: &Shared, request: &HistoryRequest) {
+    if let Ok(mut copies) = shared.copies.lock()
+        && let Some(c) = copies.get_mut(&request.topic)
+    {
+        c.recheck(Gap {
+            from_ns: request.from_ns,
+            to_ns: request.to_ns,
+        });
+    }
+}
+
 /// Takes in what the recording said of the stretch asked for: a stretch it answered in full
 /// that is still a gap of the copy (nothing in it was new) holds nothing more to have, and is
 /// marked unrecorded (a gap that stays, never asked for again).
@@ -301,6 +351,20 @@ fn settle(shared: &Shared, request: &HistoryRequest, answer: &HistoryAnswer) {
         return;
     };
     c.recorded = answer.recorded;
+    // What the answer covered came whole.
+    let covered = match answer.rest {
+        None => Some((request.from_ns, request.to_ns)),
+        Some((from, _)) if !request.newest_first => Some((request.from_ns, from.saturating_sub(1))),
+        Some((_, to)) => Some((to.saturating_add(1), request.to_ns)),
+    };
+    if let Some((from_ns, to_ns)) = covered.filter(|(a, b)| a <= b) {
+        c.checked(Gap { from_ns, to_ns });
+    }
+    // What the budget cut off is asked for next, gap or not (a message or two left at the
+    // end of a stretch lie closer to those held than a gap).
+    if let Some((from_ns, to_ns)) = answer.rest.filter(|(a, b)| a <= b) {
+        c.recheck(Gap { from_ns, to_ns });
+    }
     let settled = dnm_proto::clock::now_unix_ns().saturating_sub(SETTLE.as_nanos() as u64);
     let unfilled = c
         .gaps(settled.max(request.to_ns))

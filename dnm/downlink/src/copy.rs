@@ -32,6 +32,9 @@ pub(crate) struct ChannelCopy {
     pub unrecorded: Vec<Gap>,
     /// The first and last log times of the channel in the rover's recording, as last heard.
     pub recorded: Option<(u64, u64)>,
+    /// Stretches whose answer came back short (the link dropped some of its replies): asked
+    /// for again whole, since a message lost alone leaves no gap between those held.
+    pub recheck: Vec<Gap>,
 }
 
 impl ChannelCopy {
@@ -99,6 +102,8 @@ impl ChannelCopy {
             }),
             _ => {}
         }
+        out.extend(self.recheck.iter().copied());
+        let mut out = merged(out);
         out.retain(|g| g.from_ns <= settled_ns);
         for g in &mut out {
             g.to_ns = g.to_ns.min(settled_ns);
@@ -115,16 +120,51 @@ impl ChannelCopy {
     /// Marks `gap` as a stretch the rover holds nothing of, merged with those it touches.
     pub fn unrecorded(&mut self, gap: Gap) {
         self.unrecorded.push(gap);
-        self.unrecorded.sort_by_key(|g| g.from_ns);
-        let mut merged: Vec<Gap> = Vec::with_capacity(self.unrecorded.len());
-        for g in self.unrecorded.drain(..) {
-            match merged.last_mut() {
-                Some(m) if g.from_ns <= m.to_ns.saturating_add(1) => m.to_ns = m.to_ns.max(g.to_ns),
-                _ => merged.push(g),
+        self.unrecorded = merged(std::mem::take(&mut self.unrecorded));
+    }
+
+    /// The answer for `asked` came back short: it is asked for again.
+    pub fn recheck(&mut self, asked: Gap) {
+        self.recheck.push(asked);
+        self.recheck = merged(std::mem::take(&mut self.recheck));
+    }
+
+    /// Every message of `covered` came: it needs no second look.
+    pub fn checked(&mut self, covered: Gap) {
+        let mut left = Vec::with_capacity(self.recheck.len());
+        for g in self.recheck.drain(..) {
+            if g.to_ns < covered.from_ns || g.from_ns > covered.to_ns {
+                left.push(g);
+                continue;
+            }
+            if g.from_ns < covered.from_ns {
+                left.push(Gap {
+                    from_ns: g.from_ns,
+                    to_ns: covered.from_ns - 1,
+                });
+            }
+            if g.to_ns > covered.to_ns {
+                left.push(Gap {
+                    from_ns: covered.to_ns + 1,
+                    to_ns: g.to_ns,
+                });
             }
         }
-        self.unrecorded = merged;
+        self.recheck = left;
     }
+}
+
+/// `gaps` sorted, those that overlap or touch made one.
+fn merged(mut gaps: Vec<Gap>) -> Vec<Gap> {
+    gaps.sort_by_key(|g| g.from_ns);
+    let mut out: Vec<Gap> = Vec::with_capacity(gaps.len());
+    for g in gaps {
+        match out.last_mut() {
+            Some(m) if g.from_ns <= m.to_ns.saturating_add(1) => m.to_ns = m.to_ns.max(g.to_ns),
+            _ => out.push(g),
+        }
+    }
+    out
 }
 
 /// How complete the ground's copy of one channel is.
@@ -209,8 +249,14 @@ pub struct RecordStatus {
     /// over the last seconds, live and backfill together.
     pub budget_bytes_per_s: Option<u64>,
     pub measured_bytes_per_s: f64,
+    /// The most one request of the backfill asks for now (what it may put in the link's
+    /// queues ahead of a command): smaller while the link drains less.
+    pub request_bytes: u64,
+    /// What the backfill's answers delivered lately, bytes a second.
+    pub delivered_bytes_per_s: Option<f64>,
     pub backlog_bytes: u64,
-    /// How long the backlog takes to clear at the budget.
+    /// How long the backlog takes to clear at the budget (or at what the answers delivered
+    /// lately, if less).
     pub seconds_to_clear: Option<f64>,
     /// Messages the rover's publishers could no longer give (gone from their caches before
     /// the ground asked; the recording still has them).
@@ -249,7 +295,14 @@ pub(crate) fn channel_statuses(copies: &Copies, settled_ns: u64) -> Vec<ChannelS
                 expected: received + missing,
                 first_unix_ns: c.held.first().map(|h| h.0),
                 last_unix_ns: c.held.last().map(|h| h.0),
-                oldest_gap: gaps.first().copied(),
+                // From where the rover's recording starts, once it said.
+                oldest_gap: gaps
+                    .iter()
+                    .map(|g| Gap {
+                        from_ns: g.from_ns.max(floor),
+                        to_ns: g.to_ns,
+                    })
+                    .find(|g| g.from_ns < g.to_ns),
                 gaps: gaps.len(),
                 backlog_bytes: missing * average,
                 unrecorded: c.unrecorded.clone(),
@@ -361,5 +414,52 @@ mod tests {
         let mut c = copy(100, &[1]);
         assert!(!c.take(1_000_000, 0, 10, true));
         assert_eq!((c.held.len(), c.duplicates, c.bytes), (1, 1, 10));
+    }
+
+    #[test]
+    fn a_stretch_answered_short_is_asked_for_again_until_answered_whole() {
+        // Every period held but one: a message lost alone is no gap...
+        let mut c = copy(100, &[1, 100, 200, 400, 500, 600, 700, 800, 900]);
+        let ms = |m: u64| m * 1_000_000;
+        assert_eq!(c.gaps(ms(900)), vec![]);
+        // ...but the stretch whose answer came back short is one.
+        c.recheck(Gap {
+            from_ns: ms(150),
+            to_ns: ms(450),
+        });
+        c.recheck(Gap {
+            from_ns: ms(400),
+            to_ns: ms(650),
+        });
+        assert_eq!(
+            c.gaps(ms(900)),
+            vec![Gap {
+                from_ns: ms(150),
+                to_ns: ms(650)
+            }]
+        );
+        // An answer that covered its middle leaves both ends to ask for.
+        c.checked(Gap {
+            from_ns: ms(300),
+            to_ns: ms(500),
+        });
+        assert_eq!(
+            c.recheck,
+            vec![
+                Gap {
+                    from_ns: ms(150),
+                    to_ns: ms(300) - 1
+                },
+                Gap {
+                    from_ns: ms(500) + 1,
+                    to_ns: ms(650)
+                }
+            ]
+        );
+        c.checked(Gap {
+            from_ns: 0,
+            to_ns: ms(900),
+        });
+        assert_eq!(c.gaps(ms(900)), vec![]);
     }
 }

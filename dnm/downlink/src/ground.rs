@@ -16,6 +16,7 @@ use dnm_record::tap::ChannelDesc;
 
 use crate::backfill;
 use crate::copy::{Copies, RecordStatus, channel_statuses};
+use crate::pace::LinkProbe;
 use crate::protocol::Announce;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedSubscriber, AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
@@ -61,6 +62,9 @@ pub struct GroundRecordOptions {
     /// The downlink's budget in bytes a second (live and backfill together); none: what the
     /// link carries.
     pub budget_bytes_per_s: Option<u64>,
+    /// What the station measures of its command link: the backfill slows down when the
+    /// commands' round trips grow (none: it keeps to the budget alone).
+    pub link: Option<LinkProbe>,
 }
 
 pub(crate) enum Item {
@@ -110,7 +114,13 @@ impl GroundRecord {
             dir: dir.to_path_buf(),
             source,
         })?;
-        let (copies, next_index) = held(dir);
+        let (copies, next_index, announces) = held(dir);
+        if next_index > 0 {
+            // A station killed before it finished a file left no manifest of it.
+            if let Err(e) = dnm_record::session::write_manifest(dir) {
+                tracing::warn!("the ground session's manifest: {e}");
+            }
+        }
         let copies = Arc::new(Mutex::new(copies));
         let received = Arc::new(AtomicU64::new(0));
         let unknown: Unknown = Arc::default();
@@ -120,7 +130,7 @@ impl GroundRecord {
                 dir: dir.to_path_buf(),
                 index: next_index,
                 file: None,
-                descs: HashMap::new(),
+                announces,
                 pending: HashMap::new(),
                 unknown: unknown.clone(),
                 copies: copies.clone(),
@@ -185,6 +195,8 @@ impl GroundRecord {
                 .map_err(|e| GroundRecordError::Subscribe(e.to_string()))?;
         }
         let measured = Arc::new(AtomicU64::new(0));
+        let request_bytes = Arc::new(AtomicU64::new(0));
+        let delivered = Arc::new(AtomicU64::new(0));
         let (stop_backfill, stop) = mpsc::sync_channel::<()>(1);
         let backfill = {
             let shared = backfill::Shared {
@@ -192,6 +204,9 @@ impl GroundRecord {
                 received,
                 measured: measured.clone(),
                 budget_bytes_per_s: options.budget_bytes_per_s,
+                probe: options.link.clone(),
+                request_bytes: request_bytes.clone(),
+                delivered: delivered.clone(),
                 unknown,
             };
             let session = session.clone();
@@ -208,6 +223,8 @@ impl GroundRecord {
                 copies,
                 missed,
                 measured,
+                request_bytes,
+                delivered,
                 budget_bytes_per_s: options.budget_bytes_per_s,
             },
             data: Some(data),
@@ -241,6 +258,8 @@ pub struct StatusSource {
     copies: Arc<Mutex<Copies>>,
     missed: Arc<AtomicU64>,
     measured: Arc<AtomicU64>,
+    request_bytes: Arc<AtomicU64>,
+    delivered: Arc<AtomicU64>,
     budget_bytes_per_s: Option<u64>,
 }
 
@@ -263,16 +282,22 @@ impl StatusSource {
             .map(|c| channel_statuses(&c, settled))
             .unwrap_or_default();
         let backlog_bytes = channels.iter().map(|c| c.backlog_bytes).sum();
+        let delivered = f64::from_bits(self.delivered.load(Ordering::Relaxed));
+        let delivered = (delivered > 0.0).then_some(delivered);
+        // At the budget, or at what the link delivered lately if that is less.
+        let rate = match (self.budget_bytes_per_s.map(|b| b as f64), delivered) {
+            (Some(b), Some(d)) => Some(b.min(d)),
+            (b, d) => b.or(d),
+        };
         RecordStatus {
             dir: self.dir.display().to_string(),
             channels,
             budget_bytes_per_s: self.budget_bytes_per_s,
             measured_bytes_per_s: f64::from_bits(self.measured.load(Ordering::Relaxed)),
+            request_bytes: self.request_bytes.load(Ordering::Relaxed),
+            delivered_bytes_per_s: delivered,
             backlog_bytes,
-            seconds_to_clear: self
-                .budget_bytes_per_s
-                .filter(|b| *b > 0)
-                .map(|b| backlog_bytes as f64 / b as f64),
+            seconds_to_clear: rate.filter(|r| *r > 0.0).map(|r| backlog_bytes as f64 / r),
             missed_live: self.missed.load(Ordering::Relaxed),
         }
     }
@@ -321,9 +346,59 @@ fn subscribe(
         .map_err(|e| GroundRecordError::Subscribe(format!("{key}: {e}")))
 }
 
-/// What the session's files already hold, by channel, and the index of the next file.
-fn held(dir: &Path) -> (Copies, u64) {
+/// Channel metadata keys holding a channel's plan in the ground's files, for a restarted
+/// station to know it before the rover announces it again.
+const PLAN_DNM: &str = "dnm.downlink.dnm";
+const PLAN_PERIOD: &str = "dnm.downlink.period_ns";
+const PLAN_PRIORITY: &str = "dnm.downlink.priority";
+const PLAN_ORDER: &str = "dnm.downlink.order";
+
+/// A channel's metadata in the ground's files: the rover's, and its plan.
+fn plan_metadata(a: &Announce) -> std::collections::BTreeMap<String, String> {
+    let mut m = a.desc.metadata.clone();
+    m.insert(PLAN_DNM.into(), a.dnm.clone());
+    if let Some(p) = a.period_ns {
+        m.insert(PLAN_PERIOD.into(), p.to_string());
+    }
+    m.insert(PLAN_PRIORITY.into(), a.priority.to_string());
+    let order = if a.newest_first {
+        "newest_first"
+    } else {
+        "oldest_first"
+    };
+    m.insert(PLAN_ORDER.into(), order.into());
+    m
+}
+
+/// The announcement a channel of the ground's files was written with.
+fn announce_of(channel: &mcap::Channel<'_>) -> Option<Announce> {
+    let mut metadata = channel.metadata.clone();
+    let dnm = metadata.remove(PLAN_DNM)?;
+    let period_ns = metadata.remove(PLAN_PERIOD).and_then(|p| p.parse().ok());
+    let priority = metadata.remove(PLAN_PRIORITY)?.parse().ok()?;
+    let newest_first = metadata.remove(PLAN_ORDER)? == "newest_first";
+    let schema = channel.schema.as_ref()?;
+    Some(Announce {
+        dnm,
+        desc: ChannelDesc {
+            topic: channel.topic.clone(),
+            schema_name: schema.name.clone(),
+            schema_encoding: schema.encoding.clone(),
+            schema: String::from_utf8_lossy(&schema.data).into_owned(),
+            message_encoding: channel.message_encoding.clone(),
+            metadata,
+        },
+        period_ns,
+        priority,
+        newest_first,
+    })
+}
+
+/// What the session's files already hold, by channel; the index of the next file; the
+/// channels' announcements as written.
+fn held(dir: &Path) -> (Copies, u64, HashMap<String, Announce>) {
     let mut copies = Copies::new();
+    let mut announces = HashMap::new();
     let mut next = 0;
     let files = dnm_record::session::files(dir).unwrap_or_default();
     for path in files {
@@ -345,6 +420,12 @@ fn held(dir: &Path) -> (Copies, u64) {
         }
         // A file of a killed station ends with its last whole chunk.
         for m in dnm_record::messages(&bytes).map_while(Result::ok) {
+            if !announces.contains_key(&m.channel.topic)
+                && let Some(a) = announce_of(&m.channel)
+            {
+                announces.insert(m.channel.topic.clone(), a.clone());
+                copies.entry(m.channel.topic.clone()).or_default().announce = Some(a);
+            }
             copies.entry(m.channel.topic.clone()).or_default().take(
                 m.log_time,
                 m.sequence,
@@ -353,7 +434,7 @@ fn held(dir: &Path) -> (Copies, u64) {
             );
         }
     }
-    (copies, next)
+    (copies, next, announces)
 }
 
 type McapWriter = mcap::Writer<BufWriter<File>>;
@@ -377,7 +458,8 @@ struct Writer {
     /// Of the next file.
     index: u64,
     file: Option<OpenFile>,
-    descs: HashMap<String, ChannelDesc>,
+    /// Each channel's announcement (the newest heard, or as the session's files hold it).
+    announces: HashMap<String, Announce>,
     /// Messages of channels whose description has not arrived yet.
     pending: HashMap<String, Vec<Pending>>,
     /// Their topics, for the backfill to ask for their announcements.
@@ -395,7 +477,7 @@ impl Writer {
                 }
                 Ok(Item::Announce(a)) => {
                     let topic = a.desc.topic.clone();
-                    self.descs.insert(topic.clone(), a.desc.clone());
+                    self.announces.insert(topic.clone(), a.clone());
                     if let Ok(mut u) = self.unknown.lock() {
                         u.remove(&topic);
                     }
@@ -415,7 +497,7 @@ impl Writer {
                     data,
                     backfilled,
                 }) => {
-                    if self.descs.contains_key(&topic) {
+                    if self.announces.contains_key(&topic) {
                         self.write(&topic, log_time, sequence, &data, backfilled)?;
                     } else {
                         if let Ok(mut u) = self.unknown.lock() {
@@ -455,9 +537,10 @@ impl Writer {
         if self.file.is_none() {
             self.file = Some(self.open()?);
         }
-        let Some(desc) = self.descs.get(topic) else {
+        let Some(a) = self.announces.get(topic) else {
             return Ok(());
         };
+        let desc = &a.desc;
         let Some(f) = self.file.as_mut() else {
             return Ok(());
         };
@@ -474,7 +557,7 @@ impl Writer {
                     .map_err(|e| e.to_string())?;
                 let id = f
                     .writer
-                    .add_channel(schema, topic, &desc.message_encoding, &desc.metadata)
+                    .add_channel(schema, topic, &desc.message_encoding, &plan_metadata(a))
                     .map_err(|e| e.to_string())?;
                 f.channels.insert(topic.to_string(), id);
                 id

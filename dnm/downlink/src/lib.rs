@@ -18,17 +18,20 @@
 //!   rover's format. A backfill thread finds the
 //!   gaps the caches could not fill and asks the recordings for them, entries by priority,
 //!   newest or oldest first, at the `background` priority, within the byte budget the operator
-//!   sets (live traffic spends it too). A message held already is never written twice; a
+//!   sets (live traffic spends it too), and slower when the station's commands show the link
+//!   queueing (see [`LinkProbe`]). A message held already is never written twice; a
 //!   stretch the rover recorded nothing of is reported as a gap, not silently absent.
 
 mod backfill;
 mod copy;
 mod ground;
 mod history;
+mod pace;
 pub mod protocol;
 mod rover;
 
 pub use copy::{ChannelStatus, Gap, RecordStatus, TIMELINE_BINS, Timeline};
 pub use ground::{GroundRecord, GroundRecordError, GroundRecordOptions, StatusSource};
 pub use history::{HistoryServer, HistoryStartError};
+pub use pace::{LinkProbe, LinkSample};
 pub use rover::{CACHE_SECONDS, DownlinkTap};

@@ -1,6 +1,7 @@
 //! The ground's copy filled from a rover's recording over real Zenoh sessions: the stretch the
 //! ground never heard live comes from the recording files, decimated as the plan says, and the
-//! stretch of a file the rover lost is reported as a gap the rover never recorded.
+//! stretch of a file the rover lost is reported as a gap the rover never recorded; a station
+//! started again knows its channels' plans from its own files.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests: failing loudly is right
 
@@ -129,6 +130,7 @@ fn the_ground_fills_its_copy_from_the_recording_and_reports_what_the_rover_lost(
         &GroundRecordOptions {
             dir: ground_dir.clone(),
             budget_bytes_per_s: Some(BUDGET),
+            link: None,
         },
     )
     .unwrap();
@@ -167,7 +169,26 @@ fn the_ground_fills_its_copy_from_the_recording_and_reports_what_the_rover_lost(
         {
             break (s, c);
         }
-        assert!(Instant::now() < deadline, "gave up waiting: {s:?}");
+        if Instant::now() >= deadline {
+            let mut held = std::collections::BTreeSet::new();
+            for f in dnm_record::session::files(&ground_dir).unwrap() {
+                let bytes = std::fs::read(f).unwrap();
+                for m in dnm_record::messages(&bytes).map_while(Result::ok) {
+                    held.insert(m.log_time);
+                }
+            }
+            let missing: Vec<_> = planned
+                .iter()
+                .filter(|t| !held.contains(t))
+                .map(|t| (t - t0) / 1_000_000)
+                .collect();
+            let extra: Vec<_> = held
+                .iter()
+                .filter(|t| !planned.contains(t))
+                .map(|t| (t - t0) / 1_000_000)
+                .collect();
+            panic!("gave up waiting: missing {missing:?} extra {extra:?} {s:?}");
+        }
         std::thread::sleep(Duration::from_millis(200));
     };
     let took = started.elapsed();
@@ -207,5 +228,25 @@ fn the_ground_fills_its_copy_from_the_recording_and_reports_what_the_rover_lost(
     assert_eq!(held, planned);
     let manifest = dnm_record::session::manifest(&ground_dir).unwrap();
     assert_eq!(manifest.messages as usize, planned.len());
+    // A station started again while the rover is silent knows the channel's plan from its
+    // own files: what it holds and what it misses, not a copy that looks whole.
+    drop((tap, _history));
+    let again = GroundRecord::start(
+        &ground,
+        "sys",
+        &GroundRecordOptions {
+            dir: ground_dir.clone(),
+            budget_bytes_per_s: Some(BUDGET),
+            link: None,
+        },
+    )
+    .unwrap();
+    let s = again.status();
+    let c = s.channels.iter().find(|c| c.topic == TOPIC).unwrap();
+    assert_eq!(c.rate_hz, Some(10.0), "{s:?}");
+    assert_eq!(c.dnm.as_deref(), Some("rover"), "{s:?}");
+    assert_eq!(c.received as usize, planned.len(), "{s:?}");
+    assert!(c.expected > c.received && c.gaps > 0, "{s:?}");
+    drop(again);
     let _ = std::fs::remove_dir_all(&root);
 }
