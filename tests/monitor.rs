@@ -53,6 +53,8 @@ struct Rrd {
     rows: BTreeMap<String, usize>,
     edges: Vec<(i64, BTreeSet<(String, String)>)>,
     blueprint_messages: usize,
+    /// Times of the rows, per entity.
+    times: BTreeMap<String, Vec<i64>>,
 }
 
 fn read(path: &Path) -> Rrd {
@@ -62,6 +64,7 @@ fn read(path: &Path) -> Rrd {
         rows: BTreeMap::new(),
         edges: Vec::new(),
         blueprint_messages: 0,
+        times: BTreeMap::new(),
     };
     let edges_id = rerun::GraphEdges::descriptor_edges().component;
     for msg in DecoderApp::decode_eager(BufReader::new(file)).unwrap() {
@@ -76,6 +79,12 @@ fn read(path: &Path) -> Rrd {
         let entity = chunk.entity_path().to_string();
         *rrd.rows.entry(entity.clone()).or_default() += chunk.num_rows();
         rrd.entities.insert(entity.clone());
+        if let Some(t) = chunk.timelines().get(&"time".into()) {
+            rrd.times
+                .entry(entity.clone())
+                .or_default()
+                .extend(t.times_raw());
+        }
         if entity == "/graph" {
             let times: Vec<i64> = chunk
                 .iter_component_indices("time".into(), edges_id)
@@ -191,6 +200,86 @@ fn the_demo_mission_saved_through_the_monitor_reads_back_in_rerun() {
         seen,
         vec![&teleop, &auto, &teleop],
         "edge sets drawn in order: {seen:#?}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Two Zenoh peers on loopback: (the station's, the monitor's).
+fn peers() -> (zenoh::Session, zenoh::Session) {
+    use zenoh::Wait;
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let config = |key: &str| {
+        let mut c = zenoh::Config::default();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        c.insert_json5(key, &format!("[\"tcp/127.0.0.1:{port}\"]"))
+            .unwrap();
+        c
+    };
+    let station = zenoh::open(config("listen/endpoints")).wait().unwrap();
+    let monitor = zenoh::open(config("connect/endpoints")).wait().unwrap();
+    (station, monitor)
+}
+
+#[test]
+fn what_a_station_fills_in_is_drawn_where_it_belongs_in_time() {
+    use zenoh::Wait;
+    let dir = std::env::temp_dir().join(format!("dnm-monitor-filled-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let rrd_path = dir.join("filled.rrd");
+    let (station, monitor) = peers();
+    let system = "filledsys";
+    let rec = rerun::RecordingStreamBuilder::new("filled")
+        .save(&rrd_path)
+        .unwrap();
+    let mut options = dnm_monitor::MonitorOptions::new(system);
+    options.duration = Some(std::time::Duration::from_secs(6));
+    let run = {
+        let rec = rec.clone();
+        std::thread::spawn(move || {
+            let stop = std::sync::atomic::AtomicBool::new(false);
+            dnm_monitor::run(&monitor, &rec, &options, &stop).unwrap()
+        })
+    };
+    // Give the monitor's subscription time to reach the station's peer.
+    std::thread::sleep(std::time::Duration::from_secs(2));
+    // An outage ten minutes ago, filled in: forty poses, half a second apart, then a second
+    // stretch a minute later.
+    let t0 = dnm_proto::clock::now_unix_ns() - 600_000_000_000;
+    let mut sent = Vec::new();
+    for i in 0..40u64 {
+        let t = t0 + i * 500_000_000 + if i >= 20 { 60_000_000_000 } else { 0 };
+        let pose = serde_json::json!({"x": i as f64 * 0.1, "y": 1.0, "yaw": 0.0, "v": 0.2});
+        station
+            .put(
+                dnm_proto::keys::ground_filled(system, "rover", "odometry", "odom"),
+                serde_json::to_vec(&pose).unwrap(),
+            )
+            .attachment(dnm_proto::keys::encode_downlink(t, i as u32).to_vec())
+            .wait()
+            .unwrap();
+        sent.push(t as i64);
+    }
+    let stats = run.join().unwrap();
+    drop(rec);
+    assert_eq!(stats.filled, 40, "{stats:?}");
+    let rrd = read(&rrd_path);
+    // Each field's series holds the filled-in values at their send times, in the past.
+    let times = rrd.times.get("/series/odometry/odom/x").unwrap();
+    for t in &sent {
+        assert!(times.contains(t), "no x at {t}: {times:?}");
+    }
+    let poses = rrd.times.get("/world/odometry").unwrap();
+    assert!(sent.iter().all(|t| poses.contains(t)), "{poses:?}");
+    // The filled-in path, in two stretches.
+    assert!(
+        rrd.entities.contains("/world/paths/odometry/filled"),
+        "{:?}",
+        rrd.entities
     );
     let _ = std::fs::remove_dir_all(&dir);
 }

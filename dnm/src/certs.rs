@@ -540,7 +540,18 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
                 keys::authority_beat(sys),
                 keys::watch_all(sys, keys::WatchRate::Hz10),
                 keys::watch_all(sys, keys::WatchRate::Hz1),
+                // What stations filled in of their record, drawn by monitors.
+                keys::ground_filled_all(sys),
             ],
+        }),
+        // A station tells the ground's monitors what it filled in of its record (on the
+        // ground's keys only: nothing a rover's DNM reads).
+        json!({
+            "id": "fill",
+            "flows": ["ingress"],
+            "permission": "allow",
+            "messages": ["put"],
+            "key_exprs": [keys::ground_filled_all(sys)],
         }),
         // A station keeps its own record of the rover: it subscribes to the downlink (with
         // history and recovery from the publishers' caches) and asks the recordings.
@@ -598,8 +609,10 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
             // An observer keeps no record: what it would ask of the recordings is the
             // operators' radio budget.
             Role::Observer => vec!["to-everyone", "read", "observe"],
-            Role::Operator if direct => vec!["to-everyone", "read", "watch", "command", "record"],
-            Role::Operator => vec!["to-everyone", "read", "watch", "record"],
+            Role::Operator if direct => {
+                vec!["to-everyone", "read", "watch", "command", "record", "fill"]
+            }
+            Role::Operator => vec!["to-everyone", "read", "watch", "record", "fill"],
             Role::Rover => vec!["to-everyone", "read", "watch", "to-node"],
             Role::Router => vec!["forward"],
         }

@@ -16,7 +16,11 @@
 //!   - `graph`: the live connection graph: modules as nodes placed in a column per DNM,
 //!     coloured by state, the active task's links as edges, redrawn on every switch, apply and
 //!     module state change;
-//!   - `log`: switches, applies, module faults and restarts, DNMs and links lost and found.
+//!   - `log`: switches, applies, module faults and restarts, DNMs and links lost and found;
+//!   - what a ground station filled in of its record after an outage
+//!     (`<system>/ground_filled/...`, see `dnm-downlink`): its time series and poses at their
+//!     send times, in the past of the timeline where the outage left them empty, and the
+//!     filled-in stretches of a path in blue under `world/paths/<module>/filled`.
 //! - **Layout.** A blueprint for a rover operator: world and camera on the left; the connection
 //!   graph, time series (a tab per module) and the log on the right.
 
@@ -76,6 +80,8 @@ pub struct MonitorStats {
     pub dropped: u64,
     pub revisions: u64,
     pub switches: u64,
+    /// Messages a station filled in of its record, drawn where they belong in time.
+    pub filled: u64,
 }
 
 enum Event {
@@ -92,6 +98,14 @@ enum Event {
     },
     /// An onboard sequence's event, as the authority published it.
     Sequence(dnm_proto::station::SequenceEvent),
+    /// A message a ground station filled in of its record (from the rover's recording, after
+    /// a gap), decoded, at its send time.
+    Filled {
+        module: String,
+        port: String,
+        value: Value,
+        unix_ns: u64,
+    },
 }
 
 /// Samples waiting for the logging thread at most; beyond, they are dropped and counted.
@@ -127,6 +141,36 @@ pub fn run(
             })
             .wait()
             .map_err(|e| anyhow::anyhow!("watching sequence events: {e}"))?
+    };
+    // What stations fill in of their record of the rover after an outage.
+    let _filled = {
+        let tx = tx.clone();
+        let system = options.system.clone();
+        session
+            .declare_subscriber(keys::ground_filled_all(&options.system))
+            .callback(move |sample| {
+                let Some((_, module, port)) =
+                    keys::ground_filled_port(&system, sample.key_expr().as_str())
+                else {
+                    return;
+                };
+                let Some((unix_ns, _)) = sample
+                    .attachment()
+                    .and_then(|a| keys::decode_downlink(&a.to_bytes()))
+                else {
+                    return;
+                };
+                if let Ok(value) = serde_json::from_slice(&sample.payload().to_bytes()) {
+                    let _ = tx.try_send(Event::Filled {
+                        module,
+                        port,
+                        value,
+                        unix_ns,
+                    });
+                }
+            })
+            .wait()
+            .map_err(|e| anyhow::anyhow!("watching what stations fill in: {e}"))?
     };
     let mut view = View::new(rec.clone(), options.clone());
     let result = view.run(session, &rx, &tx, &dropped, stop_when);
@@ -248,6 +292,8 @@ const PATH_STEP: f64 = 0.05;
 /// Points in one segment of a path: a path is logged as segments (`world/paths/<module>/<n>`),
 /// and only the growing one is logged again, so what is sent stays small on a long drive.
 const SEGMENT_POINTS: usize = 200;
+/// Filled-in poses further apart in time than this are stretches of their own.
+const FILLED_APART_NS: u64 = 5_000_000_000;
 /// Numeric fields of one sample drawn at most (a huge JSON array must not flood the viewer).
 const MAX_FIELDS: usize = 256;
 
@@ -279,6 +325,9 @@ struct View {
     events_seen: BTreeSet<(String, String, String, u64)>,
     switches_seen: BTreeSet<(String, u64, String, u64)>,
     paths: BTreeMap<String, Path>,
+    /// Poses filled in by stations, by module: send time → position.
+    filled: BTreeMap<String, BTreeMap<u64, [f32; 3]>>,
+    filled_dirty: BTreeSet<String>,
     stats: MonitorStats,
     blueprint_modules: Vec<String>,
 }
@@ -298,6 +347,8 @@ impl View {
             events_seen: BTreeSet::new(),
             switches_seen: BTreeSet::new(),
             paths: BTreeMap::new(),
+            filled: BTreeMap::new(),
+            filled_dirty: BTreeSet::new(),
             stats: MonitorStats::default(),
             blueprint_modules: Vec::new(),
         }
@@ -356,6 +407,23 @@ impl View {
                         level,
                         &format!("sequence `{}`{step}: {} {}", e.sequence, e.what, e.detail),
                     )?;
+                }
+                Ok(Event::Filled {
+                    module,
+                    port,
+                    value,
+                    unix_ns,
+                }) => {
+                    self.stats.filled += 1;
+                    self.rec
+                        .set_timestamp_nanos_since_epoch(TIMELINE, unix_ns as i64);
+                    if let Some((x, y, z)) = self.draw(&module, &port, &value)? {
+                        self.filled
+                            .entry(module.clone())
+                            .or_default()
+                            .insert(unix_ns, [x as f32, y as f32, z as f32]);
+                        self.filled_dirty.insert(module);
+                    }
                 }
                 Err(RecvTimeoutError::Timeout) => {}
                 Err(RecvTimeoutError::Disconnected) => break,
@@ -720,8 +788,31 @@ impl View {
             return Ok(());
         };
         let value = dnm_netlist::values::decode(message, bytes);
+        if let Some((x, y, z)) = self.draw(module, port, &value)? {
+            let path = self.paths.entry(module.to_string()).or_default();
+            let p = [x as f32, y as f32, z as f32];
+            let far = path.points.last().is_none_or(|q| {
+                let (dx, dy) = (q[0] - p[0], q[1] - p[1]);
+                f64::from(dx * dx + dy * dy).sqrt() >= PATH_STEP
+            });
+            if far {
+                path.points.push(p);
+                path.dirty = true;
+            }
+        }
+        Ok(())
+    }
+
+    /// Draws a message's fields at the time set: every numeric field as a time series, and a
+    /// pose (`x`, `y`, `yaw`) as the module's body in the world; the pose's position, if any.
+    fn draw(
+        &mut self,
+        module: &str,
+        port: &str,
+        value: &Value,
+    ) -> anyhow::Result<Option<(f64, f64, f64)>> {
         let mut fields = Vec::new();
-        numeric_fields("", &value, &mut fields);
+        numeric_fields("", value, &mut fields);
         fields.truncate(MAX_FIELDS);
         for (field, v) in &fields {
             self.rec.log(
@@ -759,22 +850,43 @@ impl View {
                     .with_colors([color])
                     .with_labels([if truth { "truth" } else { module }]),
             )?;
-            let path = self.paths.entry(module.to_string()).or_default();
-            let p = [x as f32, y as f32, z as f32];
-            let far = path.points.last().is_none_or(|q| {
-                let (dx, dy) = (q[0] - p[0], q[1] - p[1]);
-                f64::from(dx * dx + dy * dy).sqrt() >= PATH_STEP
-            });
-            if far {
-                path.points.push(p);
-                path.dirty = true;
+            return Ok(Some((x, y, z)));
+        }
+        Ok(None)
+    }
+
+    /// The stretches of a module's path that stations filled in, in blue (as the station's
+    /// page draws them), a strip per stretch.
+    fn flush_filled(&mut self) -> anyhow::Result<()> {
+        for m in std::mem::take(&mut self.filled_dirty) {
+            let Some(points) = self.filled.get(&m) else {
+                continue;
+            };
+            let mut strips: Vec<Vec<[f32; 3]>> = Vec::new();
+            let mut last: Option<u64> = None;
+            for (t, p) in points {
+                let apart = last.is_none_or(|l| t.saturating_sub(l) > FILLED_APART_NS);
+                match strips.last_mut() {
+                    Some(s) if !apart => s.push(*p),
+                    _ => strips.push(vec![*p]),
+                }
+                last = Some(*t);
             }
+            self.rec
+                .set_timestamp_nanos_since_epoch(TIMELINE, now_unix_ns() as i64);
+            self.rec.log(
+                format!("world/paths/{m}/filled"),
+                &rerun::LineStrips3D::new(strips)
+                    .with_colors([rerun::Color::from_rgb(70, 130, 230)])
+                    .with_radii([0.03]),
+            )?;
         }
         Ok(())
     }
 
     /// Paths are logged at most twice a second (they are whole strips).
     fn flush_paths(&mut self, all: bool) -> anyhow::Result<()> {
+        self.flush_filled()?;
         let due: Vec<String> = self
             .paths
             .iter()

@@ -35,6 +35,9 @@ const ASK_AGAIN: Duration = Duration::from_secs(3);
 const ASK_ALL: Duration = Duration::from_secs(30);
 /// How long a request waits for its answer.
 const ANSWER_TIMEOUT: Duration = Duration::from_secs(10);
+/// How often the netlist in force is asked for, to keep it in the ground's session (what a
+/// replay of it needs): a few kB each time.
+const NETLIST_EVERY: Duration = Duration::from_secs(600);
 /// How long a DNM that did not answer is left alone (the others' gaps go first meanwhile).
 const BACK_OFF: Duration = Duration::from_secs(5);
 
@@ -106,6 +109,8 @@ pub(crate) fn run(
     // The channels announced before this station listened.
     announcements(session, system, items);
     let mut asked = Instant::now();
+    // When the netlist in force is asked for next.
+    let mut netlist_due = Instant::now();
     // DNMs that did not answer, until when they are left alone.
     let mut quiet: std::collections::HashMap<String, Instant> = Default::default();
     // When each channel was last asked for: entries of one priority take turns.
@@ -115,6 +120,13 @@ pub(crate) fn run(
         if (unknown && asked.elapsed() >= ASK_AGAIN) || asked.elapsed() >= ASK_ALL {
             announcements(session, system, items);
             asked = Instant::now();
+        }
+        if Instant::now() >= netlist_due
+            && let Some(dnm) = any_dnm(shared)
+        {
+            // Not heard (the link is down): asked again as often as the announcements.
+            let heard = netlist(session, system, &dnm, items, &shared.received);
+            netlist_due = Instant::now() + if heard { NETLIST_EVERY } else { ASK_ALL };
         }
         pace.observe();
         shared
@@ -296,6 +308,45 @@ fn ask(
         }
     }
     answer.map(|a| (a, messages))
+}
+
+/// A DNM of the rover that announced a channel.
+fn any_dnm(shared: &Shared) -> Option<String> {
+    let copies = shared.copies.lock().ok()?;
+    copies
+        .values()
+        .find_map(|c| c.announce.as_ref().map(|a| a.dnm.clone()))
+}
+
+/// Asks DNM `dnm` for the netlist in force, for the writer to keep; whether it answered.
+fn netlist(
+    session: &zenoh::Session,
+    system: &str,
+    dnm: &str,
+    items: &SyncSender<Item>,
+    received: &AtomicU64,
+) -> bool {
+    let Ok(replies) = session
+        .get(keys::netlist(system, dnm))
+        .priority(Priority::Background)
+        .timeout(ANSWER_TIMEOUT)
+        .wait()
+    else {
+        return false;
+    };
+    while let Ok(reply) = replies.recv() {
+        let Ok(sample) = reply.result() else {
+            continue;
+        };
+        let bytes = sample.payload().to_bytes();
+        received.fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        if let Ok(n) = serde_json::from_slice::<dnm_proto::NetlistState>(&bytes)
+            && n.text.is_some()
+        {
+            return items.send(Item::Netlist(n)).is_ok();
+        }
+    }
+    false
 }
 
 /// Asks the rover's DNMs for the announcements of their downlinked channels.

@@ -16,6 +16,7 @@ use dnm_record::tap::ChannelDesc;
 
 use crate::backfill;
 use crate::copy::{Copies, RecordStatus, channel_statuses};
+use crate::filled::{Filled, Teller};
 use crate::pace::LinkProbe;
 use crate::protocol::Announce;
 use zenoh::Wait;
@@ -69,6 +70,9 @@ pub struct GroundRecordOptions {
 
 pub(crate) enum Item {
     Announce(Announce),
+    /// The netlist in force on the rover: kept in each file of the session, as the rover's
+    /// recorder keeps it (what a replay needs).
+    Netlist(dnm_proto::NetlistState),
     Message {
         topic: String,
         log_time: u64,
@@ -125,11 +129,14 @@ impl GroundRecord {
         let received = Arc::new(AtomicU64::new(0));
         let unknown: Unknown = Arc::default();
         let (tx, rx) = mpsc::sync_channel::<Item>(QUEUE);
+        let teller = Teller::start(session, system).map_err(GroundRecordError::Thread)?;
         let writer = {
             let mut w = Writer {
+                teller,
                 dir: dir.to_path_buf(),
                 index: next_index,
                 file: None,
+                netlist: None,
                 announces,
                 pending: HashMap::new(),
                 unknown: unknown.clone(),
@@ -447,6 +454,8 @@ struct OpenFile {
     opened: Instant,
     /// Bytes of messages written to it.
     bytes: u64,
+    /// Revisions of the netlists it holds.
+    netlists: std::collections::BTreeSet<u64>,
 }
 
 /// A message waiting for its channel's announcement: (log time, sequence, bytes, backfilled).
@@ -454,10 +463,14 @@ type Pending = (u64, u32, Vec<u8>, bool);
 
 /// The writer thread's state.
 struct Writer {
+    /// Tells the ground's monitors what was filled in.
+    teller: Teller,
     dir: PathBuf,
     /// Of the next file.
     index: u64,
     file: Option<OpenFile>,
+    /// The newest netlist heard from the rover: (revision, file, text).
+    netlist: Option<(u64, String, String)>,
     /// Each channel's announcement (the newest heard, or as the session's files hold it).
     announces: HashMap<String, Announce>,
     /// Messages of channels whose description has not arrived yet.
@@ -474,6 +487,18 @@ impl Writer {
             match items.recv_timeout(CHUNK_PERIOD) {
                 Ok(Item::Barrier(done)) => {
                     let _ = done.send(());
+                }
+                Ok(Item::Netlist(n)) => {
+                    if let Some(text) = n.text {
+                        let newer = self
+                            .netlist
+                            .as_ref()
+                            .is_none_or(|(r, _, _)| n.revision > *r);
+                        if newer {
+                            self.netlist = Some((n.revision, n.file.unwrap_or_default(), text));
+                        }
+                        self.write_netlist()?;
+                    }
                 }
                 Ok(Item::Announce(a)) => {
                     let topic = a.desc.topic.clone();
@@ -536,6 +561,7 @@ impl Writer {
         }
         if self.file.is_none() {
             self.file = Some(self.open()?);
+            self.write_netlist()?;
         }
         let Some(a) = self.announces.get(topic) else {
             return Ok(());
@@ -573,6 +599,14 @@ impl Writer {
             .write_to_known_channel(&header, data)
             .map_err(|e| e.to_string())?;
         f.bytes += data.len() as u64;
+        if backfilled {
+            self.teller.tell(Filled {
+                topic: topic.to_string(),
+                log_time: time,
+                sequence: seq,
+                data: data.to_vec(),
+            });
+        }
         // A session that runs for weeks is a series of files, each closed whole.
         if f.bytes >= ROTATE_BYTES || f.opened.elapsed() >= ROTATE_AFTER {
             self.finish_file()?;
@@ -603,7 +637,41 @@ impl Writer {
             last_flush: Instant::now(),
             opened: Instant::now(),
             bytes: 0,
+            netlists: Default::default(),
         })
+    }
+
+    /// Keeps the newest netlist heard in the file open, as the rover's recorder does: an
+    /// attachment `netlist-r<revision>.toml` and a `dnm.netlist` metadata record.
+    fn write_netlist(&mut self) -> Result<(), String> {
+        let (Some(f), Some((revision, file, text))) = (self.file.as_mut(), self.netlist.as_ref())
+        else {
+            return Ok(());
+        };
+        if !f.netlists.insert(*revision) {
+            return Ok(());
+        }
+        let now = dnm_proto::clock::now_unix_ns();
+        f.writer
+            .attach(&mcap::Attachment {
+                log_time: now,
+                create_time: now,
+                name: format!("netlist-r{revision}.toml"),
+                media_type: "application/toml".into(),
+                data: std::borrow::Cow::Borrowed(text.as_bytes()),
+            })
+            .map_err(|e| e.to_string())?;
+        let metadata = std::collections::BTreeMap::from([
+            ("revision".to_string(), revision.to_string()),
+            ("file".to_string(), file.clone()),
+            ("text".to_string(), text.clone()),
+        ]);
+        f.writer
+            .write_metadata(&mcap::records::Metadata {
+                name: "dnm.netlist".into(),
+                metadata,
+            })
+            .map_err(|e| e.to_string())
     }
 
     /// Finishes a chunk every [`CHUNK_PERIOD`]: a killed station leaves a readable file.

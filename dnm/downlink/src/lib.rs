@@ -20,10 +20,13 @@
 //!   newest or oldest first, at the `background` priority, within the byte budget the operator
 //!   sets (live traffic spends it too), and slower when the station's commands show the link
 //!   queueing (see [`LinkProbe`]). A message held already is never written twice; a
-//!   stretch the rover recorded nothing of is reported as a gap, not silently absent.
+//!   stretch the rover recorded nothing of is reported as a gap, not silently absent. What is
+//!   filled in is told to the ground's monitors, decoded, on `<system>/ground_filled/...`, for
+//!   them to draw where it belongs in time.
 
 mod backfill;
 mod copy;
+mod filled;
 mod ground;
 mod history;
 mod pace;

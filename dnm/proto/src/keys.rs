@@ -186,6 +186,28 @@ pub fn downlink_topic(system: &str, key: &str) -> Option<String> {
     (!rest.is_empty() && !rest.split('/').any(str::is_empty)).then(|| format!("/{rest}"))
 }
 
+/// What a station filled in of its record of the rover (from the rover's recording, after a
+/// gap), for the ground's monitors to draw where it belongs in time:
+/// `<system>/ground_filled/<dnm>/<module>/<port>`, each message's fields as JSON, with
+/// [`encode_downlink`]'s attachment.
+pub fn ground_filled(system: &str, dnm: &str, module: &str, port: &str) -> String {
+    format!("{system}/ground_filled/{dnm}/{module}/{port}")
+}
+
+/// Everything stations fill in: `<system>/ground_filled/**`.
+pub fn ground_filled_all(system: &str) -> String {
+    format!("{system}/ground_filled/**")
+}
+
+/// The (DNM, module, port) of a key made by [`ground_filled`].
+pub fn ground_filled_port(system: &str, key: &str) -> Option<(String, String, String)> {
+    let rest = key.strip_prefix(system)?.strip_prefix("/ground_filled/")?;
+    let mut parts = rest.split('/');
+    let (d, m, p) = (parts.next()?, parts.next()?, parts.next()?);
+    let ok = parts.next().is_none() && ![d, m, p].iter().any(|s| s.is_empty());
+    ok.then(|| (d.to_string(), m.to_string(), p.to_string()))
+}
+
 /// The attachment of a downlinked message: its log time (Unix ns) and sequence number, as
 /// the rover's recording holds them.
 pub fn encode_downlink(log_time: u64, sequence: u32) -> [u8; 12] {
@@ -335,5 +357,21 @@ mod tests {
         );
         assert_eq!(decode_header(&encode_header(&h)[..24]).unwrap().unix_ns, 0);
         assert!(decode_header(&[0; 3]).is_none());
+    }
+
+    #[test]
+    fn filled_keys_name_their_port() {
+        let k = ground_filled("rover", "main", "odometry", "odom");
+        assert_eq!(k, "rover/ground_filled/main/odometry/odom");
+        assert_eq!(
+            ground_filled_port("rover", &k),
+            Some(("main".into(), "odometry".into(), "odom".into()))
+        );
+        assert_eq!(ground_filled_port("rover", "rover/ground_filled/a/b"), None);
+        assert_eq!(
+            ground_filled_port("rover", "rover/ground_filled/a//c"),
+            None
+        );
+        assert_eq!(ground_filled_port("other", &k), None);
     }
 }
