@@ -107,7 +107,7 @@ pub(crate) fn run(
         window: Default::default(),
     };
     // The channels announced before this station listened.
-    announcements(session, system, items);
+    announcements(session, system, items, stop);
     let mut asked = Instant::now();
     // When the netlist in force is asked for next.
     let mut netlist_due = Instant::now();
@@ -118,14 +118,14 @@ pub(crate) fn run(
     loop {
         let unknown = shared.unknown.lock().is_ok_and(|u| !u.is_empty());
         if (unknown && asked.elapsed() >= ASK_AGAIN) || asked.elapsed() >= ASK_ALL {
-            announcements(session, system, items);
+            announcements(session, system, items, stop);
             asked = Instant::now();
         }
         if Instant::now() >= netlist_due
             && let Some(dnm) = any_dnm(shared)
         {
             // Not heard (the link is down): asked again as often as the announcements.
-            let heard = netlist(session, system, &dnm, items, &shared.received);
+            let heard = netlist(session, system, &dnm, items, &shared.received, stop);
             netlist_due = Instant::now() + if heard { NETLIST_EVERY } else { ASK_ALL };
         }
         pace.observe();
@@ -162,7 +162,15 @@ pub(crate) fn run(
         };
         turns.insert(request.topic.clone(), Instant::now());
         let asked = Instant::now();
-        match ask(session, system, &dnm, &request, items, &shared.received) {
+        match ask(
+            session,
+            system,
+            &dnm,
+            &request,
+            items,
+            &shared.received,
+            stop,
+        ) {
             Some((answer, got)) => {
                 // What the answer brought is in the copy before the gaps are looked at again.
                 if !written(items) {
@@ -265,6 +273,7 @@ fn ask(
     request: &HistoryRequest,
     items: &SyncSender<Item>,
     received: &AtomicU64,
+    stop: &Receiver<()>,
 ) -> Option<(HistoryAnswer, u64)> {
     let json = serde_json::to_vec(request).ok()?;
     let replies = session
@@ -280,7 +289,7 @@ fn ask(
         .wait()
         .ok()?;
     let (mut answer, mut messages) = (None, 0u64);
-    while let Ok(reply) = replies.recv() {
+    while let Some(reply) = next_reply(&replies, stop) {
         let Ok(sample) = reply.result() else {
             continue;
         };
@@ -325,6 +334,7 @@ fn netlist(
     dnm: &str,
     items: &SyncSender<Item>,
     received: &AtomicU64,
+    stop: &Receiver<()>,
 ) -> bool {
     let Ok(replies) = session
         .get(keys::netlist(system, dnm))
@@ -334,7 +344,7 @@ fn netlist(
     else {
         return false;
     };
-    while let Ok(reply) = replies.recv() {
+    while let Some(reply) = next_reply(&replies, stop) {
         let Ok(sample) = reply.result() else {
             continue;
         };
@@ -350,7 +360,12 @@ fn netlist(
 }
 
 /// Asks the rover's DNMs for the announcements of their downlinked channels.
-fn announcements(session: &zenoh::Session, system: &str, items: &SyncSender<Item>) {
+fn announcements(
+    session: &zenoh::Session,
+    system: &str,
+    items: &SyncSender<Item>,
+    stop: &Receiver<()>,
+) {
     let Ok(replies) = session
         .get(keys::downlink_channels(system))
         .priority(Priority::Background)
@@ -360,7 +375,7 @@ fn announcements(session: &zenoh::Session, system: &str, items: &SyncSender<Item
         return;
     };
     let mut heard = 0;
-    while let Ok(reply) = replies.recv() {
+    while let Some(reply) = next_reply(&replies, stop) {
         if let Ok(sample) = reply.result()
             && let Ok(a) = serde_json::from_slice::<Announce>(&sample.payload().to_bytes())
         {
@@ -371,6 +386,21 @@ fn announcements(session: &zenoh::Session, system: &str, items: &SyncSender<Item
         }
     }
     tracing::debug!(heard, "asked for the downlink's channels");
+}
+
+/// The next reply to a query; none once its replies ended, or the backfill is stopped (a
+/// station told to stop does not wait out a query's timeout).
+fn next_reply<T>(
+    replies: &zenoh::handlers::FifoChannelHandler<T>,
+    stop: &Receiver<()>,
+) -> Option<T> {
+    loop {
+        match replies.recv_timeout(Duration::from_millis(200)) {
+            Ok(Some(r)) => return Some(r),
+            Ok(None) if matches!(stop.try_recv(), Err(std::sync::mpsc::TryRecvError::Empty)) => {}
+            _ => return None,
+        }
+    }
 }
 
 /// Waits until the writer wrote everything queued before; false if it is gone.

@@ -12,13 +12,13 @@ use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use dnm_proto::keys;
-use dnm_record::tap::ChannelDesc;
 
 use crate::backfill;
 use crate::copy::{Copies, RecordStatus, channel_statuses};
 use crate::filled::{Filled, Teller};
 use crate::pace::LinkProbe;
 use crate::protocol::Announce;
+use crate::resume::{held, plan_metadata};
 use zenoh::Wait;
 use zenoh_ext::{AdvancedSubscriber, AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
 
@@ -34,7 +34,7 @@ const PENDING: usize = 10_000;
 /// again from the caches when it restarts).
 const CHUNK_PERIOD: Duration = Duration::from_secs(1);
 /// File names of the ground's session: `ground-<n>.mcap`.
-const STEM: &str = "ground";
+pub(crate) const STEM: &str = "ground";
 /// A file of the session is closed and the next begun after this many bytes of messages...
 const ROTATE_BYTES: u64 = 512 << 20;
 /// ...or this long.
@@ -351,97 +351,6 @@ fn subscribe(
         .subscriber_detection()
         .wait()
         .map_err(|e| GroundRecordError::Subscribe(format!("{key}: {e}")))
-}
-
-/// Channel metadata keys holding a channel's plan in the ground's files, for a restarted
-/// station to know it before the rover announces it again.
-const PLAN_DNM: &str = "dnm.downlink.dnm";
-const PLAN_PERIOD: &str = "dnm.downlink.period_ns";
-const PLAN_PRIORITY: &str = "dnm.downlink.priority";
-const PLAN_ORDER: &str = "dnm.downlink.order";
-
-/// A channel's metadata in the ground's files: the rover's, and its plan.
-fn plan_metadata(a: &Announce) -> std::collections::BTreeMap<String, String> {
-    let mut m = a.desc.metadata.clone();
-    m.insert(PLAN_DNM.into(), a.dnm.clone());
-    if let Some(p) = a.period_ns {
-        m.insert(PLAN_PERIOD.into(), p.to_string());
-    }
-    m.insert(PLAN_PRIORITY.into(), a.priority.to_string());
-    let order = if a.newest_first {
-        "newest_first"
-    } else {
-        "oldest_first"
-    };
-    m.insert(PLAN_ORDER.into(), order.into());
-    m
-}
-
-/// The announcement a channel of the ground's files was written with.
-fn announce_of(channel: &mcap::Channel<'_>) -> Option<Announce> {
-    let mut metadata = channel.metadata.clone();
-    let dnm = metadata.remove(PLAN_DNM)?;
-    let period_ns = metadata.remove(PLAN_PERIOD).and_then(|p| p.parse().ok());
-    let priority = metadata.remove(PLAN_PRIORITY)?.parse().ok()?;
-    let newest_first = metadata.remove(PLAN_ORDER)? == "newest_first";
-    let schema = channel.schema.as_ref()?;
-    Some(Announce {
-        dnm,
-        desc: ChannelDesc {
-            topic: channel.topic.clone(),
-            schema_name: schema.name.clone(),
-            schema_encoding: schema.encoding.clone(),
-            schema: String::from_utf8_lossy(&schema.data).into_owned(),
-            message_encoding: channel.message_encoding.clone(),
-            metadata,
-        },
-        period_ns,
-        priority,
-        newest_first,
-    })
-}
-
-/// What the session's files already hold, by channel; the index of the next file; the
-/// channels' announcements as written.
-fn held(dir: &Path) -> (Copies, u64, HashMap<String, Announce>) {
-    let mut copies = Copies::new();
-    let mut announces = HashMap::new();
-    let mut next = 0;
-    let files = dnm_record::session::files(dir).unwrap_or_default();
-    for path in files {
-        let Some(n) = path
-            .file_stem()
-            .and_then(|s| s.to_str())
-            .and_then(|s| s.strip_prefix(&format!("{STEM}-")))
-            .and_then(|n| n.parse::<u64>().ok())
-        else {
-            continue;
-        };
-        next = next.max(n + 1);
-        let Ok(bytes) = std::fs::read(&path) else {
-            continue;
-        };
-        if dnm_record::check_layout(&bytes).is_err() {
-            tracing::warn!(file = %path.display(), "not read: its layout is not MCAP's");
-            continue;
-        }
-        // A file of a killed station ends with its last whole chunk.
-        for m in dnm_record::messages(&bytes).map_while(Result::ok) {
-            if !announces.contains_key(&m.channel.topic)
-                && let Some(a) = announce_of(&m.channel)
-            {
-                announces.insert(m.channel.topic.clone(), a.clone());
-                copies.entry(m.channel.topic.clone()).or_default().announce = Some(a);
-            }
-            copies.entry(m.channel.topic.clone()).or_default().take(
-                m.log_time,
-                m.sequence,
-                m.data.len(),
-                false,
-            );
-        }
-    }
-    (copies, next, announces)
 }
 
 type McapWriter = mcap::Writer<BufWriter<File>>;

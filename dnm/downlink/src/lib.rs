@@ -31,6 +31,7 @@ mod ground;
 mod history;
 mod pace;
 pub mod protocol;
+mod resume;
 mod rover;
 
 pub use copy::{ChannelStatus, Gap, RecordStatus, TIMELINE_BINS, Timeline};

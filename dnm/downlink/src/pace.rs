@@ -7,7 +7,7 @@
 //! beyond the least seen lately halves the request size, and so do an answer that came back
 //! short (the rover dropped replies its link could not take) or not at all, and the first
 //! uplink of an outage. An answer that took no longer than a command's round trip now plus
-//! its bytes at the budget (and a second) lets the next ask for half as much again. On a lossy
+//! its bytes at the budget (and a second) lets the next ask for twice as much. On a lossy
 //! link a command's round trip varies by seconds without any queue (a lost segment holds up
 //! what follows it until it is sent again): the least of the last few is taken, and what is
 //! allowed grows with the least round trip.
@@ -130,7 +130,7 @@ impl Pace {
         });
         // Drained quickly, and not a small remainder that says nothing of the link.
         if took <= rtt + transfer + QUICK && bytes * 2 >= asked {
-            self.size = (self.size + self.size / 2).min(self.ceiling);
+            self.size = (self.size * 2).min(self.ceiling);
         }
     }
 
@@ -239,7 +239,7 @@ mod tests {
         p.observe();
         // 0.6 s of round trip and the bytes at 8000 B/s, and a second: quick.
         p.answered(start, start, Duration::from_millis(1_400));
-        assert_eq!(p.request_bytes(), start + start / 2);
+        assert_eq!(p.request_bytes(), start * 2);
         // It waited one and a half seconds more: no more.
         let size = p.request_bytes();
         p.answered(
@@ -294,7 +294,7 @@ mod tests {
         p.answered(start / 2, start / 2, Duration::from_millis(100));
         p.last_cut = None;
         p.unheard();
-        assert_eq!(p.request_bytes(), (start / 2 + start / 4) / 2);
+        assert_eq!(p.request_bytes(), start / 2);
     }
 
     #[test]

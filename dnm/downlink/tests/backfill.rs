@@ -231,6 +231,12 @@ fn the_ground_fills_its_copy_from_the_recording_and_reports_what_the_rover_lost(
     // A station started again while the rover is silent knows the channel's plan from its
     // own files: what it holds and what it misses, not a copy that looks whole.
     drop((tap, _history));
+    // As a killed station leaves its file: no summary, no footer.
+    for f in dnm_record::session::files(&ground_dir).unwrap() {
+        let bytes = std::fs::read(&f).unwrap();
+        let footer = mcap::read::footer(&bytes).unwrap();
+        std::fs::write(&f, &bytes[..footer.summary_start as usize]).unwrap();
+    }
     let again = GroundRecord::start(
         &ground,
         "sys",
@@ -247,6 +253,10 @@ fn the_ground_fills_its_copy_from_the_recording_and_reports_what_the_rover_lost(
     assert_eq!(c.dnm.as_deref(), Some("rover"), "{s:?}");
     assert_eq!(c.received as usize, planned.len(), "{s:?}");
     assert!(c.expected > c.received && c.gaps > 0, "{s:?}");
+    // ...and the file the killed station left is whole again: the manifest counts it.
+    let manifest = dnm_record::session::manifest(&ground_dir).unwrap();
+    assert_eq!(manifest.messages as usize, planned.len(), "{manifest:?}");
+    assert!(manifest.files.iter().all(|f| f.complete), "{manifest:?}");
     drop(again);
     let _ = std::fs::remove_dir_all(&root);
 }
