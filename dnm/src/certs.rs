@@ -544,31 +544,6 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
                 keys::ground_filled_all(sys),
             ],
         }),
-        // A station tells the ground's monitors what it filled in of its record (on the
-        // ground's keys only: nothing a rover's DNM reads).
-        json!({
-            "id": "fill",
-            "flows": ["ingress"],
-            "permission": "allow",
-            "messages": ["put"],
-            "key_exprs": [keys::ground_filled_all(sys)],
-        }),
-        // A station keeps its own record of the rover: it subscribes to the downlink (with
-        // history and recovery from the publishers' caches) and asks the recordings.
-        json!({
-            "id": "record",
-            "flows": ["ingress"],
-            "permission": "allow",
-            "messages": ["query", "liveliness_query", "declare_subscriber",
-                         "declare_liveliness_subscriber", "liveliness_token"],
-            // (`**` never matches a verbatim chunk: zenoh-ext's `@adv` keys are named.)
-            "key_exprs": [
-                format!("{sys}/downlink/**"),
-                format!("{sys}/downlink/**/@adv/**"),
-                keys::downlink_channels(sys),
-                keys::downlink_history(sys, "*"),
-            ],
-        }),
         // The system's computers are asked (their DNMs' queryables) and their liveliness is
         // watched; what each may answer for is its own (below).
         json!({
@@ -589,6 +564,7 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
             "key_exprs": [all],
         }),
     ];
+    rules.extend(record_rules(sys));
     let direct = !commands.is_empty();
     if direct {
         rules.push(json!({
@@ -644,6 +620,38 @@ pub fn access_control(inv: &Inventory, netlist: &Netlist) -> Value {
         "subjects": subjects,
         "policies": policies,
     })
+}
+
+/// The rules of a station's record of the rover: what it asks and hears of the downlink, and
+/// what it tells the ground's monitors.
+fn record_rules(sys: &str) -> [Value; 2] {
+    [
+        // A station keeps its own record of the rover: it subscribes to the downlink (with
+        // history and recovery from the publishers' caches) and asks the recordings.
+        json!({
+            "id": "record",
+            "flows": ["ingress"],
+            "permission": "allow",
+            "messages": ["query", "liveliness_query", "declare_subscriber",
+                         "declare_liveliness_subscriber", "liveliness_token"],
+            // (`**` never matches a verbatim chunk: zenoh-ext's `@adv` keys are named.)
+            "key_exprs": [
+                format!("{sys}/downlink/**"),
+                format!("{sys}/downlink/**/@adv/**"),
+                keys::downlink_channels(sys),
+                keys::downlink_history(sys, "*"),
+            ],
+        }),
+        // A station tells the ground's monitors what it filled in of its record (on the
+        // ground's keys only: nothing a rover's DNM reads).
+        json!({
+            "id": "fill",
+            "flows": ["ingress"],
+            "permission": "allow",
+            "messages": ["put"],
+            "key_exprs": [keys::ground_filled_all(sys)],
+        }),
+    ]
 }
 
 /// A rule letting one identity send `messages` on `key_exprs`, by its id.
