@@ -644,6 +644,38 @@ fn the_ground_keeps_its_own_record_of_beetle_one_through_loss_a_minute_long_outa
         out.contains("/rover/odometry/odom") && out.contains("/rover/battery/state"),
         "{out}"
     );
+    // Its channels are the rover's own: the same standard ROS 2 schemas and encodings, as
+    // robotics tools (Rerun, Foxglove) read them in a rover's session.
+    let channel_of = |dir: &std::path::Path, topic: &str| {
+        support::mcap_files(dir).iter().find_map(|f| {
+            let bytes = std::fs::read(f).unwrap();
+            dnm_record::messages(&bytes)
+                .map_while(Result::ok)
+                .find(|m| m.channel.topic == topic)
+                .map(|m| {
+                    let s = m.channel.schema.as_ref().unwrap();
+                    let meta = m.channel.metadata.clone();
+                    let theirs = |k: &String| !k.starts_with("dnm.downlink.");
+                    (
+                        s.name.clone(),
+                        s.encoding.clone(),
+                        s.data.to_vec(),
+                        m.channel.message_encoding.clone(),
+                        meta.into_iter()
+                            .filter(|(k, _)| theirs(k))
+                            .collect::<Vec<_>>(),
+                    )
+                })
+        })
+    };
+    for topic in ["/rover/odometry/odom", "/rover/battery/state"] {
+        let (g, r) = (channel_of(&ground, topic), channel_of(&rover_rec, topic));
+        assert!(g.is_some() && g == r, "{topic}: {g:?} against {r:?}");
+    }
+    assert_eq!(
+        channel_of(&ground, "/rover/odometry/odom").unwrap().0,
+        "nav_msgs/msg/Odometry"
+    );
     // Like a rover's session, it keeps the netlist in force (what a replay needs).
     let netlists: Vec<String> = support::mcap_files(&ground)
         .iter()
