@@ -561,25 +561,7 @@ impl Writer {
             return Ok(());
         }
         let now = dnm_proto::clock::now_unix_ns();
-        f.writer
-            .attach(&mcap::Attachment {
-                log_time: now,
-                create_time: now,
-                name: format!("netlist-r{revision}.toml"),
-                media_type: "application/toml".into(),
-                data: std::borrow::Cow::Borrowed(text.as_bytes()),
-            })
-            .map_err(|e| e.to_string())?;
-        let metadata = std::collections::BTreeMap::from([
-            ("revision".to_string(), revision.to_string()),
-            ("file".to_string(), file.clone()),
-            ("text".to_string(), text.clone()),
-        ]);
-        f.writer
-            .write_metadata(&mcap::records::Metadata {
-                name: "dnm.netlist".into(),
-                metadata,
-            })
+        dnm_record::record::netlist_records(&mut f.writer, now, *revision, file, text)
             .map_err(|e| e.to_string())
     }
 

@@ -124,16 +124,7 @@ fn the_ground_fills_its_copy_from_the_recording_and_reports_what_the_rover_lost(
         priority: 1,
         backfill: Backfill::OldestFirst,
     };
-    let record = GroundRecord::start(
-        &ground,
-        "sys",
-        &GroundRecordOptions {
-            dir: ground_dir.clone(),
-            budget_bytes_per_s: Some(BUDGET),
-            link: None,
-        },
-    )
-    .unwrap();
+    let record = station(&ground, &ground_dir);
     // What the plan asks for of the files the rover still has.
     let mut planned = Vec::new();
     for range in [0..500u64, 1000..1500] {
@@ -228,35 +219,46 @@ fn the_ground_fills_its_copy_from_the_recording_and_reports_what_the_rover_lost(
     assert_eq!(held, planned);
     let manifest = dnm_record::session::manifest(&ground_dir).unwrap();
     assert_eq!(manifest.messages as usize, planned.len());
+    drop((tap, _history));
+    a_station_started_again_after_a_kill_knows_what_it_holds(&ground, &ground_dir, planned.len());
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// The ground's record of `sys` in `dir`, within [`BUDGET`].
+fn station(ground: &zenoh::Session, dir: &Path) -> GroundRecord {
+    let options = GroundRecordOptions {
+        dir: dir.to_path_buf(),
+        budget_bytes_per_s: Some(BUDGET),
+        link: None,
+    };
+    GroundRecord::start(ground, "sys", &options).unwrap()
+}
+
+/// Leaves the session in `dir` as a killed station does and starts a station on it again,
+/// the rover silent: it knows its channel's plan and the `planned` messages it holds.
+fn a_station_started_again_after_a_kill_knows_what_it_holds(
+    ground: &zenoh::Session,
+    dir: &Path,
+    planned: usize,
+) {
     // A station started again while the rover is silent knows the channel's plan from its
     // own files: what it holds and what it misses, not a copy that looks whole.
-    drop((tap, _history));
     // As a killed station leaves its file: no summary, no footer.
-    for f in dnm_record::session::files(&ground_dir).unwrap() {
+    for f in dnm_record::session::files(dir).unwrap() {
         let bytes = std::fs::read(&f).unwrap();
         let footer = mcap::read::footer(&bytes).unwrap();
         std::fs::write(&f, &bytes[..footer.summary_start as usize]).unwrap();
     }
-    let again = GroundRecord::start(
-        &ground,
-        "sys",
-        &GroundRecordOptions {
-            dir: ground_dir.clone(),
-            budget_bytes_per_s: Some(BUDGET),
-            link: None,
-        },
-    )
-    .unwrap();
+    let again = station(ground, dir);
     let s = again.status();
     let c = s.channels.iter().find(|c| c.topic == TOPIC).unwrap();
     assert_eq!(c.rate_hz, Some(10.0), "{s:?}");
     assert_eq!(c.dnm.as_deref(), Some("rover"), "{s:?}");
-    assert_eq!(c.received as usize, planned.len(), "{s:?}");
+    assert_eq!(c.received as usize, planned, "{s:?}");
     assert!(c.expected > c.received && c.gaps > 0, "{s:?}");
     // ...and the file the killed station left is whole again: the manifest counts it.
-    let manifest = dnm_record::session::manifest(&ground_dir).unwrap();
-    assert_eq!(manifest.messages as usize, planned.len(), "{manifest:?}");
+    let manifest = dnm_record::session::manifest(dir).unwrap();
+    assert_eq!(manifest.messages as usize, planned, "{manifest:?}");
     assert!(manifest.files.iter().all(|f| f.complete), "{manifest:?}");
     drop(again);
-    let _ = std::fs::remove_dir_all(&root);
 }

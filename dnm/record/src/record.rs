@@ -1024,25 +1024,33 @@ fn close(f: OpenFile, options: &RecordOptions) -> Result<(), String> {
 
 fn write_netlist(f: &mut OpenFile, revision: u64, file: &str, text: &str) -> Result<(), String> {
     let now = Clock::new().unix(monotonic_ns());
-    f.writer
-        .attach(&mcap::Attachment {
-            log_time: now,
-            create_time: now,
-            name: format!("netlist-r{revision}.toml"),
-            media_type: "application/toml".into(),
-            data: std::borrow::Cow::Borrowed(text.as_bytes()),
-        })
-        .map_err(|e| e.to_string())?;
+    netlist_records(&mut f.writer, now, revision, file, text).map_err(|e| e.to_string())
+}
+
+/// Keeps netlist `revision` (from `file`, its `text`) in a recording as every recording of
+/// ours does: an attachment `netlist-r<revision>.toml` and a `dnm.netlist` metadata record.
+pub fn netlist_records<W: std::io::Write + std::io::Seek>(
+    writer: &mut mcap::Writer<W>,
+    now_unix_ns: u64,
+    revision: u64,
+    file: &str,
+    text: &str,
+) -> Result<(), mcap::McapError> {
+    writer.attach(&mcap::Attachment {
+        log_time: now_unix_ns,
+        create_time: now_unix_ns,
+        name: format!("netlist-r{revision}.toml"),
+        media_type: "application/toml".into(),
+        data: std::borrow::Cow::Borrowed(text.as_bytes()),
+    })?;
     let mut meta = BTreeMap::new();
     meta.insert("revision".to_string(), revision.to_string());
     meta.insert("file".to_string(), file.to_string());
     meta.insert("text".to_string(), text.to_string());
-    f.writer
-        .write_metadata(&mcap::records::Metadata {
-            name: "dnm.netlist".into(),
-            metadata: meta,
-        })
-        .map_err(|e| e.to_string())
+    writer.write_metadata(&mcap::records::Metadata {
+        name: "dnm.netlist".into(),
+        metadata: meta,
+    })
 }
 
 fn write_loop(
