@@ -245,6 +245,33 @@ pub fn timed_latencies(
     lat
 }
 
+/// What the `latency` module `module` on DNM `dnm` measured, until `stop` is set: per sample,
+/// (CLOCK_MONOTONIC ns when this process read it, the sample's sequence number, its latency ns).
+/// The measured sample was sent at about the reading time less its latency.
+pub fn stamped_latencies(
+    system: &str,
+    dnm: &str,
+    module: &str,
+    stop: &std::sync::atomic::AtomicBool,
+) -> Vec<(u64, u64, u64)> {
+    let LatencyPort {
+        _node,
+        sub,
+        listener,
+    } = latency_port(system, dnm, module);
+    let mut got = Vec::new();
+    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+        listener
+            .timed_wait(|_| (), Duration::from_millis(100))
+            .unwrap();
+        while let Some(s) = sub.receive().unwrap() {
+            let t: Tick = bytemuck::pod_read_unaligned(s.payload());
+            got.push((dnm_module::protocol::monotonic_ns(), t.origin, t.seq));
+        }
+    }
+    got
+}
+
 /// A TCP port free on loopback right now.
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")

@@ -2,7 +2,7 @@
 //! tens of milliseconds, and a DNM's thread must stay free for a decided instant.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
@@ -30,8 +30,9 @@ struct Counts {
 }
 
 impl Janitor {
-    /// Starts the thread for the DNM `name` whose shared memory lives under `config`.
-    pub(crate) fn start(name: &str, config: Config) -> Self {
+    /// Starts the thread for the DNM `name` whose shared memory lives under `config`; a finished
+    /// sweep sets `prompt` and wakes the DNM.
+    pub(crate) fn start(name: &str, config: Config, prompt: Arc<AtomicBool>) -> Self {
         // One sweep waiting is enough: it covers every exit seen before it starts.
         let (tx, rx) = sync_channel(1);
         let counts = Arc::new(Counts::default());
@@ -39,7 +40,7 @@ impl Janitor {
         let dnm = name.to_string();
         let thread = std::thread::Builder::new()
             .name(format!("dnm-{name}-janitor"))
-            .spawn(move || sweep_loop(&dnm, &config, &rx, &c))
+            .spawn(move || sweep_loop(&dnm, &config, &rx, &c, &prompt))
             .map_err(|e| tracing::error!(dnm = name, "cannot start the janitor thread: {e}"))
             .ok();
         if thread.is_none() {
@@ -81,7 +82,7 @@ impl Drop for Janitor {
     }
 }
 
-fn sweep_loop(dnm: &str, config: &Config, rx: &Receiver<()>, counts: &Counts) {
+fn sweep_loop(dnm: &str, config: &Config, rx: &Receiver<()>, counts: &Counts, prompt: &AtomicBool) {
     let node = match NodeBuilder::new().config(config).create::<Svc>() {
         Ok(n) => n,
         Err(e) => {
@@ -95,9 +96,12 @@ fn sweep_loop(dnm: &str, config: &Config, rx: &Receiver<()>, counts: &Counts) {
         .and_then(|f| f.notifier_builder().create().ok());
     while rx.recv().is_ok() {
         let asked = counts.asked.load(Ordering::Relaxed);
+        let started = std::time::Instant::now();
         let cleaned = node.try_cleanup_dead_nodes().cleanups;
+        tracing::debug!(dnm, cleaned, took = ?started.elapsed(), "swept");
         counts.cleaned.fetch_add(cleaned, Ordering::Relaxed);
         counts.done.store(asked, Ordering::Release);
+        prompt.store(true, Ordering::Release);
         if let Some(w) = &waker {
             let _ = w.notify();
         }

@@ -29,6 +29,7 @@ pub mod answer;
 mod apply;
 mod command;
 mod error;
+mod exits;
 mod janitor;
 mod node;
 mod options;

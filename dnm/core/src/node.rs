@@ -24,6 +24,7 @@ use dnm_proto::{
 
 use crate::command::{Command, CommandKey, Reply};
 use crate::error::{DnmError, ipc};
+use crate::exits::Exits;
 use crate::janitor::Janitor;
 use crate::options::DnmOptions;
 use crate::pending::{Decided, HeldSwitch, NEAR, Outcome, PendingApply, QueuedApply, Scheduled};
@@ -145,6 +146,10 @@ pub struct Dnm {
     pub(crate) memory_read: Instant,
     pub(crate) cleaned: u64,
     pub(crate) janitor: Janitor,
+    /// Watches the module processes: an exit wakes the loop at once.
+    pub(crate) exits: Option<Exits>,
+    /// Set by the exit watch and the janitor: supervise at the next wake, not on the tick.
+    prompt: Arc<AtomicBool>,
     pub(crate) plugins: Vec<Box<dyn Plugin>>,
     answered: VecDeque<(CommandKey, Outcome)>,
     pub(crate) apply: Option<PendingApply>,
@@ -233,6 +238,7 @@ impl Dnm {
             .create()
             .map_err(ipc("status listener"))?;
         let (command_tx, commands) = std::sync::mpsc::sync_channel(COMMAND_QUEUE);
+        let prompt = Arc::new(AtomicBool::new(false));
         Ok(Self {
             system: system.into(),
             name: name.into(),
@@ -258,7 +264,9 @@ impl Dnm {
             memory: None,
             memory_read: Instant::now() - Duration::from_secs(2),
             cleaned,
-            janitor: Janitor::start(name, config.clone()),
+            janitor: Janitor::start(name, config.clone(), prompt.clone()),
+            exits: Exits::start(name, config.clone(), prompt.clone()),
+            prompt,
             plugins: Vec::new(),
             answered: VecDeque::new(),
             apply: None,
@@ -509,7 +517,7 @@ impl Dnm {
         self.supervision.period_ms = self.options.tick.as_millis() as u64;
         self.pass();
         loop {
-            let result = match self.until_due() {
+            let result = match self.next_wake() {
                 Some(t) => {
                     waitset.wait_and_process_once_with_timeout(|_| CallbackProgression::Continue, t)
                 }
@@ -553,7 +561,9 @@ impl Dnm {
             self.progress_apply();
             // Exits are noticed within a few milliseconds (the janitor thread removes their shared
             // memory), not on every module heartbeat; readings and snapshots follow the tick.
-            if self.last_supervise.elapsed() >= SUPERVISE_EVERY {
+            // An exit or a finished sweep asks for it at once.
+            let prompted = self.prompt.swap(false, Ordering::AcqRel);
+            if prompted || self.last_supervise.elapsed() >= SUPERVISE_EVERY {
                 self.last_supervise = Instant::now();
                 self.supervise();
             }
@@ -565,6 +575,20 @@ impl Dnm {
             }
         }
         Ok(())
+    }
+
+    /// How long the loop may wait: until a decided instant is near, or a module's start is due
+    /// (not while the instant's quiet keeps supervision waiting: the instant comes first).
+    fn next_wake(&self) -> Option<Duration> {
+        let start = if self.quiet() {
+            None
+        } else {
+            self.until_start()
+        };
+        match (self.until_due(), start) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
     }
 
     /// The periodic part of supervision: CPU and memory readings and a fresh snapshot for plugins

@@ -40,6 +40,9 @@ pub(crate) struct ModuleSlot {
     pub(crate) spawned_at: Instant,
     pub(crate) state: ModuleRunState,
     pub(crate) restarts: u32,
+    /// Restarts in a row, each after a run shorter than a healthy one (the count
+    /// `max_restarts` limits).
+    pub(crate) streak: u32,
     pub(crate) hangs: u32,
     /// Set when the DNM killed the process because it hung: its exit is reported as such.
     pub(crate) killed_hung: Option<String>,
@@ -110,6 +113,7 @@ impl ModuleSlot {
             spawned_at: Instant::now(),
             state: ModuleRunState::Starting,
             restarts: 0,
+            streak: 0,
             hangs: 0,
             killed_hung: None,
             start_at: None,
@@ -134,6 +138,7 @@ impl ModuleSlot {
         self.spec = entry.spec;
         self.source = entry.source;
         self.restarts = 0;
+        self.streak = 0;
         self.status = Status::default();
         self.rate = (Instant::now(), 0, 0.0);
         Ok(())

@@ -15,6 +15,18 @@ use crate::slot::{ModuleSlot, PortServices, Stopping};
 
 /// The largest back-off between restarts.
 const MAX_BACKOFF: Duration = Duration::from_secs(5);
+/// A process that ran this long before it exited ran healthy: it is restarted at once, and its
+/// restarts count from zero again (`max_restarts` limits restarts in a row, a crash loop).
+const HEALTHY_RUN: Duration = Duration::from_secs(5);
+
+/// The wait before the next restart of a module that has restarted `streak` times in a row:
+/// none after a healthy run, then 100 ms doubling to at most [`MAX_BACKOFF`].
+fn backoff(streak: u32) -> Duration {
+    match streak {
+        0 => Duration::ZERO,
+        n => Duration::from_millis(100 << (n - 1).min(6)).min(MAX_BACKOFF),
+    }
+}
 
 impl Dnm {
     /// Starts a module's process with its launch description.
@@ -56,6 +68,9 @@ impl Dnm {
             why: e.to_string(),
         })?;
         tracing::info!(dnm = %self.name, module = %slot.decl.name, pid = child.id(), "module started");
+        if let Some(exits) = &self.exits {
+            exits.watch(child.id());
+        }
         slot.child = Some(child);
         slot.spawned_at = Instant::now();
         slot.state = ModuleRunState::Starting;
@@ -124,10 +139,15 @@ impl Dnm {
                 // Heartbeats of a process we already replaced are ignored.
                 if Some(s.pid) == slot.pid() {
                     slot.status = *s;
-                    if slot.state == ModuleRunState::Starting
-                        && ModuleState::from_u32(s.state) == ModuleState::Running
-                    {
-                        slot.state = ModuleRunState::Running;
+                    if slot.state == ModuleRunState::Starting {
+                        if ModuleState::from_u32(s.state) == ModuleState::Running {
+                            slot.state = ModuleRunState::Running;
+                        } else {
+                            // Its first status: it subscribed to its plans, which it gets
+                            // now, not on the next supervision pass.
+                            let _ = slot.plan_pub.update_connections();
+                            let _ = slot.wake.notify();
+                        }
                     }
                 }
             }
@@ -240,6 +260,21 @@ impl Dnm {
         any_died
     }
 
+    /// How long until the soonest start that waits only for its time (none while a sweep is
+    /// under way: its end wakes the loop).
+    pub(crate) fn until_start(&self) -> Option<Duration> {
+        if !self.janitor.idle() {
+            return None;
+        }
+        let now = Instant::now();
+        self.modules
+            .iter()
+            .filter(|(n, s)| s.child.is_none() && !self.stopping.iter().any(|x| x.module == **n))
+            .filter_map(|(_, s)| s.start_at)
+            .min()
+            .map(|t| t.saturating_duration_since(now))
+    }
+
     /// Starts that are due: restarts after their back-off, replacements once the process they
     /// replace is gone and its shared memory removed (the sweep wakes this DNM).
     fn start_due(&mut self, now: Instant, events: &mut Vec<Event>) {
@@ -262,6 +297,7 @@ impl Dnm {
             let restart = slot.state == ModuleRunState::Failed;
             if restart {
                 slot.restarts += 1;
+                slot.streak += 1;
             }
             match self.spawn(&mut slot) {
                 Ok(()) => events.push((
@@ -273,7 +309,7 @@ impl Dnm {
                     tracing::error!(module = %name, "start failed: {e}");
                     slot.last_exit = Some(e.to_string());
                     let retry = slot.decl.restart.mode != RestartMode::Never
-                        && slot.restarts < slot.decl.restart.max_restarts;
+                        && slot.streak < slot.decl.restart.max_restarts;
                     if retry {
                         slot.state = ModuleRunState::Failed;
                         slot.start_at = Some(now + MAX_BACKOFF);
@@ -380,20 +416,21 @@ fn exited(
         None => why,
     };
     slot.last_exit = Some(why.clone());
+    if now.duration_since(slot.spawned_at) >= HEALTHY_RUN {
+        slot.streak = 0;
+    }
     let restart = match slot.decl.restart.mode {
         RestartMode::Always => true,
         RestartMode::OnFailure => !exit.success(),
         RestartMode::Never => false,
-    } && slot.restarts < slot.decl.restart.max_restarts;
+    } && slot.streak < slot.decl.restart.max_restarts;
     slot.state = if restart {
         ModuleRunState::Failed
     } else {
         ModuleRunState::Stopped
     };
     if restart {
-        // Back off: 100 ms, doubling to at most 5 s.
-        let backoff = Duration::from_millis(100 << slot.restarts.min(6)).min(MAX_BACKOFF);
-        slot.start_at = Some(now + backoff);
+        slot.start_at = Some(now + backoff(slot.streak));
     }
     tracing::warn!(dnm = %dnm, module = %name, exit = %why, restart, "module exited");
     (
@@ -436,7 +473,7 @@ fn liveness(
             );
             tracing::warn!(dnm = %dnm, module = %name, "{detail}");
             let restart = slot.decl.restart.mode != RestartMode::Never
-                && slot.restarts < slot.decl.restart.max_restarts;
+                && slot.streak < slot.decl.restart.max_restarts;
             if restart {
                 // The exit is noticed on a later pass and restarts it per its policy.
                 slot.killed_hung = Some(format!("hung: {detail}"));
@@ -451,5 +488,20 @@ fn liveness(
             ))
         }
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_restart_after_a_healthy_run_is_at_once_and_a_crash_loop_backs_off() {
+        assert_eq!(backoff(0), Duration::ZERO);
+        assert_eq!(backoff(1), Duration::from_millis(100));
+        assert_eq!(backoff(2), Duration::from_millis(200));
+        assert_eq!(backoff(6), Duration::from_millis(3200));
+        assert_eq!(backoff(7), MAX_BACKOFF);
+        assert_eq!(backoff(u32::MAX), MAX_BACKOFF);
     }
 }

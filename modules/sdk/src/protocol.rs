@@ -139,13 +139,22 @@ impl From<DnmConfigError> for String {
 }
 
 /// The iceoryx2 configuration of one DNM's namespace.
+///
+/// Its nodes are listed in a folder of their own (`nodes/<prefix>` under iceoryx2's root): a
+/// sweep for dead processes, which every restart waits for, then reads this namespace's few
+/// entries, not every node any system on the machine ever left behind.
 pub fn dnm_config(prefix: &str) -> Result<Config, DnmConfigError> {
+    let bad = |source| DnmConfigError::Prefix {
+        prefix: prefix.to_string(),
+        source,
+    };
     let mut config = Config::default();
-    config.global.prefix =
-        FileName::new(prefix.as_bytes()).map_err(|source| DnmConfigError::Prefix {
-            prefix: prefix.to_string(),
-            source,
-        })?;
+    config.global.prefix = FileName::new(prefix.as_bytes()).map_err(bad)?;
+    let mut nodes = config.global.node.directory;
+    nodes
+        .add_path_entry(&Path::new(prefix.as_bytes()).map_err(bad)?)
+        .map_err(bad)?;
+    config.global.node.directory = nodes;
     Ok(config)
 }
 

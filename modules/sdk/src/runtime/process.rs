@@ -198,6 +198,18 @@ struct Wake {
     woken: bool,
 }
 
+impl Wake {
+    /// The first step of a periodic module, without a wait.
+    fn first_step() -> Self {
+        Self {
+            result: WaitSetRunResult::AllEventsHandled,
+            ticked: true,
+            beat: false,
+            woken: false,
+        }
+    }
+}
+
 impl<'a> Process<'a> {
     /// Opens the module's side of its DNM's shared memory and builds the module.
     fn open(
@@ -235,6 +247,14 @@ impl<'a> Process<'a> {
             .notifier_builder()
             .create()
             .map_err(ipc("DNM notifier"))?;
+        // Subscribed to its plans: the DNM hands them over as soon as it reads this.
+        let hello = Status {
+            pid: std::process::id(),
+            state: ModuleState::Starting as u32,
+            ..Status::default()
+        };
+        status.send_copy(hello).map_err(ipc("status"))?;
+        notifier.notify().map_err(ipc("notify DNM"))?;
         let outputs = open_outputs(&node, &launch.module, &spec)?;
 
         let module = {
@@ -328,7 +348,12 @@ impl<'a> Process<'a> {
                 }
             }
 
-            let wake = waiter.wait()?;
+            // A periodic module steps as soon as it has a plan, not a period later.
+            let wake = if serving.first_step_due() {
+                Wake::first_step()
+            } else {
+                waiter.wait()?
+            };
             if wake.beat {
                 serving.heartbeat()?;
             }
@@ -442,6 +467,11 @@ impl Serving<'_> {
     fn stop(&mut self) -> Result<(), ModuleError> {
         self.status.state = ModuleState::Stopping as u32;
         self.publish_status()
+    }
+
+    /// A periodic module with a plan that has not stepped yet.
+    fn first_step_due(&self) -> bool {
+        self.period.is_some() && self.status.steps == 0 && !self.inputs.plans.is_empty()
     }
 
     /// Whether the module steps after this wake-up: a periodic module when its timer fired, an
