@@ -70,6 +70,13 @@ fn demo_mission_runs_headless_and_odometry_matches_ground_truth() {
     );
     let s: Value = serde_json::from_str(&stdout).unwrap();
     assert_eq!(s["ok"], true, "{s:#}");
+    // Nothing went wrong, so nothing warns: not even its DNMs stopping in order at the end.
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let warnings: Vec<&str> = stderr
+        .lines()
+        .filter(|l| l.contains("WARN") || l.contains("ERROR"))
+        .collect();
+    assert!(warnings.is_empty(), "{}", warnings.join("\n"));
     // Waypoints reached under the autopilot.
     assert_eq!(s["waypoints_total"], 3);
     assert_eq!(s["waypoints_reached"], 3);

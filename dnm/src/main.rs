@@ -85,6 +85,10 @@ struct RecordArgs {
     /// within the station's downlink budget.
     #[arg(long, default_value = "10s")]
     downlink_cache: String,
+    /// Start a new file of each recording after this long (e.g. `10m`); a file also ends at
+    /// 1 GiB.
+    #[arg(long, default_value = "1h")]
+    record_rotate: String,
 }
 
 impl RecordArgs {
@@ -98,10 +102,16 @@ impl RecordArgs {
         Ok(std::time::Duration::from_millis(ms.max(1000)))
     }
 
-    fn options(&self) -> Option<dnm::record::RecordOptions> {
+    fn options(&self) -> anyhow::Result<Option<dnm::record::RecordOptions>> {
         if self.no_record {
-            return None;
+            return Ok(None);
         }
+        let rotate_ms = dnm_netlist::parse_duration_ms(&self.record_rotate).with_context(|| {
+            format!(
+                "--record-rotate `{}`: write a duration, e.g. `10m`",
+                self.record_rotate
+            )
+        })?;
         let dir = self.record_dir.clone().unwrap_or_else(|| {
             std::env::var_os("DNM_RECORD_DIR")
                 .map(PathBuf::from)
@@ -109,7 +119,8 @@ impl RecordArgs {
         });
         let mut o = dnm::record::RecordOptions::timestamped(&dir);
         o.only = self.record_only.clone();
-        Some(o)
+        o.rotate_after = std::time::Duration::from_millis(rotate_ms.max(1000));
+        Ok(Some(o))
     }
 }
 
@@ -457,7 +468,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
                 keep_running,
                 json,
                 teleop_s: teleop_seconds,
-                record: record.options(),
+                record: record.options()?,
                 rerun: match (rerun, rerun_save) {
                     (_, Some(path)) => Some(demo::RerunOut::Save(path)),
                     (true, None) => Some(demo::RerunOut::Auto),
@@ -518,7 +529,7 @@ fn up(
         dnms
     };
     let mut options = HostOptions::standard().context("locating the module host")?;
-    options.record = record.options().map(|o| o.into_session(&n.system));
+    options.record = record.options()?.map(|o| o.into_session(&n.system));
     options.downlink_cache = record.downlink_cache()?;
     if let Some(d) = state_dir {
         options.state_dir = Some(d);

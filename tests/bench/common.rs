@@ -94,7 +94,27 @@ pub fn up_recording(
     dnms: usize,
     record_dir: Option<&std::path::Path>,
 ) -> Up {
-    let dir = std::env::temp_dir().join(format!("dnm-bench-{system}-{}", dnm.unwrap_or("all")));
+    let mut up_args: Vec<String> = match record_dir {
+        Some(d) => vec!["--record-dir".into(), d.display().to_string()],
+        None => vec!["--no-record".into()],
+    };
+    if let Some(d) = dnm {
+        up_args.extend(["--dnm".into(), d.into()]);
+    }
+    up_with(system, netlist, args, &up_args, dnm.unwrap_or("all"), dnms)
+}
+
+/// Runs `dnm [args] up NETLIST [up_args]` (its files in a folder named after `tag`) and waits
+/// until `dnms` DNMs of the system on this machine report every module running.
+pub fn up_with(
+    system: &str,
+    netlist: &str,
+    args: &[String],
+    up_args: &[String],
+    tag: &str,
+    dnms: usize,
+) -> Up {
+    let dir = std::env::temp_dir().join(format!("dnm-bench-{system}-{tag}"));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("netlist.toml");
     std::fs::write(&path, netlist).unwrap();
@@ -105,14 +125,7 @@ pub fn up_recording(
         exe.display()
     );
     let mut cmd = Command::new(&exe);
-    cmd.args(args).arg("up").arg(&path);
-    match record_dir {
-        Some(d) => cmd.arg("--record-dir").arg(d),
-        None => cmd.arg("--no-record"),
-    };
-    if let Some(d) = dnm {
-        cmd.args(["--dnm", d]);
-    }
+    cmd.args(args).arg("up").arg(&path).args(up_args);
     let child = cmd
         .env("DNM_MODULE_HOST", exe.with_file_name("dnm-module-host"))
         .env("RUST_LOG", "warn")

@@ -33,6 +33,28 @@ pub fn all_dnms(system: &str) -> String {
     format!("{system}/dnm/*")
 }
 
+/// Liveliness token a DNM declares as it stops in order, before its presence goes: the others
+/// then log that it left, not that it was lost.
+pub fn dnm_leaving(system: &str, dnm: &str) -> String {
+    format!("{system}/dnm/{dnm}/leaving")
+}
+
+/// Every DNM's presence and leaving tokens (liveliness).
+pub fn dnms_coming_and_going(system: &str) -> String {
+    format!("{system}/dnm/*/**")
+}
+
+/// The DNM whose presence `key` is, and whether it is its leaving token (see [`dnm_leaving`]);
+/// `None` for other keys.
+pub fn presence_of(system: &str, key: &str) -> Option<(String, bool)> {
+    let rest = key.strip_prefix(system)?.strip_prefix("/dnm/")?;
+    match rest.split_once('/') {
+        None if !rest.is_empty() => Some((rest.to_string(), false)),
+        Some((name, "leaving")) if !name.is_empty() => Some((name.to_string(), true)),
+        _ => None,
+    }
+}
+
 /// `<system>/dnm/<dnm>/netlist`.
 pub fn netlist(system: &str, dnm: &str) -> String {
     format!("{system}/dnm/{dnm}/netlist")

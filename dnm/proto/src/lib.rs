@@ -108,7 +108,8 @@ pub struct ModuleEvent {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct PeerReport {
     pub dnm: String,
-    /// `alive`, `lost` (was alive, its liveliness token went away) or `unseen`.
+    /// `alive`, `left` (stopped in order: it said so before its liveliness token went away),
+    /// `lost` (its token went away unannounced) or `unseen`.
     pub state: String,
     /// How long it has been in that state, ms (absent while unseen).
     pub for_ms: Option<u64>,

@@ -59,6 +59,9 @@ pub struct Bridge {
     pub(crate) shared: Arc<Shared>,
     pub(crate) ts_node: Node<TsSvc>,
     pub(crate) _token: LivelinessToken,
+    /// Declared as the DNM stops in order; dropped after its presence token (fields drop in
+    /// this order), so the others hear that it leaves before it is gone.
+    pub(crate) leaving: Option<LivelinessToken>,
     pub(crate) _queryables: Vec<Queryable<()>>,
     pub(crate) _peer_watch: ZSubscriber<()>,
     pub(crate) ingress: BTreeMap<String, Ingress>,
@@ -171,6 +174,7 @@ impl Bridge {
             shared,
             ts_node,
             _token: token,
+            leaving: None,
             _queryables: queryables,
             _peer_watch: peer_watch,
             ingress: BTreeMap::new(),
@@ -198,6 +202,12 @@ impl Bridge {
             .lock()
             .map(|p| p.clone())
             .unwrap_or_default();
+        let left = self
+            .shared
+            .leaving
+            .lock()
+            .map(|l| l.clone())
+            .unwrap_or_default();
         let mut names: BTreeSet<String> = peers.keys().cloned().collect();
         names.extend(self.declared_dnms.iter().cloned());
         names.remove(&self.dnm);
@@ -205,8 +215,14 @@ impl Bridge {
             .into_iter()
             .map(|name| match peers.get(&name) {
                 Some((alive, since)) => PeerReport {
+                    state: match (*alive, left.contains(&name)) {
+                        (true, _) => "alive",
+                        // It said it stopped in order.
+                        (false, true) => "left",
+                        (false, false) => "lost",
+                    }
+                    .into(),
                     dnm: name,
-                    state: if *alive { "alive" } else { "lost" }.into(),
                     for_ms: Some(since.elapsed().as_millis() as u64),
                 },
                 None => PeerReport {
@@ -485,26 +501,42 @@ fn watch_peers(
     let shared = shared.clone();
     session
         .liveliness()
-        .declare_subscriber(keys::all_dnms(&system))
+        .declare_subscriber(keys::dnms_coming_and_going(&system))
         .history(true)
         .callback(move |s| {
-            let Some(name) = keys::dnm_of(&system, s.key_expr().as_str()) else {
+            let Some((name, leaving_token)) = keys::presence_of(&system, s.key_expr().as_str())
+            else {
                 return;
             };
             if name == me {
                 return;
             }
-            let alive = s.kind() == SampleKind::Put;
+            let put = s.kind() == SampleKind::Put;
+            let Ok(mut leaving) = shared.leaving.lock() else {
+                return;
+            };
+            if leaving_token {
+                // Its presence goes next: that is a DNM stopping in order.
+                if put {
+                    leaving.insert(name);
+                }
+                return;
+            }
+            let left = !put && leaving.contains(&name);
+            if put {
+                leaving.remove(&name);
+            }
+            drop(leaving);
             let Ok(mut peers) = shared.peers.lock() else {
                 return;
             };
-            if peers.get(&name).is_none_or(|(a, _)| *a != alive) {
-                if alive {
-                    tracing::info!(dnm = %me, peer = %name, "DNM joined");
-                } else {
-                    tracing::warn!(dnm = %me, peer = %name, "DNM lost");
+            if peers.get(&name).is_none_or(|(a, _)| *a != put) {
+                match (put, left) {
+                    (true, _) => tracing::info!(dnm = %me, peer = %name, "DNM joined"),
+                    (false, true) => tracing::info!(dnm = %me, peer = %name, "DNM left"),
+                    (false, false) => tracing::warn!(dnm = %me, peer = %name, "DNM lost"),
                 }
-                peers.insert(name, (alive, Instant::now()));
+                peers.insert(name, (put, Instant::now()));
             }
         })
         .wait()
@@ -704,6 +736,13 @@ impl Plugin for Bridge {
 
 impl Drop for Bridge {
     fn drop(&mut self) {
+        // Stopping in order: the others hear it before this DNM's presence goes.
+        let leaving = self
+            .session
+            .liveliness()
+            .declare_token(keys::dnm_leaving(&self.system, &self.dnm))
+            .wait();
+        self.leaving = leaving.ok();
         // Queryables first, so nothing new arrives; then the threads end.
         self._queryables.clear();
         self.shared.stop.store(true, Ordering::Relaxed);

@@ -26,6 +26,8 @@ pub const APPLIES_IN_FLIGHT: usize = 4;
 pub(crate) struct Shared {
     pub(crate) snapshot: Mutex<Option<Arc<Snapshot>>>,
     pub(crate) peers: Mutex<BTreeMap<String, (bool, Instant)>>,
+    /// Peers that announced they stop in order (their leaving token), until they come back.
+    pub(crate) leaving: Mutex<std::collections::BTreeSet<String>>,
     /// Local outputs and their types, for last-value readers (set at each commit).
     pub(crate) outputs: Mutex<Option<Vec<(String, MessageType)>>>,
     /// The wiring of the revision committed last.

@@ -217,7 +217,12 @@ impl<'a> Process<'a> {
         spec: KindSpec,
         make: &mut MakeModule<'_>,
     ) -> Result<Self, ModuleError> {
-        let config = dnm_config(&launch.prefix).map_err(|e| ModuleError::Launch(e.to_string()))?;
+        let mut config =
+            dnm_config(&launch.prefix).map_err(|e| ModuleError::Launch(e.to_string()))?;
+        // What dead processes left is the DNM's to sweep (it has, before it starts this one):
+        // a module starts without sweeping again, and leaves none of its own to race it.
+        config.global.node.cleanup_dead_nodes_on_creation = false;
+        config.global.node.cleanup_dead_nodes_on_destruction = false;
         let node_name: NodeName = launch
             .module
             .as_str()
