@@ -439,6 +439,35 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
             other => panic!("{other:?}"),
         }
     }
+    exit_codes_tell_the_fate(&api);
+}
+
+/// `dnm ground ... --wait N` exits with the fate it waited for: 0 applied, 3 refused (the
+/// reason printed), 4 not final within N seconds (the state printed).
+fn exit_codes_tell_the_fate(api: &support::ground::Api) {
+    let run = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_dnm"))
+            .arg("ground")
+            .args(args)
+            .args(["--url", &api.0])
+            .output()
+            .unwrap();
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        (out.status.code(), text)
+    };
+    let (code, out) = run(&["switch", "nope", "--wait", "120"]);
+    assert_eq!(code, Some(3), "{out}");
+    assert!(out.contains("refused: unknown task `nope`"), "{out}");
+    let (code, out) = run(&["switch", "c", "--wait", "120"]);
+    assert_eq!(code, Some(0), "{out}");
+    assert!(out.contains("applied: revision"), "{out}");
+    let (code, out) = run(&["switch", "a", "--at", "+1h", "--wait", "1"]);
+    assert_eq!(code, Some(4), "{out}");
+    assert!(out.contains("not final after 1 s: still"), "{out}");
 }
 
 /// The messages of `topic` in the MCAP files under `dir`: (log time, sequence, bytes), by time.

@@ -115,7 +115,10 @@ pub struct Common {
     /// The station's API (default: $DNM_GROUND_URL, else http://127.0.0.1:7480).
     #[arg(long)]
     url: Option<String>,
-    /// Wait up to this many seconds for the command's fate (default: return once queued).
+    /// Wait up to this many seconds for the command's fate, and exit with it: 0 applied, 3
+    /// refused or cancelled (the reason printed), 4 not final yet (its state printed). Without
+    /// it: 0 once queued, 3 if the station refused it at once. Errors (no station, bad input)
+    /// exit 1.
     #[arg(long)]
     wait: Option<u64>,
     #[arg(long)]
@@ -261,10 +264,31 @@ fn submit(order: &Order, common: &Common) -> anyhow::Result<ExitCode> {
     } else {
         println!("{}", describe(&entry));
     }
-    Ok(match entry.state {
-        dnm_ground::CommandState::Refused => ExitCode::FAILURE,
-        _ => ExitCode::SUCCESS,
-    })
+    let code = fate_code(entry.state, common.wait.is_some());
+    if code == NOT_FINAL {
+        eprintln!(
+            "not final after {} s: still {}",
+            common.wait.unwrap_or_default(),
+            format!("{:?}", entry.state).to_lowercase()
+        );
+    }
+    Ok(ExitCode::from(code))
+}
+
+/// Exit code of a command that was refused or cancelled: it will not run.
+pub const REFUSED: u8 = 3;
+/// Exit code of a command whose fate was not known within `--wait`.
+pub const NOT_FINAL: u8 = 4;
+
+/// The exit code of a command in `state`, waited for or not.
+fn fate_code(state: dnm_ground::CommandState, waited: bool) -> u8 {
+    use dnm_ground::CommandState as S;
+    match state {
+        S::Applied => 0,
+        S::Refused | S::Cancelled => REFUSED,
+        _ if waited => NOT_FINAL,
+        _ => 0,
+    }
 }
 
 fn describe(e: &Entry) -> String {
