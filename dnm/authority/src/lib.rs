@@ -196,7 +196,13 @@ impl Timing {
     }
 
     fn lead(&self, least: Duration) -> Duration {
-        least.max((self.round_trip * 2 + self.store * 2).min(MAX_LEAD))
+        least.max(self.margin())
+    }
+
+    /// What must fit between a decision and its instant: its store and its way to every DNM,
+    /// twice over.
+    fn margin(&self) -> Duration {
+        (self.round_trip * 2 + self.store * 2).min(MAX_LEAD)
     }
 }
 

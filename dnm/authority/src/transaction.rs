@@ -14,6 +14,10 @@ pub(crate) fn transact(
     origin: Origin,
 ) -> Fate {
     let finish = |core: &mut Core, fate: &Fate| origin.record(s, core, fate);
+    // The lead counts from here: what the transaction takes before its decision (its stores,
+    // the prepare's round trip) comes out of it, as long as what must follow the decision (as
+    // measured) still fits before the instant.
+    let begun = now_unix_ns();
     let target = netlist.as_ref().unwrap_or(&core.netlist);
     let participants: Vec<String> = target
         .dnms
@@ -75,12 +79,14 @@ pub(crate) fn transact(
     }
     // The instant leaves time to store the decision and for it to reach every DNM (both as
     // measured lately), so every DNM holds it before the instant and they switch together.
-    let lead = s
+    let (lead, margin) = s
         .timing
         .lock()
-        .map(|t| t.lead(s.options.switch_lead))
-        .unwrap_or(s.options.switch_lead);
-    let at_unix_ns = (now_unix_ns() + lead.as_nanos() as u64).max(at.unwrap_or(0));
+        .map(|t| (t.lead(s.options.switch_lead), t.margin()))
+        .unwrap_or((s.options.switch_lead, Duration::ZERO));
+    let at_unix_ns = (begun + lead.as_nanos() as u64)
+        .max(now_unix_ns() + margin.as_nanos() as u64)
+        .max(at.unwrap_or(0));
     let decision = DecisionRecord {
         txn: id,
         commit: true,
