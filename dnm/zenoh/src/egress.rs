@@ -158,10 +158,17 @@ pub(crate) fn egress_loop(
                 }
                 Sets::Same => {}
             }
+            // Only the routes whose samples woke it: a wake-up costs one port, not all.
+            let mut fired = vec![false; open.len()];
             waitset
-                .wait_and_process_once(|_| CallbackProgression::Continue)
+                .wait_and_process_once(|id| {
+                    if let Some(i) = guards.iter().position(|g| id.has_event_from(g)) {
+                        fired[i] = true;
+                    }
+                    CallbackProgression::Continue
+                })
                 .map_err(dbg("egress wait"))?;
-            for o in &open {
+            for (o, _) in open.iter().zip(&fired).filter(|(_, f)| **f) {
                 o.forward();
             }
         }

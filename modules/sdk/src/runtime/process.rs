@@ -463,7 +463,7 @@ impl Serving<'_> {
         if now_ns.saturating_sub(self.status.heartbeat_ns) >= HEARTBEAT.as_nanos() as u64 / 2 {
             self.status.heartbeat_ns = now_ns;
             self.last_status_ns = now_ns;
-            self.publish_status()?;
+            self.post_status()?;
         }
         Ok(())
     }
@@ -527,8 +527,18 @@ impl Serving<'_> {
         }
         if now_ns.saturating_sub(self.last_status_ns) > STATUS_EVERY_NS {
             self.last_status_ns = now_ns;
-            self.publish_status()?;
+            self.post_status()?;
         }
+        Ok(())
+    }
+
+    /// Posts the status for the DNM's next supervision tick, without waking it: what a step
+    /// or a heartbeat changes is not urgent.
+    fn post_status(&self) -> Result<(), ModuleError> {
+        self.dnm
+            .status
+            .send_copy(self.status)
+            .map_err(ipc("status"))?;
         Ok(())
     }
 
