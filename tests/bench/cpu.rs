@@ -61,8 +61,11 @@ fn role(name: &str) -> &'static str {
         .map_or("other", |(_, r)| r)
 }
 
+/// CPU seconds by thread role, and the wall time they were used over.
+type Usage = (BTreeMap<&'static str, f64>, f64);
+
 /// One measurement: CPU seconds by role over [`MEASURE`], and the wall time.
-fn measure(recording: bool) -> (BTreeMap<&'static str, f64>, f64) {
+fn measure(recording: bool) -> Usage {
     let system = unique(if recording { "cpur" } else { "cpun" });
     let rec = std::env::temp_dir().join(unique("cpurec"));
     // No ground station in this run: the rover must not go safe for the lack of one.
@@ -101,7 +104,7 @@ fn main() {
         builds.push(("baseline", Some(b.into())));
     }
     // (build, recording) → CPU seconds by role, wall seconds.
-    let mut total: BTreeMap<(usize, bool), (BTreeMap<&str, f64>, f64)> = BTreeMap::new();
+    let mut total: BTreeMap<(usize, bool), Usage> = BTreeMap::new();
     for round in 0..ROUNDS {
         for (b, (label, exe)) in builds.iter().enumerate() {
             use_dnm(exe.clone());
