@@ -77,16 +77,7 @@ pub(crate) fn transact(
         tracing::warn!(txn = id, "transaction dropped: {}", refusals.join("; "));
         return fate;
     }
-    // The instant leaves time to store the decision and for it to reach every DNM (both as
-    // measured lately), so every DNM holds it before the instant and they switch together.
-    let (lead, margin) = s
-        .timing
-        .lock()
-        .map(|t| (t.lead(s.options.switch_lead), t.margin()))
-        .unwrap_or((s.options.switch_lead, Duration::ZERO));
-    let at_unix_ns = (begun + lead.as_nanos() as u64)
-        .max(now_unix_ns() + margin.as_nanos() as u64)
-        .max(at.unwrap_or(0));
+    let at_unix_ns = instant(s, begun).max(at.unwrap_or(0));
     let decision = DecisionRecord {
         txn: id,
         commit: true,
@@ -314,6 +305,18 @@ pub(crate) fn decide(d: &DecisionRecord) -> Request {
         revision: d.revision,
         task: d.task.clone(),
     }
+}
+
+/// The instant of a transaction begun at `begun`: the lead after it, and never sooner than
+/// the time to store the decision and for it to reach every DNM (both as measured lately)
+/// from now, so every DNM holds it before the instant and they switch together.
+fn instant(s: &Shared, begun: u64) -> u64 {
+    let (lead, margin) = s
+        .timing
+        .lock()
+        .map(|t| (t.lead(s.options.switch_lead), t.margin()))
+        .unwrap_or((s.options.switch_lead, Duration::ZERO));
+    (begun + lead.as_nanos() as u64).max(now_unix_ns() + margin.as_nanos() as u64)
 }
 
 /// How long before its time a time-tagged switch is started: time to prepare it and a lead
