@@ -311,11 +311,15 @@ pub(crate) fn decide(d: &DecisionRecord) -> Request {
 /// the time to store the decision and for it to reach every DNM (both as measured lately)
 /// from now, so every DNM holds it before the instant and they switch together.
 fn instant(s: &Shared, begun: u64) -> u64 {
+    let least = s.options.switch_lead;
     let (lead, margin) = s
         .timing
         .lock()
-        .map(|t| (t.lead(s.options.switch_lead), t.margin()))
-        .unwrap_or((s.options.switch_lead, Duration::ZERO));
+        .map(|t| (t.lead(least), t.margin()))
+        .unwrap_or((least, least));
+    // Half the lead at least follows the decision, whatever was measured (a fresh authority
+    // has measured nothing; an apply's prepare can take longer than the lead).
+    let margin = margin.max(least / 2);
     (begun + lead.as_nanos() as u64).max(now_unix_ns() + margin.as_nanos() as u64)
 }
 

@@ -561,8 +561,9 @@ impl Dnm {
             self.progress_apply();
             // Exits are noticed within a few milliseconds (the janitor thread removes their shared
             // memory), not on every module heartbeat; readings and snapshots follow the tick.
-            // An exit or a finished sweep asks for it at once.
-            let prompted = self.prompt.swap(false, Ordering::AcqRel);
+            // An exit, a finished sweep or a start that is due asks for it at once.
+            let prompted = self.prompt.swap(false, Ordering::AcqRel)
+                || self.until_start() == Some(Duration::ZERO);
             if prompted || self.last_supervise.elapsed() >= SUPERVISE_EVERY {
                 self.last_supervise = Instant::now();
                 self.supervise();

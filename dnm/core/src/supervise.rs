@@ -416,9 +416,7 @@ fn exited(
         None => why,
     };
     slot.last_exit = Some(why.clone());
-    if now.duration_since(slot.spawned_at) >= HEALTHY_RUN {
-        slot.streak = 0;
-    }
+    let short = short_run(slot, now);
     let restart = match slot.decl.restart.mode {
         RestartMode::Always => true,
         RestartMode::OnFailure => !exit.success(),
@@ -430,7 +428,8 @@ fn exited(
         ModuleRunState::Stopped
     };
     if restart {
-        slot.start_at = Some(now + backoff(slot.streak));
+        // At once after a healthy run; after a short one, 100 ms at least.
+        slot.start_at = Some(now + backoff(slot.streak + u32::from(short)));
     }
     tracing::warn!(dnm = %dnm, module = %name, exit = %why, restart, "module exited");
     (
@@ -438,6 +437,16 @@ fn exited(
         if restart { "exited" } else { "gave_up" },
         why,
     )
+}
+
+/// Whether the process ran shorter than a healthy run; after a healthy one, its restarts count
+/// from zero again.
+fn short_run(slot: &mut ModuleSlot, now: Instant) -> bool {
+    let short = now.duration_since(slot.spawned_at) < HEALTHY_RUN;
+    if !short {
+        slot.streak = 0;
+    }
+    short
 }
 
 /// A live process: is it still stepping? The event of a hang or a recovery, and whether the
@@ -472,6 +481,7 @@ fn liveness(
                 slot.hung_after.as_millis()
             );
             tracing::warn!(dnm = %dnm, module = %name, "{detail}");
+            short_run(slot, now);
             let restart = slot.decl.restart.mode != RestartMode::Never
                 && slot.streak < slot.decl.restart.max_restarts;
             if restart {
