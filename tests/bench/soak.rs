@@ -9,7 +9,7 @@
 //! 95 % interval. The table goes to stdout, the curve to `docs/bench/soak-memory.png`.
 //!
 //! Run: `cargo build --release --workspace`, then `cargo bench -p dnm --bench soak`
-//! (`DNM_SOAK_MINUTES=10` for a shorter run).
+//! (`DNM_SOAK_MINUTES=10` for a shorter run, `DNM_SOAK_ROTATE=2m` for files every two minutes).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
 
@@ -111,7 +111,7 @@ fn start(system: &str, record: Option<&std::path::Path>) -> Up {
             "--record-dir".into(),
             d.display().to_string(),
             "--record-rotate".into(),
-            "10m".into(),
+            std::env::var("DNM_SOAK_ROTATE").unwrap_or_else(|_| "10m".into()),
         ],
         None => vec!["--no-record".into()],
     };
