@@ -104,6 +104,21 @@ pub fn up_recording(
     up_with(system, netlist, args, &up_args, dnm.unwrap_or("all"), dnms)
 }
 
+/// Beetle-One (`configs/beetle.toml`) as system `system`, its four DNMs in one `dnm up`
+/// listening on a free loopback port, with `up_args` (recording or not). No ground station is
+/// in these runs, so the rover's loss of link waits a day before it makes it safe.
+pub fn up_beetle(system: &str, up_args: &[String], tag: &str) -> Up {
+    let netlist = include_str!("../../configs/beetle.toml")
+        .replace("name = \"beetle\"", &format!("name = \"{system}\""))
+        .replace("after = \"5s\"", "after = \"24h\"");
+    let args: Vec<String> = vec![
+        "--no-multicast".into(),
+        "--listen".into(),
+        format!("tcp/127.0.0.1:{}", free_port()),
+    ];
+    up_with(system, &netlist, &args, up_args, tag, 4)
+}
+
 /// Runs `dnm [args] up NETLIST [up_args]` (its files in a folder named after `tag`) and waits
 /// until `dnms` DNMs of the system on this machine report every module running.
 pub fn up_with(

@@ -15,10 +15,9 @@ mod common;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use common::{free_port, unique, up_with, use_dnm};
+use common::{unique, up_beetle, use_dnm};
 use iceoryx2::prelude::{LogLevel, set_log_level};
 
-const BEETLE: &str = include_str!("../../configs/beetle.toml");
 const ROUNDS: usize = 3;
 const WARM_UP: Duration = Duration::from_secs(10);
 const MEASURE: Duration = Duration::from_secs(30);
@@ -68,21 +67,12 @@ type Usage = (BTreeMap<&'static str, f64>, f64);
 fn measure(recording: bool) -> Usage {
     let system = unique(if recording { "cpur" } else { "cpun" });
     let rec = std::env::temp_dir().join(unique("cpurec"));
-    // No ground station in this run: the rover must not go safe for the lack of one.
-    let netlist = BEETLE
-        .replace("name = \"beetle\"", &format!("name = \"{system}\""))
-        .replace("after = \"5s\"", "after = \"1h\"");
-    let args: Vec<String> = vec![
-        "--no-multicast".into(),
-        "--listen".into(),
-        format!("tcp/127.0.0.1:{}", free_port()),
-    ];
     let up_args: Vec<String> = if recording {
         vec!["--record-dir".into(), rec.display().to_string()]
     } else {
         vec!["--no-record".into()]
     };
-    let up = up_with(&system, &netlist, &args, &up_args, "cpu", 4);
+    let up = up_beetle(&system, &up_args, "cpu");
     std::thread::sleep(WARM_UP);
     let (before, t0) = (threads(up.pid()), Instant::now());
     std::thread::sleep(MEASURE);

@@ -85,15 +85,7 @@ pub fn log_x(
         }
         root.present().map_err(|e| e.to_string())?;
     }
-    let file = std::fs::File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), w, h);
-    encoder.set_color(png::ColorType::Rgb);
-    encoder.set_depth(png::BitDepth::Eight);
-    encoder
-        .write_header()
-        .and_then(|mut writer| writer.write_image_data(&rgb))
-        .map_err(|e| format!("{}: {e}", path.display()))?;
-    Ok(path)
+    save(path, (w, h), &rgb)
 }
 
 /// A chart with linear axes, y from a little below the lowest point (growth shows).
@@ -128,13 +120,18 @@ pub fn linear(
         draw(&mut chart, (x_label, y_label), series)?;
         root.present().map_err(|e| e.to_string())?;
     }
+    save(path, (w, h), &rgb)
+}
+
+/// Writes an RGB image of `w` × `h` as a PNG file at `path`.
+fn save(path: PathBuf, (w, h): (u32, u32), rgb: &[u8]) -> Result<PathBuf, String> {
     let file = std::fs::File::create(&path).map_err(|e| format!("{}: {e}", path.display()))?;
     let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), w, h);
     encoder.set_color(png::ColorType::Rgb);
     encoder.set_depth(png::BitDepth::Eight);
     encoder
         .write_header()
-        .and_then(|mut writer| writer.write_image_data(&rgb))
+        .and_then(|mut writer| writer.write_image_data(rgb))
         .map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(path)
 }

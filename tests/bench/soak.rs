@@ -18,12 +18,11 @@ mod plot;
 
 use std::time::{Duration, Instant};
 
-use common::{Up, free_port, unique, up_with};
+use common::{Up, unique, up_beetle};
 use dnm_core::procfs::memory;
 use iceoryx2::prelude::{LogLevel, set_log_level};
 use plot::Series;
 
-const BEETLE: &str = include_str!("../../configs/beetle.toml");
 const WARM_UP_MIN: usize = 10;
 const EVERY: Duration = Duration::from_secs(60);
 
@@ -97,15 +96,6 @@ fn slope(points: &[(f64, f64)]) -> (f64, f64) {
 }
 
 fn start(system: &str, record: Option<&std::path::Path>) -> Up {
-    // No ground station in this run: the rover must not go safe for the lack of one.
-    let netlist = BEETLE
-        .replace("name = \"beetle\"", &format!("name = \"{system}\""))
-        .replace("after = \"5s\"", "after = \"24h\"");
-    let args: Vec<String> = vec![
-        "--no-multicast".into(),
-        "--listen".into(),
-        format!("tcp/127.0.0.1:{}", free_port()),
-    ];
     let up_args: Vec<String> = match record {
         Some(d) => vec![
             "--record-dir".into(),
@@ -115,7 +105,7 @@ fn start(system: &str, record: Option<&std::path::Path>) -> Up {
         ],
         None => vec!["--no-record".into()],
     };
-    up_with(system, &netlist, &args, &up_args, "soak", 4)
+    up_beetle(system, &up_args, "soak")
 }
 
 fn main() {

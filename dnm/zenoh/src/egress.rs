@@ -148,6 +148,8 @@ pub(crate) fn egress_loop(
                     .map_err(dbg("attach"))?,
             );
         }
+        // Which routes woke it: only theirs are forwarded, a wake-up costs one port, not all.
+        let mut fired = vec![false; open.len()];
         // Sets sent before the waitset was attached count too.
         loop {
             match control.newest() {
@@ -158,8 +160,6 @@ pub(crate) fn egress_loop(
                 }
                 Sets::Same => {}
             }
-            // Only the routes whose samples woke it: a wake-up costs one port, not all.
-            let mut fired = vec![false; open.len()];
             waitset
                 .wait_and_process_once(|id| {
                     if let Some(i) = guards.iter().position(|g| id.has_event_from(g)) {
@@ -168,8 +168,10 @@ pub(crate) fn egress_loop(
                     CallbackProgression::Continue
                 })
                 .map_err(dbg("egress wait"))?;
-            for (o, _) in open.iter().zip(&fired).filter(|(_, f)| **f) {
-                o.forward();
+            for (o, f) in open.iter().zip(fired.iter_mut()) {
+                if std::mem::take(f) {
+                    o.forward();
+                }
             }
         }
     }
