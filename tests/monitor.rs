@@ -201,7 +201,121 @@ fn the_demo_mission_saved_through_the_monitor_reads_back_in_rerun() {
         vec![&teleop, &auto, &teleop],
         "edge sets drawn in order: {seen:#?}"
     );
+    the_recorded_session_reads_back_in_rerun(&dir, &teleop, &auto);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The task switches a session recorded: (log time, task switched to), in time order.
+fn recorded_switches(session: &Path) -> Vec<(i64, String)> {
+    let mut out = Vec::new();
+    for f in std::fs::read_dir(session).unwrap().flatten() {
+        if f.path().extension().is_none_or(|e| e != "mcap") {
+            continue;
+        }
+        let bytes = std::fs::read(f.path()).unwrap();
+        for m in mcap::MessageStream::new(&bytes).unwrap() {
+            let m = m.unwrap();
+            if m.channel.topic.ends_with("/_switches") {
+                let v: serde_json::Value = serde_json::from_slice(&m.data).unwrap();
+                out.push((m.log_time as i64, v["to"].as_str().unwrap().to_string()));
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// `dnm monitor --session` turns the demo's recorded session into an `.rrd`: the operator's
+/// layout, the rover in `world`, the camera, the time series, and the connection graph's
+/// edges changing at the switches the session recorded, at their recorded times.
+fn the_recorded_session_reads_back_in_rerun(
+    dir: &Path,
+    teleop: &BTreeSet<(String, String)>,
+    auto: &BTreeSet<(String, String)>,
+) {
+    let session = std::fs::read_dir(dir.join("recordings"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .find(|p| p.is_dir())
+        .expect("the demo's session folder");
+    let rrd_path = dir.join("session.rrd");
+    let out = Command::new(dnm())
+        .arg("monitor")
+        .arg("--session")
+        .arg(&session)
+        .arg("--save")
+        .arg(&rrd_path)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "dnm monitor --session: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rrd = read(&rrd_path);
+    assert!(rrd.blueprint_messages > 0, "no blueprint");
+    for e in [
+        "/world/world",
+        "/world/odometry",
+        "/world/paths/world/0",
+        "/world/rocks",
+        "/world/waypoints/autopilot",
+        "/graph",
+        "/log",
+    ] {
+        assert!(rrd.entities.contains(e), "no {e} in {:?}", rrd.entities);
+    }
+    assert!(
+        rrd.rows.get("/camera/camera/image").copied().unwrap_or(0) >= 3,
+        "camera frames: {:?}",
+        rrd.rows.get("/camera/camera/image")
+    );
+    for e in [
+        "/series/motor_left/state/omega",
+        "/series/battery/state/voltage",
+        "/series/odometry/odom/x",
+    ] {
+        assert!(
+            rrd.rows.get(e).copied().unwrap_or(0) >= 10,
+            "{e}: {:?} rows",
+            rrd.rows.get(e)
+        );
+    }
+    // The rows are at the session's recorded times, not at the time of the conversion.
+    let switches = recorded_switches(&session);
+    let (first, last) = (switches[0].0, switches[switches.len() - 1].0);
+    let poses = &rrd.times["/world/odometry"];
+    assert!(
+        poses
+            .iter()
+            .all(|t| *t > first - 60_000_000_000 && *t < last + 60_000_000_000),
+        "poses outside the session's time"
+    );
+    // The graph: teleop, auto, teleop, each change at the first DNM's recorded switch to it.
+    let mut changes: Vec<(i64, &BTreeSet<(String, String)>)> = Vec::new();
+    for (t, e) in &rrd.edges {
+        if changes.last().map(|(_, s)| *s) != Some(e) {
+            changes.push((*t, e));
+        }
+    }
+    let sets: Vec<_> = changes.iter().map(|(_, s)| *s).collect();
+    assert_eq!(sets, vec![teleop, auto, teleop], "edge sets in order");
+    for (t, set) in &changes[1..] {
+        let to = if *set == auto { "auto" } else { "teleop" };
+        assert!(
+            switches.iter().any(|(at, task)| at == t && task == to),
+            "the edges of `{to}` drawn at {t}, not at a recorded switch: {switches:?}"
+        );
+        // At the first DNM's switch of that moment (the others follow within a millisecond).
+        assert!(
+            !switches
+                .iter()
+                .any(|(at, task)| task == to && at < t && t - at < 1_000_000_000),
+            "the edges of `{to}` drawn after the first DNM switched: {switches:?}"
+        );
+    }
 }
 
 /// Two Zenoh peers on loopback: (the station's, the monitor's).

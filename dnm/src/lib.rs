@@ -20,7 +20,7 @@ pub use dnm_core::{
 };
 pub use dnm_proto as proto;
 pub use dnm_proto::keys;
-pub use dnm_record::{check, record, replay, session, stats};
+pub use dnm_record::{check, playback, record, replay, session, stats};
 pub use dnm_router::{ZenohOptions, init_logging};
 pub use dnm_zenoh::remote;
 

@@ -14,6 +14,7 @@ mod ground_cmd;
 mod linksim;
 mod monitor_cmd;
 mod place_cmd;
+mod session_view;
 use dnm::admin::{Request, Response, request};
 use dnm::{DnmReport, HostOptions};
 
@@ -194,7 +195,9 @@ enum Cmd {
         op: ModuleOp,
     },
     /// Watch a running system in Rerun: pose, camera, time series, the live connection graph
-    /// and events (runs `dnm-monitor`; `dnm monitor --help` lists its options).
+    /// and events (runs `dnm-monitor`; `dnm monitor --help` lists its options). With
+    /// `--session DIR` (a recorded session folder or MCAP file), draw that session instead, at
+    /// its recorded times, into a viewer or `--save FILE.rrd`.
     #[command(disable_help_flag = true)]
     Monitor {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
@@ -399,7 +402,10 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             sequences,
             json,
         } => check(&netlist, &sequences, json),
-        Cmd::Monitor { args } => monitor_cmd::run(&z.options(), &args),
+        Cmd::Monitor { args } => match session_view::session_arg(&args)? {
+            Some((session, rest)) => session_view::run(&session, &rest),
+            None => monitor_cmd::run(&z.options(), &args),
+        },
         Cmd::Ground { cmd } => ground_cmd::run(&z.options(), cmd),
         Cmd::Certs { cmd } => certs::run(cmd),
         Cmd::Linksim(args) => {

@@ -66,6 +66,12 @@ fn command(args: &[String]) -> (Command, String) {
     (c, why)
 }
 
+/// Starts a monitor with `args`, its standard input a pipe to write to.
+pub fn start_piped(args: &[String]) -> anyhow::Result<Child> {
+    let (mut c, why) = command(args);
+    c.stdin(Stdio::piped()).spawn().context(why)
+}
+
 /// Starts a monitor with `args`.
 pub fn start(args: &[String]) -> anyhow::Result<Child> {
     let (mut c, why) = command(args);

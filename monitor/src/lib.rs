@@ -42,6 +42,9 @@ use rerun::blueprint::{
 use serde_json::Value;
 use zenoh::Wait;
 
+mod playback;
+pub use playback::play;
+
 /// The timeline every sample is put on: the producer's wall-clock send time.
 pub const TIMELINE: &str = "time";
 
@@ -292,6 +295,8 @@ const PATH_STEP: f64 = 0.05;
 /// Points in one segment of a path: a path is logged as segments (`world/paths/<module>/<n>`),
 /// and only the growing one is logged again, so what is sent stays small on a long drive.
 const SEGMENT_POINTS: usize = 200;
+/// A path is logged at most this often, ns (it is a whole strip each time).
+const PATH_EVERY_NS: u64 = 500_000_000;
 /// Filled-in poses further apart in time than this are stretches of their own.
 const FILLED_APART_NS: u64 = 5_000_000_000;
 /// Numeric fields of one sample drawn at most (a huge JSON array must not flood the viewer).
@@ -302,7 +307,8 @@ struct Path {
     /// The growing segment's number and points.
     segment: usize,
     points: Vec<[f32; 3]>,
-    logged_at: Option<Instant>,
+    /// When it was last logged, by the view's clock (ns).
+    logged_at_ns: Option<u64>,
     dirty: bool,
 }
 
@@ -330,6 +336,8 @@ struct View {
     filled_dirty: BTreeSet<String>,
     stats: MonitorStats,
     blueprint_modules: Vec<String>,
+    /// The time drawn at: a recording's, while one is played back; else the wall clock.
+    clock: Option<u64>,
 }
 
 impl View {
@@ -351,6 +359,7 @@ impl View {
             filled_dirty: BTreeSet::new(),
             stats: MonitorStats::default(),
             blueprint_modules: Vec::new(),
+            clock: None,
         }
     }
 
@@ -397,17 +406,7 @@ impl View {
                     }
                     self.reports(&reports)?;
                 }
-                Ok(Event::Sequence(e)) => {
-                    let level = match e.what.as_str() {
-                        "guard_fired" | "aborted" | "timed_out" => rerun::TextLogLevel::WARN,
-                        _ => rerun::TextLogLevel::INFO,
-                    };
-                    let step = e.step.map_or(String::new(), |s| format!(" step {}", s + 1));
-                    self.say(
-                        level,
-                        &format!("sequence `{}`{step}: {} {}", e.sequence, e.what, e.detail),
-                    )?;
-                }
+                Ok(Event::Sequence(e)) => self.sequence(&e)?,
                 Ok(Event::Filled {
                     module,
                     port,
@@ -435,9 +434,14 @@ impl View {
         Ok(self.stats.clone())
     }
 
+    /// The time things happen at: the recording's while one is played back, else now.
+    fn now_ns(&self) -> u64 {
+        self.clock.unwrap_or_else(now_unix_ns)
+    }
+
     fn at_now(&self) {
         self.rec
-            .set_timestamp_nanos_since_epoch(TIMELINE, now_unix_ns() as i64);
+            .set_timestamp_nanos_since_epoch(TIMELINE, self.now_ns() as i64);
     }
 
     fn say(&self, level: &str, text: &str) -> anyhow::Result<()> {
@@ -445,6 +449,48 @@ impl View {
         self.rec
             .log("log", &rerun::TextLog::new(text).with_level(level))?;
         Ok(())
+    }
+
+    /// An onboard sequence's event, in the log.
+    fn sequence(&self, e: &dnm_proto::station::SequenceEvent) -> anyhow::Result<()> {
+        let level = match e.what.as_str() {
+            "guard_fired" | "aborted" | "timed_out" => rerun::TextLogLevel::WARN,
+            _ => rerun::TextLogLevel::INFO,
+        };
+        let step = e.step.map_or(String::new(), |s| format!(" step {}", s + 1));
+        self.say(
+            level,
+            &format!("sequence `{}`{step}: {} {}", e.sequence, e.what, e.detail),
+        )
+    }
+
+    /// A module event (exit, hang, restart...), in the log.
+    fn module_event(&self, e: &dnm_proto::ModuleEvent) -> anyhow::Result<()> {
+        let level = match e.what.as_str() {
+            "exited" | "hung" | "gave_up" => rerun::TextLogLevel::ERROR,
+            "restarting" | "stopped" => rerun::TextLogLevel::WARN,
+            _ => rerun::TextLogLevel::INFO,
+        };
+        self.say(
+            level,
+            &format!("`{}` on `{}`: {} {}", e.module, e.dnm, e.what, e.detail),
+        )
+    }
+
+    /// A DNM's task switch, in the log.
+    fn switched(&self, dnm: &str, s: &dnm_proto::SwitchRecord) -> anyhow::Result<()> {
+        self.say(
+            rerun::TextLogLevel::INFO,
+            &format!(
+                "`{dnm}` switched {} → `{}` (revision {}, {:.2} µs)",
+                s.from
+                    .as_deref()
+                    .map_or("(none)".into(), |f| format!("`{f}`")),
+                s.to,
+                s.revision,
+                s.duration_ns as f64 / 1000.0
+            ),
+        )
     }
 
     /// A new revision or task: subscriptions follow the outputs, the graph its links.
@@ -455,12 +501,30 @@ impl View {
         tx: &SyncSender<Event>,
         dropped: &std::sync::Arc<std::sync::atomic::AtomicU64>,
     ) -> anyhow::Result<()> {
+        if self.show_wiring(w)?
+            && let Some(w) = self.wiring.clone()
+        {
+            self.subscribe(session, &w, tx, dropped);
+        }
+        if self.wiring.is_some() && self.ready.is_none() {
+            let key = format!("{}/monitor/{}", self.options.system, std::process::id());
+            match session.liveliness().declare_token(key).wait() {
+                Ok(t) => self.ready = Some(t),
+                Err(e) => tracing::debug!("monitor token: {e}"),
+            }
+        }
+        Ok(())
+    }
+
+    /// Draws a new revision or task in force: the log, the scene, the graph, the layout.
+    /// `true` when the revision changed (the outputs may have).
+    fn show_wiring(&mut self, w: Wiring) -> anyhow::Result<bool> {
         let (rev_changed, task_changed) = match &self.wiring {
             None => (true, true),
             Some(old) => (old.revision != w.revision, old.active_task != w.active_task),
         };
         if !rev_changed && !task_changed {
-            return Ok(());
+            return Ok(false);
         }
         if rev_changed {
             self.stats.revisions += 1;
@@ -474,7 +538,15 @@ impl View {
                     w.tasks.keys().cloned().collect::<Vec<_>>().join(", ")
                 ),
             )?;
-            self.subscribe(session, &w, tx, dropped);
+            self.messages = w
+                .modules
+                .iter()
+                .flat_map(|m| {
+                    m.outputs
+                        .iter()
+                        .map(|p| ((m.name.clone(), p.name.clone()), p.message.clone()))
+                })
+                .collect();
             self.scene(&w)?;
         }
         if task_changed && !rev_changed {
@@ -490,14 +562,7 @@ impl View {
         self.wiring = Some(w);
         self.draw_graph()?;
         self.send_blueprint()?;
-        if self.ready.is_none() {
-            let key = format!("{}/monitor/{}", self.options.system, std::process::id());
-            match session.liveliness().declare_token(key).wait() {
-                Ok(t) => self.ready = Some(t),
-                Err(e) => tracing::debug!("monitor token: {e}"),
-            }
-        }
-        Ok(())
+        Ok(rev_changed)
     }
 
     fn subscribe(
@@ -508,7 +573,6 @@ impl View {
         dropped: &std::sync::Arc<std::sync::atomic::AtomicU64>,
     ) {
         let mut wanted: BTreeMap<String, (String, String)> = BTreeMap::new();
-        self.messages.clear();
         for m in &w.modules {
             for p in &m.outputs {
                 let rate = if p.message.encoding == "dnm-image-rgb8" {
@@ -518,8 +582,6 @@ impl View {
                 };
                 let key = keys::watch(&self.options.system, &m.dnm, &m.name, &p.name, rate);
                 wanted.insert(key, (m.name.clone(), p.name.clone()));
-                self.messages
-                    .insert((m.name.clone(), p.name.clone()), p.message.clone());
             }
         }
         self.subscribers.retain(|k, _| wanted.contains_key(k));
@@ -654,33 +716,13 @@ impl View {
             for e in &r.events {
                 let id = (e.dnm.clone(), e.module.clone(), e.what.clone(), e.at_ns);
                 if self.events_seen.insert(id) {
-                    let level = match e.what.as_str() {
-                        "exited" | "hung" | "gave_up" => rerun::TextLogLevel::ERROR,
-                        "restarting" | "stopped" => rerun::TextLogLevel::WARN,
-                        _ => rerun::TextLogLevel::INFO,
-                    };
-                    self.say(
-                        level,
-                        &format!("`{}` on `{}`: {} {}", e.module, e.dnm, e.what, e.detail),
-                    )?;
+                    self.module_event(e)?;
                 }
             }
             for s in &r.switches {
                 let id = (s.dnm.clone(), s.revision, s.to.clone(), s.at_ns);
                 if self.switches_seen.insert(id) {
-                    self.say(
-                        rerun::TextLogLevel::INFO,
-                        &format!(
-                            "`{}` switched {} → `{}` (revision {}, {:.2} µs)",
-                            r.dnm,
-                            s.from
-                                .as_deref()
-                                .map_or("(none)".into(), |f| format!("`{f}`")),
-                            s.to,
-                            s.revision,
-                            s.duration_ns as f64 / 1000.0
-                        ),
-                    )?;
+                    self.switched(&r.dnm, s)?;
                 }
             }
             for p in &r.peers {
@@ -803,6 +845,47 @@ impl View {
         Ok(())
     }
 
+    /// A camera frame as its port carries it (`dnm-image-rgb8`: width, height and row step,
+    /// then the rows); a frame shorter than its header says is left out.
+    fn image(
+        &mut self,
+        module: &str,
+        port: &str,
+        bytes: &[u8],
+        unix_ns: u64,
+    ) -> anyhow::Result<()> {
+        let word = |i: usize| {
+            bytes
+                .get(i * 4..i * 4 + 4)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+        };
+        let (Some(width), Some(height), Some(step)) = (word(0), word(1), word(2)) else {
+            return Ok(());
+        };
+        let pixels = &bytes[dnm_rover::msgs::IMAGE_HEADER..];
+        let row = width.saturating_mul(3);
+        if width == 0 || step < row || pixels.len() < step.saturating_mul(height) {
+            return Ok(());
+        }
+        let rgb: Vec<u8> = if step == row {
+            pixels[..row * height].to_vec()
+        } else {
+            pixels
+                .chunks(step)
+                .take(height)
+                .flat_map(|r| &r[..row])
+                .copied()
+                .collect()
+        };
+        self.rec
+            .set_timestamp_nanos_since_epoch(TIMELINE, unix_ns as i64);
+        self.rec.log(
+            format!("camera/{module}/{port}"),
+            &rerun::Image::from_rgb24(rgb, [width as u32, height as u32]),
+        )?;
+        Ok(())
+    }
+
     /// Draws a message's fields at the time set: every numeric field as a time series, and a
     /// pose (`x`, `y`, `yaw`) as the module's body in the world; the pose's position, if any.
     fn draw(
@@ -872,8 +955,7 @@ impl View {
                 }
                 last = Some(*t);
             }
-            self.rec
-                .set_timestamp_nanos_since_epoch(TIMELINE, now_unix_ns() as i64);
+            self.at_now();
             self.rec.log(
                 format!("world/paths/{m}/filled"),
                 &rerun::LineStrips3D::new(strips)
@@ -887,14 +969,15 @@ impl View {
     /// Paths are logged at most twice a second (they are whole strips).
     fn flush_paths(&mut self, all: bool) -> anyhow::Result<()> {
         self.flush_filled()?;
+        let now = self.now_ns();
         let due: Vec<String> = self
             .paths
             .iter()
             .filter(|(_, p)| {
                 p.dirty
                     && (all
-                        || p.logged_at
-                            .is_none_or(|t| t.elapsed() >= Duration::from_millis(500)))
+                        || p.logged_at_ns
+                            .is_none_or(|t| now.saturating_sub(t) >= PATH_EVERY_NS))
             })
             .map(|(m, _)| m.clone())
             .collect();
@@ -908,7 +991,7 @@ impl View {
                 continue;
             };
             self.rec
-                .set_timestamp_nanos_since_epoch(TIMELINE, now_unix_ns() as i64);
+                .set_timestamp_nanos_since_epoch(TIMELINE, now as i64);
             self.rec.log(
                 format!("world/paths/{m}/{}", p.segment),
                 &rerun::LineStrips3D::new([p.points.clone()])
@@ -920,7 +1003,7 @@ impl View {
                     .with_radii([0.03]),
             )?;
             p.dirty = false;
-            p.logged_at = Some(Instant::now());
+            p.logged_at_ns = Some(now);
             if p.points.len() >= SEGMENT_POINTS {
                 // That segment is whole: the next starts where it ends.
                 p.segment += 1;

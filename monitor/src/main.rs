@@ -52,6 +52,10 @@ struct Cli {
     /// No multicast scouting: use only the endpoints given.
     #[arg(long)]
     no_multicast: bool,
+    /// Draw a recorded session read from standard input (what `dnm monitor --session DIR`
+    /// writes) instead of a running system; a viewer is started unless --save or --viewer.
+    #[arg(long, hide = true)]
+    playback: bool,
 }
 
 fn parse_rate(s: &str) -> Result<WatchRate, String> {
@@ -88,26 +92,10 @@ fn main() -> ExitCode {
     }
 }
 
-fn main_inner() -> anyhow::Result<()> {
-    let cli = Cli::parse();
-    let zenoh = dnm_router::ZenohOptions {
-        config: cli.zenoh_config.clone(),
-        mode: cli
-            .zenoh_mode
-            .clone()
-            .or_else(|| (!cli.connect.is_empty()).then(|| "client".to_string())),
-        listen: Vec::new(),
-        connect: cli.connect.clone(),
-        no_multicast: cli.no_multicast,
-    };
-    let session = zenoh.open().context("joining Zenoh")?;
-    let mut options = MonitorOptions::new(&cli.system);
-    options.numeric_rate = cli.rate;
-    options.camera_rate = cli.camera_rate;
-    options.status_every = seconds("status-every", cli.status_every)?;
-    options.duration = cli.duration.map(|d| seconds("for", d)).transpose()?;
+/// The recording stream the command line asks for.
+fn recording(cli: &Cli) -> anyhow::Result<rerun::RecordingStream> {
     let builder = rerun::RecordingStreamBuilder::new("dnm");
-    let rec = if let Some(path) = &cli.save {
+    Ok(if let Some(path) = &cli.save {
         // A file is read later: rows batched for two seconds make chunks of many rows each
         // (a tenth of the size of the live default's).
         builder
@@ -121,7 +109,7 @@ fn main_inner() -> anyhow::Result<()> {
         builder
             .connect_grpc_opts(url.clone())
             .with_context(|| format!("connecting to the viewer at {url}"))?
-    } else if cli.spawn {
+    } else if cli.spawn || cli.playback {
         builder
             .spawn()
             .context("starting a viewer (is `rerun` on the PATH? pip install rerun-sdk==0.36.3)")?
@@ -129,7 +117,38 @@ fn main_inner() -> anyhow::Result<()> {
         builder
             .connect_grpc()
             .context("connecting to a viewer on the default port (or give --save or --spawn)")?
+    })
+}
+
+fn main_inner() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    let mut options = MonitorOptions::new(&cli.system);
+    options.numeric_rate = cli.rate;
+    options.camera_rate = cli.camera_rate;
+    options.status_every = seconds("status-every", cli.status_every)?;
+    options.duration = cli.duration.map(|d| seconds("for", d)).transpose()?;
+    if cli.playback {
+        let rec = recording(&cli)?;
+        let stats = dnm_monitor::play(&mut std::io::stdin().lock(), &rec, &options)?;
+        drop(rec);
+        eprintln!(
+            "monitor: {} samples drawn ({} bytes), {} revisions, {} switches",
+            stats.samples, stats.bytes, stats.revisions, stats.switches
+        );
+        return Ok(());
+    }
+    let zenoh = dnm_router::ZenohOptions {
+        config: cli.zenoh_config.clone(),
+        mode: cli
+            .zenoh_mode
+            .clone()
+            .or_else(|| (!cli.connect.is_empty()).then(|| "client".to_string())),
+        listen: Vec::new(),
+        connect: cli.connect.clone(),
+        no_multicast: cli.no_multicast,
     };
+    let session = zenoh.open().context("joining Zenoh")?;
+    let rec = recording(&cli)?;
     let stats = run(&session, &rec, &options, stop_on_signal())?;
     drop(rec);
     eprintln!(

@@ -16,6 +16,10 @@
 //! `cargo bench -p dnm --bench python` (`DNM_PYTHON` names another Python with `dnm`). The
 //! first run makes a Python environment with dora in `target/dora` (`DNM_DORA` names another
 //! `dora` executable).
+//!
+//! Knobs for studying one cell: `DNM_PY_SIZES=64,4096` measures only those sizes,
+//! `DNM_PY_NO_DORA=1` leaves dora out, `DNM_BENCH_PIN=1` pins each pair's source to CPU 0 and
+//! its sink to CPU 1 (the default leaves placement to the kernel, as a deployment would).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
 
@@ -173,12 +177,39 @@ links = ["src.out -> lat.in"]
 "#
     );
     let up = up(&system, &netlist, &[], None, 1);
+    if std::env::var_os("DNM_BENCH_PIN").is_some() {
+        pin(&system, "src", 0);
+        pin(&system, "lat", 1);
+    }
     let mut cpu0 = 0.0;
     let lat = latencies_after(&system, "local", "lat", SAMPLES, SKIP, || {
         cpu0 = tree_cpu_seconds(up.pid());
     });
     let cpu_s = tree_cpu_seconds(up.pid()) - cpu0;
     Round { lat, cpu_s }
+}
+
+/// Pins the process of `module` of `system` (found by its launch description) to `cpu`.
+fn pin(system: &str, module: &str, cpu: usize) {
+    let needle = format!("\"module\":\"{module}\"");
+    loop {
+        for entry in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+            let cmd = std::fs::read(entry.path().join("cmdline")).unwrap_or_default();
+            let cmd = String::from_utf8_lossy(&cmd);
+            if cmd.contains(system) && cmd.contains(&needle) {
+                let pid: i32 = entry.file_name().to_str().unwrap().parse().unwrap();
+                // SAFETY: a zeroed cpu_set_t is an empty set; sched_setaffinity reads it only.
+                let rc = unsafe {
+                    let mut set: libc::cpu_set_t = std::mem::zeroed();
+                    libc::CPU_SET(cpu, &mut set);
+                    libc::sched_setaffinity(pid, std::mem::size_of::<libc::cpu_set_t>(), &set)
+                };
+                assert_eq!(rc, 0, "pinning {module} to CPU {cpu}");
+                return;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
 }
 
 const DORA_SOURCE: &str = r#"
@@ -327,7 +358,8 @@ fn main() {
         std::fs::set_permissions(&f, std::fs::Permissions::from_mode(0o755)).unwrap();
     }
     let exec = dir.clone();
-    let dora = dora();
+    let with_dora = std::env::var_os("DNM_PY_NO_DORA").is_none();
+    let dora = if with_dora { dora() } else { PathBuf::new() };
     println!(
         "# One hop: Python → Python against Rust → Rust through a DNM, and dora's Python nodes \
          ({ROUNDS} rounds of {SAMPLES} samples at {RATE_HZ} Hz, the pairs taking turns)\n"
@@ -338,29 +370,39 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|");
     let mut missed = Vec::new();
-    for size in SIZES {
+    let sizes: Vec<usize> = match std::env::var("DNM_PY_SIZES") {
+        Ok(v) => v.split(',').map(|s| s.parse().unwrap()).collect(),
+        Err(_) => SIZES.to_vec(),
+    };
+    for size in sizes {
         let (mut rust, mut python, mut dora_r) =
             (Round::default(), Round::default(), Round::default());
         let mut lost = 0;
         for _ in 0..ROUNDS {
             rust.add(hop(size, None));
             python.add(hop(size, Some(&exec)));
-            let (d, l) = dora_hop(&dora, size, &dir);
-            dora_r.add(d);
-            lost += l;
+            if with_dora {
+                let (d, l) = dora_hop(&dora, size, &dir);
+                dora_r.add(d);
+                lost += l;
+            }
         }
         if lost > 0 {
             missed.push(format!("{lost} at {}", human(size)));
         }
-        let (rust, python, dora_h) = (rust.hop(), python.hop(), dora_r.hop());
+        let (rust, python) = (rust.hop(), python.hop());
+        let (dora_cell, dora_ratio) = if with_dora {
+            let d = dora_r.hop();
+            (d.cell(), format!("{:.2}", d.p50_us / python.p50_us))
+        } else {
+            ("—".to_string(), "—".to_string())
+        };
         println!(
-            "| {} | {} | {} | {} | {:.2} | {:.2} |",
+            "| {} | {} | {} | {dora_cell} | {:.2} | {dora_ratio} |",
             human(size),
             rust.cell(),
             python.cell(),
-            dora_h.cell(),
             python.p50_us / rust.p50_us,
-            dora_h.p50_us / python.p50_us,
         );
     }
     if !missed.is_empty() {

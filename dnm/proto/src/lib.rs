@@ -13,6 +13,7 @@
 
 pub mod clock;
 pub mod keys;
+pub mod playback;
 pub mod station;
 
 use serde::{Deserialize, Serialize};

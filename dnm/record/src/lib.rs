@@ -1,6 +1,7 @@
 //! Recordings: every output port of a DNM written to MCAP by the [`record::Recorder`] (a DNM
 //! plugin, off the modules' path), one folder and manifest per session ([`session`]),
-//! recordings replayed into a running system ([`replay`]), and their statistics ([`stats`]).
+//! recordings replayed into a running system ([`replay`]) or read back for a viewer
+//! ([`playback`]), and their statistics ([`stats`]).
 //! How a sample is stored and read back is [`codec`] (and [`standard`] for standard messages).
 //!
 //! ```no_run
@@ -14,6 +15,7 @@
 
 pub mod check;
 pub mod codec;
+pub mod playback;
 pub mod record;
 pub mod replay;
 pub mod session;

@@ -412,6 +412,39 @@ impl Target {
     }
 }
 
+/// A recorded channel's topic taken apart: `/<dnm>/<module>/<port>`, or its `/raw` companion.
+pub(crate) struct PortTopic<'t> {
+    /// The channel keeps the port's own bytes beside its standard message.
+    pub(crate) raw: bool,
+    /// The port's topic (without `/raw`).
+    pub(crate) port_topic: &'t str,
+    pub(crate) dnm: &'t str,
+    pub(crate) module: &'t str,
+    pub(crate) port: &'t str,
+}
+
+impl<'t> PortTopic<'t> {
+    pub(crate) fn of(topic: &'t str) -> Result<Self, String> {
+        let raw = crate::is_raw(topic);
+        let port_topic = topic
+            .strip_suffix(crate::RAW_SUFFIX)
+            .filter(|_| raw)
+            .unwrap_or(topic);
+        let mut parts = port_topic.trim_start_matches('/').splitn(3, '/');
+        let (Some(dnm), Some(module), Some(port)) = (parts.next(), parts.next(), parts.next())
+        else {
+            return Err(format!("`{topic}` is not /<dnm>/<module>/<port>"));
+        };
+        Ok(Self {
+            raw,
+            port_topic,
+            dnm,
+            module,
+            port,
+        })
+    }
+}
+
 /// A channel's port topic and how to read it, or why it is not replayed (empty: silently).
 type Decided = Result<(String, Reading), String>;
 
@@ -485,16 +518,13 @@ impl<'a> Routes<'a> {
     }
 
     fn decide(&mut self, topic: &str, schema: &str) -> Result<(String, Reading), String> {
-        let raw = crate::is_raw(topic);
-        let port_topic = topic
-            .strip_suffix(crate::RAW_SUFFIX)
-            .filter(|_| raw)
-            .unwrap_or(topic);
-        let mut parts = port_topic.trim_start_matches('/').splitn(3, '/');
-        let (Some(dnm), Some(module), Some(port)) = (parts.next(), parts.next(), parts.next())
-        else {
-            return Err(format!("`{topic}` is not /<dnm>/<module>/<port>"));
-        };
+        let PortTopic {
+            raw,
+            port_topic,
+            dnm,
+            module,
+            port,
+        } = PortTopic::of(topic)?;
         if module.starts_with('_') || port.starts_with('_') {
             return Err(String::new()); // switches and events: not port data
         }
