@@ -154,6 +154,53 @@ fn until(b: &Browser, what: &str, js: &str) -> Value {
     }
 }
 
+/// The drawing's geometry, from the page itself: link segments that cross a module's box (a
+/// segment touching a box's edge, at its port, does not), link labels that overlap, links not
+/// drawn as straight runs, and how many links, labels and radio links there are.
+fn layout_faults(b: &Browser) -> Value {
+    b.js(
+        r#"const boxes = [...document.querySelectorAll('g.module > rect.box')].map(r => ({
+             m: r.parentNode.dataset.module, x: +r.getAttribute('x'), y: +r.getAttribute('y'),
+             w: +r.getAttribute('width'), h: +r.getAttribute('height') }));
+           const crossings = [], curved = [];
+           const paths = [...document.querySelectorAll('path.link')];
+           for (const p of paths) {
+             const d = p.getAttribute('d'), name = p.dataset.activeLink || p.dataset.link;
+             if (/[CQSAcqsa]/.test(d)) curved.push(name);
+             const pts = (d.match(/-?[\d.]+,-?[\d.]+/g) || []).map(s => s.split(',').map(Number));
+             for (let i = 0; i + 1 < pts.length; i++) {
+               const [a, c] = [pts[i], pts[i + 1]];
+               const x0 = Math.min(a[0], c[0]), x1 = Math.max(a[0], c[0]);
+               const y0 = Math.min(a[1], c[1]), y1 = Math.max(a[1], c[1]);
+               for (const r of boxes) {
+                 if (x1 > r.x + 0.5 && x0 < r.x + r.w - 0.5 && y1 > r.y + 0.5 && y0 < r.y + r.h - 0.5)
+                   crossings.push(`${name} crosses ${r.m}`);
+               }
+             }
+           }
+           const labels = [...document.querySelectorAll('text.link-label')].map(t => ({ t: t.textContent, b: t.getBBox() }));
+           const overlaps = [];
+           for (let i = 0; i < labels.length; i++) for (let j = i + 1; j < labels.length; j++) {
+             const [p, q] = [labels[i].b, labels[j].b];
+             if (p.x < q.x + q.width && q.x < p.x + p.width && p.y < q.y + q.height && q.y < p.y + p.height)
+               overlaps.push(`${labels[i].t} / ${labels[j].t}`);
+           }
+           return { crossings, overlaps, curved, links: paths.length, labels: labels.length,
+                    radio: paths.filter(p => p.classList.contains('radio')).length };"#,
+        json!([]),
+    )
+}
+
+/// No link crosses a box, no two labels overlap, every link is drawn in straight runs.
+fn assert_readable(b: &Browser, view: &str) -> Value {
+    let g = layout_faults(b);
+    for fault in ["crossings", "overlaps", "curved"] {
+        assert_eq!(g[fault], json!([]), "{view} view: {fault}: {g:#}");
+    }
+    assert!(g["links"].as_u64().unwrap() > 0, "{view} view: no links drawn: {g:#}");
+    g
+}
+
 fn port(p: &str, dir: &str) -> String {
     format!("circle.port[data-port=\"{p}\"][data-dir=\"{dir}\"]")
 }
@@ -197,6 +244,22 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
         "the draft loaded from the netlist in force and checked valid",
         "window.__dnm.check && window.__dnm.check.ok && window.__dnm.draft.module.length === 15",
     );
+
+    // Beetle-One's teleop task, drawn by data flow: no link through a box, no label on
+    // another, in the task view and in the connection view (rates measured, the joystick's
+    // links across the radio drawn as such).
+    assert_readable(&b, "task");
+    b.click("#tab-connections");
+    until(
+        &b,
+        "the connection view with every module running and its rates",
+        "document.querySelectorAll('g.module[data-state=running]').length === 15 && [...document.querySelectorAll('text.link-label')].some(t => !t.textContent.startsWith('0 Hz'))",
+    );
+    let g = assert_readable(&b, "connection");
+    assert!(g["radio"].as_u64().unwrap() >= 1, "no radio link: {g:#}");
+    assert!(g["labels"].as_u64().unwrap() >= 5, "rate labels: {g:#}");
+    b.screenshot(&shots().join("connections-teleop.png"));
+    b.click("#tab-tasks");
 
     // A link between mismatched types is refused in the page, with the reason.
     let before = draft_links(&b);
@@ -245,6 +308,9 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
         "the draft checked valid",
         "document.getElementById('check-state').textContent === 'valid' && !document.getElementById('draft-apply').disabled && window.__dnm.check.ok && window.__dnm.check.toml.includes('[task.creep]') && window.__dnm.check.toml.includes('timeout = 0.4')",
     );
+    assert_readable(&b, "task");
+    // From the sources on the left (drawing links scrolled the view).
+    b.js("document.getElementById('canvas-wrap').scrollTo(0, 0); return null;", json!([]));
     b.screenshot(&shots().join("tasks.png"));
 
     // The exported netlist is what is applied.
@@ -303,6 +369,7 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
         "the connection view on task creep",
         "document.getElementById('conn-summary').textContent.includes('task creep') && document.querySelectorAll('g.module[data-state=running]').length === 15",
     );
+    assert_readable(&b, "connection");
     let active: Vec<String> = serde_json::from_value(b.js(
         "return [...document.querySelectorAll('[data-active-link]')].map(e => e.dataset.activeLink)",
         json!([]),
@@ -349,6 +416,8 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
     );
     let values = b.text("#watch-values");
     assert!(values.contains('x') && values.contains("yaw"), "{values}");
+    // From the sources on the left (drawing links scrolled the view).
+    b.js("document.getElementById('canvas-wrap').scrollTo(0, 0); return null;", json!([]));
     b.screenshot(&shots().join("connections.png"));
 
     // The ground's record of the rover: Beetle-One's downlink plan, what the station missed

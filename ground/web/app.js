@@ -272,8 +272,18 @@ function setParam(name, p, raw) {
 }
 
 // ---- layout and drawing -----------------------------------------------------------------------
+//
+// Laid out by data flow: a module's column is its depth along the links of every task (sources
+// on the left, sinks on the right; the same place whatever task is in force), each DNM a lane
+// across the columns, in hierarchy order. Links run on tracks of their own: out of a module's
+// right side into the channel after its column, along the corridor under its lane when they skip
+// columns or go back, and into the left side of their target from the channel before its
+// column. Channels and corridors hold no module, so no link crosses a box; each output's rate
+// label sits on its own stub, beside the box.
 
-const COL_W = 250, BOX_W = 200, ROW_H = 15, HEAD_H = 34, GAP = 12, TOP = 44, LEFT = 70;
+const BOX_W = 200, ROW_H = 15, HEAD_H = 34, GAP = 12, LEFT = 12, LANE_HEAD = 40, LANE_GAP = 14;
+// Track spacing, the narrowest channel (room for a rate label), the corridor's margin.
+const TRACK = 7, LABEL_W = 96, EDGE = 10;
 
 // DNMs in hierarchy order: each after its parent.
 function dnmOrder(list) {
@@ -292,39 +302,131 @@ function dnmOrder(list) {
   return out;
 }
 
-// mods: [{name, kind, dnm, inputs:[port], outputs:[port]}]
-function layout(dnmList, mods) {
-  const declared = new Set(dnmList.map((d) => d.name));
-  const extra = [...new Set(mods.map((m) => m.dnm).filter((d) => !declared.has(d)))].map((name) => ({ name, undeclared: true }));
-  const cols = dnmOrder(dnmList.concat(extra));
-  const at = {}, ports = {};
-  let height = 0;
-  cols.forEach((d, i) => {
-    d.x = LEFT + i * COL_W;
-    let y = TOP;
-    for (const m of mods.filter((m) => m.dnm === d.name)) {
-      const rows = Math.max(m.inputs.length, m.outputs.length, 1);
-      const h = HEAD_H + rows * ROW_H + 6;
-      at[m.name] = { x: d.x + (COL_W - BOX_W) / 2 - 10, y, h, m };
-      m.inputs.forEach((p, j) => { ports[`in:${m.name}.${p.name}`] = { x: at[m.name].x, y: y + HEAD_H + j * ROW_H + 6 }; });
-      m.outputs.forEach((p, j) => { ports[`out:${m.name}.${p.name}`] = { x: at[m.name].x + BOX_W, y: y + HEAD_H + j * ROW_H + 6 }; });
-      y += h + GAP;
+// Each module's column: the longest chain of links leading to it (links closing a cycle left
+// out), a source pulled right next to the first module it feeds.
+function ranks(names, edges) {
+  const succ = Object.fromEntries(names.map((n) => [n, []]));
+  const preds = Object.fromEntries(names.map((n) => [n, 0]));
+  for (const [a, b] of edges) if (succ[a] && succ[b] && a !== b && !succ[a].includes(b)) succ[a].push(b);
+  const state = {}, order = [], back = new Set();
+  const visit = (n) => {
+    state[n] = 1;
+    for (const s of succ[n]) {
+      if (state[s] === 1) back.add(`${n}\u0000${s}`);
+      else if (!state[s]) visit(s);
     }
-    d.bottom = y;
-    height = Math.max(height, y);
-  });
-  return { cols, at, ports, width: LEFT + cols.length * COL_W + 20, height: height + 20 };
+    state[n] = 2;
+    order.push(n);
+  };
+  for (const n of names) if (!state[n]) visit(n);
+  order.reverse();
+  const forward = (a) => succ[a].filter((b) => !back.has(`${a}\u0000${b}`));
+  for (const a of names) for (const b of forward(a)) preds[b] += 1;
+  const rank = Object.fromEntries(names.map((n) => [n, 0]));
+  for (const a of order) for (const b of forward(a)) rank[b] = Math.max(rank[b], rank[a] + 1);
+  for (const a of [...order].reverse()) {
+    const next = forward(a);
+    if (preds[a] === 0 && next.length) rank[a] = Math.max(0, Math.min(...next.map((b) => rank[b])) - 1);
+  }
+  return rank;
 }
 
+// mods: [{name, kind, dnm, inputs:[port], outputs:[port]}]; links: [{from:{module,port}, to:{module,port}}]
+// drawn (their routes in L.routes, in order); every task's module pairs in `all` set the columns.
+function layout(dnmList, mods, links, all) {
+  const declared = new Set(dnmList.map((d) => d.name));
+  const extra = [...new Set(mods.map((m) => m.dnm).filter((d) => !declared.has(d)))].map((name) => ({ name, undeclared: true }));
+  const lanes = dnmOrder(dnmList.concat(extra));
+  const byName = Object.fromEntries(mods.map((m) => [m.name, m]));
+  const rank = ranks(mods.map((m) => m.name), all.filter(([a, b]) => byName[a] && byName[b]));
+  const ncol = 1 + Math.max(0, ...Object.values(rank));
+  const drawn = links.filter((l) => byName[l.from.module] && byName[l.to.module]
+    && byName[l.from.module].outputs.some((p) => p.name === l.from.port)
+    && byName[l.to.module].inputs.some((p) => p.name === l.to.port));
+  const adjacent = (l) => rank[l.to.module] === rank[l.from.module] + 1;
+  // Tracks: per channel (-1: before the first column) and per lane's corridor.
+  const chan = {}, corridor = {};
+  const take = (table, key, id) => { (table[key] = table[key] || []).includes(id) || table[key].push(id); };
+  const laneOf = (m) => lanes.findIndex((d) => d.name === byName[m].dnm);
+  drawn.forEach((l, i) => {
+    take(chan, rank[l.from.module], `out:${l.from.module}.${l.from.port}`);
+    if (!adjacent(l)) {
+      take(chan, rank[l.to.module] - 1, `link:${i}`);
+      take(corridor, laneOf(l.from.module), `link:${i}`);
+    }
+  });
+  const width = (c) => Math.max(c < 0 ? 2 * EDGE : LABEL_W, 2 * EDGE + ((chan[c] || []).length) * TRACK);
+  const colX = [];
+  let x = LEFT + width(-1);
+  for (let c = 0; c < ncol; c++) { colX.push(x); x += BOX_W + width(c); }
+  const chanX = (c) => (c < 0 ? LEFT : colX[c] + BOX_W);
+  // Boxes: per lane and column, stacked; in a column, ordered by where what feeds them sits.
+  const at = {}, ports = {};
+  const feeds = {};
+  for (const [a, b] of all) if (byName[a] && byName[b]) (feeds[b] = feeds[b] || []).push(a);
+  const place = {};
+  let y = 6;
+  lanes.forEach((d, li) => {
+    d.top = y;
+    let bottom = y + LANE_HEAD;
+    for (let c = 0; c < ncol; c++) {
+      const cell = mods.filter((m) => m.dnm === d.name && rank[m.name] === c);
+      const bary = (m) => {
+        const ys = (feeds[m.name] || []).filter((f) => place[f] != null).map((f) => place[f]);
+        return ys.length ? ys.reduce((s, v) => s + v, 0) / ys.length : Infinity;
+      };
+      cell.sort((a, b) => bary(a) - bary(b) || (mods.indexOf(a) - mods.indexOf(b)));
+      let yy = y + LANE_HEAD;
+      for (const m of cell) {
+        const rows = Math.max(m.inputs.length, m.outputs.length, 1);
+        const h = HEAD_H + rows * ROW_H + 6;
+        at[m.name] = { x: colX[c], y: yy, h, m };
+        place[m.name] = yy + h / 2;
+        m.inputs.forEach((p, j) => { ports[`in:${m.name}.${p.name}`] = { x: colX[c], y: yy + HEAD_H + j * ROW_H + 6 }; });
+        m.outputs.forEach((p, j) => { ports[`out:${m.name}.${p.name}`] = { x: colX[c] + BOX_W, y: yy + HEAD_H + j * ROW_H + 6 }; });
+        yy += h + GAP;
+      }
+      bottom = Math.max(bottom, yy - GAP + EDGE);
+    }
+    d.bottom = bottom;
+    d.corridor = bottom;
+    y = bottom + Math.max(LANE_GAP, 2 * EDGE + ((corridor[li] || []).length) * TRACK);
+  });
+  // Routes: a polyline per drawn link, on its tracks.
+  const trackX = (c, id) => chanX(c) + EDGE + (chan[c].indexOf(id) + 0.5) * TRACK;
+  const routes = drawn.map((l, i) => {
+    const a = ports[`out:${l.from.module}.${l.from.port}`], b = ports[`in:${l.to.module}.${l.to.port}`];
+    const t1 = trackX(rank[l.from.module], `out:${l.from.module}.${l.from.port}`);
+    if (adjacent(l)) return { link: l, points: [[a.x, a.y], [t1, a.y], [t1, b.y], [b.x, b.y]] };
+    const li = laneOf(l.from.module);
+    const yc = lanes[li].corridor + EDGE + (corridor[li].indexOf(`link:${i}`) + 0.5) * TRACK;
+    const t2 = trackX(rank[l.to.module] - 1, `link:${i}`);
+    return { link: l, points: [[a.x, a.y], [t1, a.y], [t1, yc], [t2, yc], [t2, b.y], [b.x, b.y]] };
+  });
+  return { lanes, at, ports, routes, width: x + LEFT, height: y + 6 };
+}
+
+function polyline(points) {
+  return 'M' + points.map(([px, py]) => `${px.toFixed(1)},${py.toFixed(1)}`).join(' L');
+}
+
+// The drawing line while a link is drawn.
 function curve(a, b) {
   const dx = Math.max(40, Math.abs(b.x - a.x) / 2);
   return `M${a.x},${a.y} C${a.x + dx},${a.y} ${b.x - dx},${b.y} ${b.x},${b.y}`;
 }
 
+// Every task's module-level links: what the columns are made of.
+function taskPairs(taskLinks) {
+  const out = [];
+  for (const l of taskLinks) if (l) out.push([l.from.module, l.to.module]);
+  return out;
+}
+
 function drawColumns(L) {
-  return L.cols.map((d) => `<g class="dnm-col"><rect class="col" x="${d.x}" y="6" width="${COL_W - 20}" height="${Math.max(d.bottom, L.height - 20) - 6}" rx="6"/>`
-    + `<text class="col-title" x="${d.x + 8}" y="22">${'↳ '.repeat(d.depth ? 1 : 0)}${esc(d.name)}</text>`
-    + `<text class="col-sub" x="${d.x + 8}" y="36">${d.undeclared ? 'not declared: add it to [[dnm]]' : d.parent ? `under ${esc(d.parent)}` : 'root'}${d.radio ? ' · across the radio' : ''}</text></g>`).join('');
+  return L.lanes.map((d) => `<g class="dnm-col"><rect class="col" x="4" y="${d.top}" width="${L.width - 8}" height="${d.bottom - d.top}" rx="6"/>`
+    + `<text class="col-title" x="12" y="${d.top + 16}">${'↳ '.repeat(d.depth ? 1 : 0)}${esc(d.name)}</text>`
+    + `<text class="col-sub" x="12" y="${d.top + 30}">${d.undeclared ? 'not declared: add it to [[dnm]]' : d.parent ? `under ${esc(d.parent)}` : 'root'}${d.radio ? ' · across the radio' : ''}</text></g>`).join('');
 }
 
 function drawModule(box, cls, lines) {
@@ -356,18 +458,18 @@ function draftModules() {
 function renderTasks() {
   if (!S.draft) return;
   const mods = draftModules();
-  const L = layout(dnms(), mods);
-  S.layout = L;
   const t = tasks()[S.task];
+  const parsed = ((t && t.links) || []).map(parseLink);
+  const every = Object.values(tasks()).flatMap((tk) => (tk.links || []).map(parseLink));
+  const shown = parsed.map((l, i) => (l ? { ...l, index: i } : null)).filter(Boolean);
+  const L = layout(dnms(), mods, shown, taskPairs(every));
+  S.layout = L;
   let links = '';
-  ((t && t.links) || []).forEach((s, i) => {
-    const l = parseLink(s);
-    const a = l && L.ports[`out:${l.from.module}.${l.from.port}`];
-    const b = l && L.ports[`in:${l.to.module}.${l.to.port}`];
-    if (!a || !b) return;
+  for (const r of L.routes) {
+    const i = r.link.index;
     const sel = S.selected && S.selected.type === 'link' && S.selected.index === i;
-    links += `<path class="link${sel ? ' selected' : ''}" d="${curve(a, b)}" data-link="${i}"><title>${esc(s)}</title></path>`;
-  });
+    links += `<path class="link${sel ? ' selected' : ''}" d="${polyline(r.points)}" data-link="${i}"><title>${esc(t.links[i])}</title></path>`;
+  }
   let boxes = '';
   for (const m of mods) {
     const k = S.kinds[m.kind];
@@ -419,16 +521,16 @@ function renderConnections() {
   const svg = $('canvas');
   if (!w) { svg.innerHTML = '<text x="20" y="30">No wiring heard from the rover yet.</text>'; return; }
   const mods = w.modules.map((m) => ({ name: m.name, kind: m.kind, dnm: m.dnm, inputs: m.inputs, outputs: m.outputs }));
-  const L = layout(w.dnms, mods);
+  const active = (w.active_task && w.tasks[w.active_task]) || [];
+  const L = layout(w.dnms, mods, active, taskPairs(Object.values(w.tasks).flat()));
   S.layout = L;
   const radio = Object.fromEntries(w.dnms.map((d) => [d.name, !!d.radio]));
   const dnmOfMod = Object.fromEntries(w.modules.map((m) => [m.name, m.dnm]));
-  const active = (w.active_task && w.tasks[w.active_task]) || [];
   let links = '';
-  for (const l of active) {
-    const a = L.ports[`out:${l.from.module}.${l.from.port}`];
-    const b = L.ports[`in:${l.to.module}.${l.to.port}`];
-    if (!a || !b) continue;
+  // One label per output that feeds something: its rate, and whether it crosses the radio.
+  const labels = {};
+  for (const r of L.routes) {
+    const l = r.link;
     const da = dnmOfMod[l.from.module], db = dnmOfMod[l.to.module];
     const crossesRadio = da !== db && (radio[da] || radio[db]);
     const src = stateOf(l.from.module, da);
@@ -438,9 +540,13 @@ function renderConnections() {
     const size = outPort && outPort.message.payload.layout === 'fixed' ? outPort.message.payload.size_bytes : null;
     const traffic = size == null ? '' : `, ~${(hz * size / 1000).toFixed(1)} kB/s`;
     const text = `${l.from.module}.${l.from.port} -> ${l.to.module}.${l.to.port}`;
-    links += `<path class="link${crossesRadio ? ' radio' : ''}" d="${curve(a, b)}" style="stroke-width:${(1.2 + Math.min(4, Math.log10(1 + hz))).toFixed(1)}" data-active-link="${esc(text)}" data-radio="${crossesRadio ? 1 : 0}"><title>${esc(text)}: ${hz.toFixed(1)} Hz${traffic}${crossesRadio ? ', across the radio' : ''}</title></path>`;
-    const mx = (a.x + b.x) / 2, my = (a.y + b.y) / 2;
-    links += `<text class="link-label${crossesRadio ? ' radio' : ''}" x="${mx}" y="${my - 3}" text-anchor="middle">${hz.toFixed(0)} Hz${crossesRadio ? ' · radio' : ''}</text>`;
+    links += `<path class="link${crossesRadio ? ' radio' : ''}" d="${polyline(r.points)}" style="stroke-width:${(1.2 + Math.min(4, Math.log10(1 + hz))).toFixed(1)}" data-active-link="${esc(text)}" data-radio="${crossesRadio ? 1 : 0}"><title>${esc(text)}: ${hz.toFixed(1)} Hz${traffic}${crossesRadio ? ', across the radio' : ''}</title></path>`;
+    const key = `${l.from.module}.${l.from.port}`;
+    const [px, py] = r.points[0];
+    labels[key] = { x: px + 6, y: py - 3, hz, radio: (labels[key] && labels[key].radio) || crossesRadio };
+  }
+  for (const [port, lb] of Object.entries(labels)) {
+    links += `<text class="link-label${lb.radio ? ' radio' : ''}" x="${lb.x}" y="${lb.y}" data-label-of="${esc(port)}">${lb.hz.toFixed(0)} Hz${lb.radio ? ' · radio' : ''}</text>`;
   }
   let boxes = '';
   let counts = {};
