@@ -197,7 +197,10 @@ fn assert_readable(b: &Browser, view: &str) -> Value {
     for fault in ["crossings", "overlaps", "curved"] {
         assert_eq!(g[fault], json!([]), "{view} view: {fault}: {g:#}");
     }
-    assert!(g["links"].as_u64().unwrap() > 0, "{view} view: no links drawn: {g:#}");
+    assert!(
+        g["links"].as_u64().unwrap() > 0,
+        "{view} view: no links drawn: {g:#}"
+    );
     g
 }
 
@@ -249,6 +252,17 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
     // another, in the task view and in the connection view (rates measured, the joystick's
     // links across the radio drawn as such).
     assert_readable(&b, "task");
+    // By data flow: the joystick (the one source) before what it feeds, both motors in one
+    // column, the world they drive after them.
+    let x: Value = b.js(
+        "return Object.fromEntries([...document.querySelectorAll('g.module')].map(g => [g.dataset.module, +g.querySelector('rect.box').getAttribute('x')]))",
+        json!([]),
+    );
+    let col = |m: &str| x[m].as_f64().unwrap();
+    assert!(col("joystick") < col("obstacle_stop"), "{x}");
+    assert!(col("obstacle_stop") < col("watchdog"), "{x}");
+    assert_eq!(col("motor_left"), col("motor_right"), "{x}");
+    assert!(col("motor_left") < col("world"), "{x}");
     b.click("#tab-connections");
     until(
         &b,
@@ -290,7 +304,11 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
         assert!(msg.starts_with("linked"), "{from} -> {to}: {msg}");
     }
     // A parameter edited in the inspector: the watchdog stops the rover sooner.
-    b.click("g.module[data-module=watchdog]");
+    b.js(
+        "document.querySelector('g.module[data-module=watchdog] rect.head').scrollIntoView({block: 'center', inline: 'center'}); return null;",
+        json!([]),
+    );
+    b.click("g.module[data-module=watchdog] rect.head");
     b.retype("input[data-param=timeout]", "0.4");
     b.click("#task-name"); // leaving the field commits the edit
     until(
@@ -310,7 +328,10 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
     );
     assert_readable(&b, "task");
     // From the sources on the left (drawing links scrolled the view).
-    b.js("document.getElementById('canvas-wrap').scrollTo(0, 0); return null;", json!([]));
+    b.js(
+        "document.getElementById('canvas-wrap').scrollTo(0, 0); return null;",
+        json!([]),
+    );
     b.screenshot(&shots().join("tasks.png"));
 
     // The exported netlist is what is applied.
@@ -417,7 +438,10 @@ fn an_operator_composes_a_task_in_the_browser_applies_it_switches_to_it_watches_
     let values = b.text("#watch-values");
     assert!(values.contains('x') && values.contains("yaw"), "{values}");
     // From the sources on the left (drawing links scrolled the view).
-    b.js("document.getElementById('canvas-wrap').scrollTo(0, 0); return null;", json!([]));
+    b.js(
+        "document.getElementById('canvas-wrap').scrollTo(0, 0); return null;",
+        json!([]),
+    );
     b.screenshot(&shots().join("connections.png"));
 
     // The ground's record of the rover: Beetle-One's downlink plan, what the station missed
@@ -661,6 +685,7 @@ fn the_page_stays_responsive_with_a_system_of_200_modules() {
         "200 modules running in the connection view",
         "document.querySelectorAll('g.module[data-state=running]').length === 200",
     );
+    assert_readable(&b, "connection (200 modules)");
     b.js("window.__dnm.perf.renders = []; window.__dnm.perf.events = []; window.__dnm.perf.longTasks = [];", json!([]));
     std::thread::sleep(Duration::from_secs(12));
     // Clicks while it redraws: how long the page takes to answer them.

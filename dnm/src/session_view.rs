@@ -30,14 +30,17 @@ struct Feed {
     netlists: BTreeMap<u64, Netlist>,
     /// The (revision, task) whose wiring was sent last.
     current: Option<(u64, Option<String>)>,
+    /// The task in force when the session began, as its first switch tells (where from).
+    at_start: Option<String>,
     fed: Fed,
 }
 
 impl Feed {
-    fn new(netlists: BTreeMap<u64, Netlist>) -> Self {
+    fn new(netlists: BTreeMap<u64, Netlist>, at_start: Option<String>) -> Self {
         Self {
             netlists,
             current: None,
+            at_start,
             fed: Fed::default(),
         }
     }
@@ -74,9 +77,13 @@ impl Feed {
 
     fn item(&mut self, out: &mut impl Write, item: Played) -> std::io::Result<()> {
         if self.current.is_none() {
-            // Before the first switch recorded: the first netlist, its initial task.
+            // Before the first switch recorded: the first netlist, with the task that switch
+            // left (a session begun mid-mission), else the netlist's initial one.
             if let Some((&revision, n)) = self.netlists.iter().next() {
-                let task = n.initial_task().map(str::to_string);
+                let task = self
+                    .at_start
+                    .clone()
+                    .or_else(|| n.initial_task().map(str::to_string));
                 let at = at_of(&item);
                 self.wiring(out, at, "", revision, task.as_deref())?;
             }
@@ -127,6 +134,19 @@ fn at_of(item: &Played) -> u64 {
     }
 }
 
+/// The task in force when the session at `dir` began: where its first switch switched from
+/// (none when it started the session).
+fn task_at_start(dir: &Path) -> Option<String> {
+    let session = Playback::open(dir, &dnm::parse_recorded_netlist).ok()?;
+    session
+        .into_iter()
+        .find_map(|item| match item {
+            Played::Switch { record, .. } => Some(record.from),
+            _ => None,
+        })
+        .flatten()
+}
+
 /// One frame: its header's length, the header, its payload.
 fn frame(
     out: &mut impl Write,
@@ -134,6 +154,12 @@ fn frame(
     payload: &[u8],
 ) -> std::io::Result<()> {
     let head = serde_json::to_vec(head)?;
+    if head.len() > dnm::proto::playback::MAX_HEADER {
+        return Err(std::io::Error::other(format!(
+            "a frame of {} bytes, more than the monitor takes (a netlist of that size?)",
+            head.len()
+        )));
+    }
     out.write_all(&(head.len() as u32).to_le_bytes())?;
     out.write_all(&head)?;
     out.write_all(payload)
@@ -169,7 +195,7 @@ pub fn run(dir: &Path, args: &[String]) -> anyhow::Result<ExitCode> {
     let mut child = crate::monitor_cmd::start_piped(&all)?;
     let pipe = child.stdin.take().context("the monitor's standard input")?;
     let mut out = std::io::BufWriter::with_capacity(1 << 20, pipe);
-    let mut feed = Feed::new(playback.netlists().clone());
+    let mut feed = Feed::new(playback.netlists().clone(), task_at_start(dir));
     let mut fed = Ok(());
     for item in playback.by_ref() {
         fed = feed.item(&mut out, item);

@@ -318,6 +318,10 @@ function ranks(names, edges) {
     state[n] = 2;
     order.push(n);
   };
+  // From the sources first: a cycle is then cut where it closes, not where the declaration
+  // order happens to enter it.
+  const fed = new Set(Object.values(succ).flat());
+  for (const n of names) if (!state[n] && !fed.has(n)) visit(n);
   for (const n of names) if (!state[n]) visit(n);
   order.reverse();
   const forward = (a) => succ[a].filter((b) => !back.has(`${a}\u0000${b}`));

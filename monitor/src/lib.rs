@@ -976,8 +976,9 @@ impl View {
             .filter(|(_, p)| {
                 p.dirty
                     && (all
+                        // Either way: a wall clock stepped back must not stop the paths.
                         || p.logged_at_ns
-                            .is_none_or(|t| now.saturating_sub(t) >= PATH_EVERY_NS))
+                            .is_none_or(|t| now.abs_diff(t) >= PATH_EVERY_NS))
             })
             .map(|(m, _)| m.clone())
             .collect();

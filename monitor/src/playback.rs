@@ -9,6 +9,7 @@ use std::io::Read;
 
 use anyhow::Context;
 use dnm_netlist::Wiring;
+use dnm_proto::ModuleRunState;
 use dnm_proto::playback::{MAX_HEADER, PlaybackFrame};
 use rerun::RecordingStream;
 
@@ -17,36 +18,54 @@ use crate::{MonitorOptions, MonitorStats, View};
 /// The largest sample taken from the pipe (a port holds at most a few MiB).
 const MAX_SAMPLE: u64 = 1 << 30;
 
+/// What reading standard input as a session stream says when it is not one.
+const NOT_A_SESSION: &str = "standard input is not a session stream (`dnm monitor --session DIR` writes one for --playback)";
+
 /// Reads one frame: its header, and a sample's bytes into `payload`. `None` at the end.
 fn read_frame(
     input: &mut impl Read,
     payload: &mut Vec<u8>,
 ) -> anyhow::Result<Option<PlaybackFrame<Wiring>>> {
     let mut len = [0u8; 4];
-    match input.read_exact(&mut len) {
-        Ok(()) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
-        Err(e) => return Err(e).context("reading the session"),
+    let mut got = 0;
+    while got < len.len() {
+        match input.read(&mut len[got..]) {
+            Ok(0) if got == 0 => return Ok(None),
+            Ok(0) => anyhow::bail!("{NOT_A_SESSION}: it ends inside a frame's length"),
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e).context("reading the session from standard input"),
+        }
     }
-    let len = u32::from_le_bytes(len) as usize;
+    let len = u32::from_le_bytes(len) as u64;
     anyhow::ensure!(
-        len <= MAX_HEADER,
-        "a frame header of {len} bytes: not a session stream"
+        len <= MAX_HEADER as u64,
+        "{NOT_A_SESSION}: a frame header of {len} bytes"
     );
-    let mut head = vec![0u8; len];
-    input.read_exact(&mut head).context("reading the session")?;
+    let mut head = Vec::new();
+    input
+        .take(len)
+        .read_to_end(&mut head)
+        .context("reading the session from standard input")?;
+    anyhow::ensure!(
+        head.len() as u64 == len,
+        "{NOT_A_SESSION}: it ends inside a frame"
+    );
     let frame: PlaybackFrame<Wiring> =
-        serde_json::from_slice(&head).context("a frame of the session stream")?;
+        serde_json::from_slice(&head).with_context(|| format!("{NOT_A_SESSION}: a bad frame"))?;
     payload.clear();
     if let PlaybackFrame::Sample { bytes, .. } = &frame {
-        anyhow::ensure!(*bytes <= MAX_SAMPLE, "a sample of {bytes} bytes");
+        anyhow::ensure!(
+            *bytes <= MAX_SAMPLE,
+            "{NOT_A_SESSION}: a sample of {bytes} bytes"
+        );
         input
             .take(*bytes)
             .read_to_end(payload)
-            .context("reading the session")?;
+            .context("reading the session from standard input")?;
         anyhow::ensure!(
             payload.len() as u64 == *bytes,
-            "the session stream ends mid-sample"
+            "{NOT_A_SESSION}: it ends inside a sample"
         );
     }
     Ok(Some(frame))
@@ -67,6 +86,13 @@ pub fn play(
         match frame {
             PlaybackFrame::Wiring { at_unix_ns, wiring } => {
                 view.clock = Some(at_unix_ns);
+                // A module is taken to run from the wiring that has it until an event says
+                // otherwise (a recording holds no states, only what happened).
+                for m in &wiring.modules {
+                    view.states
+                        .entry(m.name.clone())
+                        .or_insert(ModuleRunState::Running);
+                }
                 view.show_wiring(wiring)?;
             }
             PlaybackFrame::Sample {
@@ -109,6 +135,19 @@ pub fn play(
             PlaybackFrame::Event { at_unix_ns, event } => {
                 view.clock = Some(at_unix_ns);
                 view.module_event(&event)?;
+                let state = match event.what.as_str() {
+                    "exited" | "gave_up" => Some(ModuleRunState::Failed),
+                    "hung" => Some(ModuleRunState::Hung),
+                    // A process started runs within milliseconds: no event says when.
+                    "restarting" | "started" | "recovered" => Some(ModuleRunState::Running),
+                    "stopped" => Some(ModuleRunState::Stopped),
+                    _ => None,
+                };
+                if let Some(state) = state
+                    && view.states.insert(event.module.clone(), state) != Some(state)
+                {
+                    view.draw_graph()?;
+                }
             }
             PlaybackFrame::Sequence { at_unix_ns, event } => {
                 view.clock = Some(at_unix_ns);

@@ -189,10 +189,16 @@ links = ["src.out -> lat.in"]
     Round { lat, cpu_s }
 }
 
-/// Pins the process of `module` of `system` (found by its launch description) to `cpu`.
+/// Pins the process of `module` of `system` (found by its launch description) to `cpu`: its
+/// main thread, the one that waits and steps.
 fn pin(system: &str, module: &str, cpu: usize) {
     let needle = format!("\"module\":\"{module}\"");
+    let since = Instant::now();
     loop {
+        assert!(
+            since.elapsed() < Duration::from_secs(30),
+            "no process of module {module} of {system}"
+        );
         for entry in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
             let cmd = std::fs::read(entry.path().join("cmdline")).unwrap_or_default();
             let cmd = String::from_utf8_lossy(&cmd);

@@ -63,6 +63,13 @@ pub enum PlaybackError {
     /// No netlist in any file: the files are not a DNM's recording.
     #[error("{}: the recording holds no netlist (is it a DNM's recording?)", path.display())]
     NoNetlist { path: std::path::PathBuf },
+    /// Every file lacks its summary, where the netlists are: none was closed.
+    #[error(
+        "{}: none of its files was closed (a recorder still writing them, or stopped before \
+         closing them), so no netlist can be read; `dnm recordings` shows each file's state",
+        path.display()
+    )]
+    NotClosed { path: std::path::PathBuf },
     /// None of the recorded netlists parses (the newest one's error).
     #[error(transparent)]
     Netlist(dnm_netlist::NetlistError),
@@ -124,8 +131,9 @@ impl Playback {
         }
         let files = inputs(path)?;
         let mut recorded = BTreeMap::new();
+        let mut closed = false;
         for f in &files {
-            crate::session::file_entry(f, &mut recorded);
+            closed |= crate::session::file_entry(f, &mut recorded).complete;
         }
         let mut netlists = BTreeMap::new();
         let mut newest_error = None;
@@ -135,15 +143,18 @@ impl Playback {
                 Ok(netlist) => {
                     netlists.insert(revision, netlist);
                 }
-                Err(e) => newest_error = Some(e),
+                Err(e) => {
+                    tracing::warn!("{name}: not read: {e}");
+                    newest_error = Some(e);
+                }
             }
         }
         if netlists.is_empty() {
+            let path = path.to_path_buf();
             return Err(match newest_error {
                 Some(e) => PlaybackError::Netlist(e),
-                None => PlaybackError::NoNetlist {
-                    path: path.to_path_buf(),
-                },
+                None if !closed => PlaybackError::NotClosed { path },
+                None => PlaybackError::NoNetlist { path },
             });
         }
         let (merge, summaries) = Merge::open(&files)?;
@@ -205,6 +216,9 @@ impl Playback {
             return Channel::Skip;
         };
         match reading_of(&message, schema, t.raw) {
+            // A standard message that does not carry the port's bytes exactly always has them
+            // beside it (`/raw`), which is read instead.
+            Ok(Reading::Standard(mapping)) if !mapping.exact() => Channel::Skip,
             Ok(reading) => Channel::Port(Arc::new(PortChannel {
                 dnm: t.dnm.to_string(),
                 module: t.module.to_string(),

@@ -352,52 +352,53 @@ pub fn files(dir: &Path) -> Result<Vec<PathBuf>, SessionError> {
     Ok(out)
 }
 
-/// Entries of closed files already read, by path, with the size and time they had then: a
-/// closed file does not change, so each is read once per process.
-type Cached = (
-    u64,
-    Option<std::time::SystemTime>,
-    FileEntry,
-    Vec<RecordedNetlist>,
-);
-static CACHE: Mutex<BTreeMap<PathBuf, Cached>> = Mutex::new(BTreeMap::new());
-
-fn cached_entry(path: &Path, netlists: &mut BTreeMap<u64, RecordedNetlist>) -> FileEntry {
-    let meta = std::fs::metadata(path).ok();
-    let size = meta.as_ref().map_or(0, |m| m.len());
-    let mtime = meta.and_then(|m| m.modified().ok());
-    if let Ok(cache) = CACHE.lock()
-        && let Some((s, t, entry, nets)) = cache.get(path)
-        && *s == size
-        && *t == mtime
-    {
-        for n in nets {
-            netlists.entry(n.revision).or_insert_with(|| n.clone());
-        }
-        return entry.clone();
-    }
-    let mut mine = BTreeMap::new();
-    let entry = file_entry(path, &mut mine);
-    if entry.complete
-        && let Ok(mut cache) = CACHE.lock()
-    {
-        cache.insert(
-            path.to_path_buf(),
-            (size, mtime, entry.clone(), mine.values().cloned().collect()),
-        );
-    }
-    for (r, n) in mine {
-        netlists.entry(r).or_insert(n);
-    }
-    entry
+/// The closed files the manifest on disk lists (by name), and its netlists (by revision): a
+/// closed file does not change, so its entry is taken from there instead of read again. Nothing
+/// is kept between two manifests: a long session's files cost memory only while one is built.
+fn previous(dir: &Path) -> (BTreeMap<String, FileEntry>, BTreeMap<u64, RecordedNetlist>) {
+    let Ok(text) = std::fs::read(dir.join(MANIFEST)) else {
+        return Default::default();
+    };
+    let Ok(m) = serde_json::from_slice::<Manifest>(&text) else {
+        return Default::default();
+    };
+    let files = m
+        .files
+        .into_iter()
+        .filter(|f| f.complete && f.error.is_none())
+        .map(|f| (f.name.clone(), f))
+        .collect();
+    let netlists = m.netlists.into_iter().map(|n| (n.revision, n)).collect();
+    (files, netlists)
 }
 
 /// The manifest of a session folder, built from its files.
 pub fn index(dir: &Path) -> Result<Manifest, SessionError> {
+    let (mut known, known_netlists) = previous(dir);
     let mut netlists = BTreeMap::new();
     let files: Vec<FileEntry> = files(dir)?
         .iter()
-        .map(|p| cached_entry(p, &mut netlists))
+        .map(|p| {
+            let name = p
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let size = std::fs::metadata(p).map_or(0, |m| m.len());
+            match known.remove(&name) {
+                Some(e)
+                    if e.bytes == size
+                        && e.revisions.iter().all(|r| known_netlists.contains_key(r)) =>
+                {
+                    for r in &e.revisions {
+                        if let Some(n) = known_netlists.get(r) {
+                            netlists.entry(*r).or_insert_with(|| n.clone());
+                        }
+                    }
+                    e
+                }
+                _ => file_entry(p, &mut netlists),
+            }
+        })
         .collect();
     let dnms: BTreeSet<String> = files.iter().filter_map(|f| f.dnm.clone()).collect();
     let revisions: BTreeSet<u64> = files.iter().flat_map(|f| f.revisions.clone()).collect();
@@ -498,6 +499,18 @@ fn manifest_loop() {
         if let Err(e) = write_manifest(&dir) {
             tracing::warn!("the session's manifest: {e}");
         }
+        give_back_freed_memory();
+    }
+}
+
+/// Returns the heap's free pages to the system. A manifest is built on this thread alone, and
+/// its transient memory grows with the session's files: without this, the allocator keeps the
+/// largest one built so far, and a long session's process grows at every rotation.
+fn give_back_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only releases free memory of the allocator's own arenas.
+    unsafe {
+        libc::malloc_trim(0);
     }
 }
 
