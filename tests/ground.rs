@@ -395,6 +395,7 @@ fn bad_commands_are_refused_with_their_reason_and_change_nothing() {
                 late_by_ms: None,
             },
             safings_seen: 0,
+            given_unix_ns: None,
         }],
         pending_from: 1,
         waiting: vec![],

@@ -535,6 +535,7 @@ fn uplink(s: &Shared) -> (bool, bool, bool) {
                 safings_seen: e
                     .safings_seen
                     .unwrap_or_else(|| inner.link.rover.as_ref().map_or(0, safings_of)),
+                given_unix_ns: Some(e.queued_unix_ns),
             })
             .take_while(|c| {
                 let first = bytes == 0;

@@ -662,6 +662,7 @@ pub(crate) fn run_step(
             step,
             steps,
         }),
+        given_unix_ns: None,
     };
     if let Some(r) = core.sequences.get_mut(&name) {
         r.event(
@@ -862,6 +863,7 @@ pub(crate) fn apply_due(s: &Shared, core: &mut Core, due: Due) -> Result<(), Aut
                     run: due.run,
                     detail,
                 }),
+                given_unix_ns: None,
             };
             let task = g.task.clone();
             if let Fate::Refused { reason } =

@@ -779,6 +779,7 @@ mod tests {
                 late_by_ms: None,
             },
             safings_seen: 0,
+            given_unix_ns: None,
         }
     }
 

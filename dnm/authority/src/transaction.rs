@@ -77,7 +77,7 @@ pub(crate) fn transact(
         tracing::warn!(txn = id, "transaction dropped: {}", refusals.join("; "));
         return fate;
     }
-    let at_unix_ns = instant(s, begun).max(at.unwrap_or(0));
+    let at_unix_ns = instant(s, begun, origin.given_unix_ns).max(at.unwrap_or(0));
     let decision = DecisionRecord {
         txn: id,
         commit: true,
@@ -160,6 +160,8 @@ pub(crate) struct Origin {
     pub(crate) timer_remove: Option<(String, u64)>,
     /// The sequence step (or guard) it runs, if it is one.
     pub(crate) step: Option<crate::sequence::StepOrigin>,
+    /// When the operator gave the command, station time, if a station says.
+    pub(crate) given_unix_ns: Option<u64>,
 }
 
 impl Origin {
@@ -169,6 +171,7 @@ impl Origin {
             cmd: Some((station.to_string(), sent.seq, sent.id.clone())),
             timer_remove: None,
             step: None,
+            given_unix_ns: sent.given_unix_ns,
         }
     }
 
@@ -307,10 +310,14 @@ pub(crate) fn decide(d: &DecisionRecord) -> Request {
     }
 }
 
-/// The instant of a transaction begun at `begun`: the lead after it, and never sooner than
-/// the time to store the decision and for it to reach every DNM (both as measured lately)
-/// from now, so every DNM holds it before the instant and they switch together.
-fn instant(s: &Shared, begun: u64) -> u64 {
+/// The instant of a transaction begun at `begun`: the lead after the operator gave the command
+/// (`given`, station time) or, when that is unknown or not before `begun` (a station's clock
+/// ahead of the rover's), after `begun`; and never sooner than the time to store the decision
+/// and for it to reach every DNM (both as measured lately) from now, so every DNM holds it
+/// before the instant and they switch together. A station's clock behind the rover's, or a
+/// command that waited for the link, only brings the instant to that margin.
+fn instant(s: &Shared, begun: u64, given: Option<u64>) -> u64 {
+    let from = lead_from(begun, given);
     let least = s.options.switch_lead;
     let (lead, margin) = s
         .timing
@@ -320,7 +327,13 @@ fn instant(s: &Shared, begun: u64) -> u64 {
     // Half the lead at least follows the decision, whatever was measured (a fresh authority
     // has measured nothing; an apply's prepare can take longer than the lead).
     let margin = margin.max(least / 2);
-    (begun + lead.as_nanos() as u64).max(now_unix_ns() + margin.as_nanos() as u64)
+    (from + lead.as_nanos() as u64).max(now_unix_ns() + margin.as_nanos() as u64)
+}
+
+/// Where the lead of a transaction begun at `begun` counts from: when the operator gave the
+/// command, unless that is unknown or not before `begun` (a station's clock ahead).
+fn lead_from(begun: u64, given: Option<u64>) -> u64 {
+    given.filter(|g| *g < begun).unwrap_or(begun)
 }
 
 /// How long before its time a time-tagged switch is started: time to prepare it and a lead
@@ -416,4 +429,22 @@ pub(crate) fn reports_of(s: &Shared, dnms: &[String], timeout: Duration) -> Vec<
             serde_json::from_slice(&sample.payload().to_bytes()).ok()
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::lead_from;
+
+    #[test]
+    fn the_lead_counts_from_the_operator_unless_the_station_clock_is_ahead() {
+        let begun = 1_000_000_000;
+        // Given 3 ms before the transaction began: the lead counts from then.
+        assert_eq!(lead_from(begun, Some(begun - 3_000_000)), begun - 3_000_000);
+        // A station whose clock is ahead (or the same instant): from the transaction's start,
+        // so a station can never put a switch later than the rover would.
+        assert_eq!(lead_from(begun, Some(begun + 5_000_000)), begun);
+        assert_eq!(lead_from(begun, Some(begun)), begun);
+        // No time given (a sequence's step, a time tag): from the transaction's start.
+        assert_eq!(lead_from(begun, None), begun);
+    }
 }

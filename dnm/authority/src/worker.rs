@@ -218,6 +218,7 @@ pub(crate) fn work_once(
                 cmd: Some((t.station.clone(), t.seq, t.id.clone())),
                 timer_remove: Some((t.station.clone(), t.seq)),
                 step: None,
+                given_unix_ns: None,
             };
             transact(
                 s,

@@ -104,6 +104,11 @@ pub struct Sent {
     /// station saw the latest safing is refused: it was meant for a rover that was not safe.
     #[serde(default)]
     pub safings_seen: u64,
+    /// When the operator gave it, station time (ns since the Unix epoch): a switch's lead
+    /// counts from here as far as the rover can trust it (never later than from the start of
+    /// its transaction, never closer to its decision than the rover's margin).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub given_unix_ns: Option<u64>,
 }
 
 /// What a station sends the authority.
