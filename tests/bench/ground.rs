@@ -187,9 +187,13 @@ fn main() {
         let p50 = quantile(&r.latency_ms, 0.5);
         println!(
             "clean: RTT p50 {rtt:.1} ms; command → in force p50 / p99 {p50:.1} / {:.1} ms \
-             (1.5 RTT + 50 ms = {:.1} ms)",
+             (1.5 RTT + 50 ms = {:.1} ms); spread of switch instants p50 / p99 / max \
+             {:.0} / {:.0} / {:.0} µs",
             quantile(&r.latency_ms, 0.99),
-            1.5 * rtt + 50.0
+            1.5 * rtt + 50.0,
+            quantile(&r.spread_us, 0.5),
+            quantile(&r.spread_us, 0.99),
+            quantile(&r.spread_us, 1.0),
         );
         return;
     }
