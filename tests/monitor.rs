@@ -57,6 +57,27 @@ struct Rrd {
     times: BTreeMap<String, Vec<i64>>,
 }
 
+impl Rrd {
+    /// Fails unless every one of `entities` was logged.
+    fn assert_has(&self, entities: &[&str]) {
+        for e in entities {
+            assert!(self.entities.contains(*e), "no {e} in {:?}", self.entities);
+        }
+    }
+
+    /// Fails unless every one of `entities` has at least `least` rows.
+    fn assert_rows(&self, entities: &[&str], least: usize) {
+        for e in entities {
+            assert!(
+                self.rows.get(*e).copied().unwrap_or(0) >= least,
+                "{e}: {:?} rows, {least} at least; entities: {:?}",
+                self.rows.get(*e),
+                self.entities
+            );
+        }
+    }
+}
+
 fn read(path: &Path) -> Rrd {
     let file = std::fs::File::open(path).unwrap();
     let mut rrd = Rrd {
@@ -139,43 +160,32 @@ fn the_demo_mission_saved_through_the_monitor_reads_back_in_rerun() {
     assert_eq!(summary["ok"], true, "{summary:#}");
 
     let rrd = read(&rrd_path);
-    let has = |e: &str| rrd.entities.contains(e);
     // The pose: the simulator's truth and the odometry estimate, their paths, the scene.
-    for e in [
+    rrd.assert_has(&[
         "/world/world",
         "/world/odometry",
         "/world/paths/world/0",
         "/world/paths/odometry/0",
         "/world/rocks",
         "/world/waypoints/autopilot",
-    ] {
-        assert!(has(e), "no {e} in {:?}", rrd.entities);
-    }
+    ]);
     // The camera, as JPEG frames that crossed Zenoh.
-    assert!(
-        rrd.rows.get("/camera/camera/image").copied().unwrap_or(0) >= 3,
-        "camera frames: {:?}",
-        rrd.rows.get("/camera/camera/image")
-    );
+    rrd.assert_rows(&["/camera/camera/image"], 3);
     // Time series: wheel speeds and motor currents, battery, IMU, range, the commanded twist,
     // and the JSON telemetry, every numeric field, with no code for those kinds.
-    for e in [
-        "/series/motor_left/state/omega",
-        "/series/motor_left/state/current",
-        "/series/battery/state/voltage",
-        "/series/imu/imu/gyro/2",
-        "/series/range/range/range",
-        "/series/mixer/left/omega",
-        "/series/watchdog/twist/linear",
-        "/series/odometry/odom/x",
-    ] {
-        assert!(
-            rrd.rows.get(e).copied().unwrap_or(0) >= 10,
-            "{e}: {:?} rows; entities: {:?}",
-            rrd.rows.get(e),
-            rrd.entities
-        );
-    }
+    rrd.assert_rows(
+        &[
+            "/series/motor_left/state/omega",
+            "/series/motor_left/state/current",
+            "/series/battery/state/voltage",
+            "/series/imu/imu/gyro/2",
+            "/series/range/range/range",
+            "/series/mixer/left/omega",
+            "/series/watchdog/twist/linear",
+            "/series/odometry/odom/x",
+        ],
+        10,
+    );
     assert!(
         rrd.entities
             .iter()
@@ -183,7 +193,7 @@ fn the_demo_mission_saved_through_the_monitor_reads_back_in_rerun() {
         "telemetry (JSON) fields: {:?}",
         rrd.entities
     );
-    assert!(has("/graph") && has("/log"));
+    rrd.assert_has(&["/graph", "/log"]);
     assert!(rrd.blueprint_messages > 0, "no blueprint");
 
     // The connection graph followed the mission: teleop, auto, teleop.
@@ -261,7 +271,7 @@ fn the_recorded_session_reads_back_in_rerun(
     );
     let rrd = read(&rrd_path);
     assert!(rrd.blueprint_messages > 0, "no blueprint");
-    for e in [
+    rrd.assert_has(&[
         "/world/world",
         "/world/odometry",
         "/world/paths/world/0",
@@ -269,25 +279,16 @@ fn the_recorded_session_reads_back_in_rerun(
         "/world/waypoints/autopilot",
         "/graph",
         "/log",
-    ] {
-        assert!(rrd.entities.contains(e), "no {e} in {:?}", rrd.entities);
-    }
-    assert!(
-        rrd.rows.get("/camera/camera/image").copied().unwrap_or(0) >= 3,
-        "camera frames: {:?}",
-        rrd.rows.get("/camera/camera/image")
+    ]);
+    rrd.assert_rows(&["/camera/camera/image"], 3);
+    rrd.assert_rows(
+        &[
+            "/series/motor_left/state/omega",
+            "/series/battery/state/voltage",
+            "/series/odometry/odom/x",
+        ],
+        10,
     );
-    for e in [
-        "/series/motor_left/state/omega",
-        "/series/battery/state/voltage",
-        "/series/odometry/odom/x",
-    ] {
-        assert!(
-            rrd.rows.get(e).copied().unwrap_or(0) >= 10,
-            "{e}: {:?} rows",
-            rrd.rows.get(e)
-        );
-    }
     // The poses are drawn at the times their messages were recorded.
     let (switches, recorded_poses) = recorded(&session);
     let poses = &rrd.times["/world/odometry"];

@@ -36,7 +36,8 @@ pub enum Played {
         dnm: String,
         module: String,
         port: String,
-        message: MessageType,
+        /// The port's message type (shared by every sample of the port).
+        message: Arc<MessageType>,
         bytes: Vec<u8>,
     },
     /// A DNM's task switch.
@@ -94,7 +95,7 @@ struct PortChannel {
     dnm: String,
     module: String,
     port: String,
-    message: MessageType,
+    message: Arc<MessageType>,
     reading: Reading,
 }
 
@@ -223,7 +224,7 @@ impl Playback {
                 dnm: t.dnm.to_string(),
                 module: t.module.to_string(),
                 port: t.port.to_string(),
-                message,
+                message: Arc::new(message),
                 reading,
             })),
             Err(_) => Channel::Skip,
