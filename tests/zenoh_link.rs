@@ -127,13 +127,56 @@ links = ["src_a.out -> relay_b.in", "relay_b.out -> relay_c.in"]
 links = ["src_a.out -> relay_b.in", "src_c.out -> relay_c.in"]
 "#;
 
+/// Camera-sized samples (sent by Zenoh in fragments) crossing from a to b over the peer link
+/// and to c through the router.
+const LARGE: &str = r#"
+[system]
+name = "SYSTEM"
+default_task = "run"
+
+[[dnm]]
+name = "a"
+
+[[dnm]]
+name = "b"
+parent = "a"
+
+[[dnm]]
+name = "c"
+parent = "a"
+
+[[module]]
+name = "big"
+kind = "blob_source"
+dnm = "a"
+rate_hz = 20.0
+params = { bytes = 300000, origin = 7 }
+
+[[module]]
+name = "lat_b"
+kind = "latency"
+dnm = "b"
+
+[[module]]
+name = "lat_c"
+kind = "latency"
+dnm = "c"
+
+[task.run]
+links = ["big.out -> lat_b.in", "big.out -> lat_c.in"]
+"#;
+
 impl System {
     fn start(tag: &str) -> Self {
+        Self::start_with(tag, NETLIST)
+    }
+
+    fn start_with(tag: &str, text: &str) -> Self {
         let name = format!("zl{}{tag}", std::process::id());
         let run_dir = std::env::temp_dir().join(format!("dnm-test-{name}"));
         std::fs::create_dir_all(&run_dir).unwrap();
         let netlist = run_dir.join("three.toml");
-        std::fs::write(&netlist, NETLIST.replace("SYSTEM", &name)).unwrap();
+        std::fs::write(&netlist, text.replace("SYSTEM", &name)).unwrap();
         // a and b peer with each other; the router joins them to c, which sees only the router.
         let ports = [free_port(), free_port(), free_port()];
         let [pa, pb, pr] = ports;
@@ -590,6 +633,56 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
     assert_eq!(removed["revision"].as_u64().unwrap(), added_revision + 1);
     assert_eq!(sys.report("b").unwrap()["revision"], added_revision + 1);
     sys.relay_c_fed_by(1);
+}
+
+#[test]
+fn large_samples_cross_dnm_processes_whole() {
+    // A sample larger than Zenoh's batches is lent to Zenoh from shared memory and sent in
+    // fragments; each receiving DNM writes the fragments into its mirror.
+    let sys = System::start_with("large", LARGE);
+    let (tx, rx) = std::sync::mpsc::channel();
+    let _sub = sys
+        .client
+        .declare_subscriber(sys.key("port/a/big/out"))
+        .callback(move |s| {
+            let _ = tx.send(s.payload().to_bytes().into_owned());
+        })
+        .wait()
+        .unwrap();
+    let mut last_seq = None;
+    for _ in 0..5 {
+        let b = rx.recv_timeout(Duration::from_secs(30)).unwrap();
+        assert_eq!(b.len(), 300_000);
+        assert_eq!(u64::from_le_bytes(b[0..8].try_into().unwrap()), 7);
+        let seq = u64::from_le_bytes(b[8..16].try_into().unwrap());
+        assert!(last_seq.is_none_or(|l| seq > l), "{seq} after {last_seq:?}");
+        last_seq = Some(seq);
+        assert!(b[16..].iter().all(|x| *x == 0), "the blob's body changed");
+    }
+    // Each reader keeps receiving them, whole (a mirror refuses nothing and drops nothing).
+    for (dnm, module) in [("b", "lat_b"), ("c", "lat_c")] {
+        let key = sys.key(&format!("port/{dnm}/{module}/latency_ns"));
+        let seen = |above: u64| {
+            let r = sys.client.get(&key).timeout(Duration::from_secs(5)).wait();
+            let s = r.ok()?.recv().ok()?.into_result().ok()?;
+            let b = s.payload().to_bytes();
+            let seq = u64::from_le_bytes(b[0..8].try_into().ok()?);
+            (seq > above).then_some(seq)
+        };
+        let first = eventually(&format!("{module} reads the large samples"), || seen(0));
+        eventually(&format!("{module} keeps reading them"), || seen(first));
+        let report = sys.report(dnm).unwrap();
+        let mirrored = report["routes"]["mirrored"].as_array().unwrap();
+        assert_eq!(mirrored.len(), 1, "{mirrored:?}");
+        assert!(
+            mirrored[0]["messages"].as_u64().unwrap() >= 2,
+            "{mirrored:?}"
+        );
+        assert_eq!(mirrored[0]["dropped"], 0, "{mirrored:?}");
+    }
+    let report = sys.report("a").unwrap();
+    let published = report["routes"]["published"].as_array().unwrap();
+    assert_eq!(published[0]["dropped"], 0, "{published:?}");
 }
 
 #[test]

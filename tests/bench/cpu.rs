@@ -43,8 +43,12 @@ fn threads(pid: u32) -> BTreeMap<u32, (String, f64)> {
 
 /// What a thread does, from its name (the DNM's name taken off).
 fn role(name: &str) -> &'static str {
-    const ROLES: [(&str, &str); 9] = [
+    const ROLES: [(&str, &str); 13] = [
         ("egress-", "egress (local outputs to Zenoh)"),
+        ("tx-", "Zenoh's transmit runtime"),
+        ("rx-", "Zenoh's receive runtime"),
+        ("app-", "Zenoh runtime"),
+        ("acc-", "Zenoh runtime"),
         ("record-in-", "recorder, reading ports"),
         ("record-", "recorder, writing files"),
         ("watch-", "watch (outputs on demand)"),

@@ -34,19 +34,46 @@ fn main() {
         Some("zsub") => return zenoh_sub(args[2].parse().unwrap()),
         _ => {}
     }
+    // With `DNM_BASELINE=/path/to/other/dnm`, that build's crossing is measured too, right
+    // after this tree's, so a change is compared with what it replaces in the same run.
+    let baseline = std::env::var_os("DNM_BASELINE").map(std::path::PathBuf::from);
     println!(
         "# DNM link benchmark ({SAMPLES} samples per size at {RATE_HZ} Hz, loopback, two processes)\n"
     );
     println!(
-        "| payload | raw Zenoh p50 / p99 (µs) | crossing DNMs p50 / p99 (µs) | ratio p50 | ratio p99 | local (shm) p50 / p99 (µs) | crossing / local p50 |"
+        "| payload | raw Zenoh p50 / p99 (µs) | crossing DNMs p50 / p99 (µs) | ratio p50 | ratio p99 | local (shm) p50 / p99 (µs) | crossing / local p50 |{}",
+        if baseline.is_some() {
+            " baseline build: crossing p50 / p99 (µs) | ratio p50 | ratio p99 |"
+        } else {
+            ""
+        }
     );
-    println!("|---|---|---|---|---|---|---|");
+    println!(
+        "|---|---|---|---|---|---|---|{}",
+        if baseline.is_some() {
+            "---|---|---|"
+        } else {
+            ""
+        }
+    );
     for size in SIZES {
         let raw = raw_zenoh(size);
         let crossing = crossing(size);
         let local = local(size);
+        let before = baseline.as_ref().map(|b| {
+            common::use_dnm(Some(b.clone()));
+            let c = self::crossing(size);
+            common::use_dnm(None);
+            format!(
+                " {:.1} / {:.1} | {:.2} | {:.2} |",
+                c.0,
+                c.1,
+                c.0 / raw.0,
+                c.1 / raw.1
+            )
+        });
         println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.2} | {:.2} | {:.1} / {:.1} | {:.1}x |",
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.2} | {:.2} | {:.1} / {:.1} | {:.1}x |{}",
             human(size),
             raw.0,
             raw.1,
@@ -57,6 +84,7 @@ fn main() {
             local.0,
             local.1,
             crossing.0 / local.0,
+            before.unwrap_or_default(),
         );
     }
 }

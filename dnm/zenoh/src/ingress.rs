@@ -36,9 +36,13 @@ pub(crate) struct Mirror {
 }
 
 impl Mirror {
+    /// Writes `sample` into a loaned shared-memory sample, straight from the slices Zenoh
+    /// received it in (one copy, even for a message that came in fragments), and wakes the
+    /// readers.
     pub(crate) fn forward(&self, sample: &Sample) {
-        let payload = sample.payload().to_bytes();
-        if payload.len() > self.max_bytes {
+        let payload = sample.payload();
+        let len = payload.len();
+        if len > self.max_bytes {
             self.counters.dropped.fetch_add(1, Ordering::Relaxed);
             return;
         }
@@ -49,16 +53,23 @@ impl Mirror {
             .unwrap_or_default();
         let sent = self
             .publisher
-            .loan_slice_uninit(payload.len())
+            .loan_slice_uninit(len)
             .map_err(|e| format!("{e:?}"))
-            .and_then(|s| {
-                let mut s = s.write_from_slice(&payload);
+            .and_then(|mut s| {
+                let mut at = 0;
+                for slice in payload.slices() {
+                    s.payload_mut()[at..at + slice.len()].write_copy_of_slice(slice);
+                    at += slice.len();
+                }
+                // SAFETY: the slices are the whole payload, `len` bytes, each byte written once
+                // above.
+                let mut s = unsafe { s.assume_init() };
                 *s.user_header_mut() = header;
                 s.send().map_err(|e| format!("{e:?}"))
             });
         match sent {
             Ok(_) => {
-                self.counters.count(payload.len());
+                self.counters.count(len);
                 let _ = self.notifier.notify();
             }
             Err(e) => {
