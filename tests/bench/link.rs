@@ -14,9 +14,9 @@
 mod common;
 
 use std::process::{Command, Stdio};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
-use common::{free_port, human, latencies, percentiles, unique, up};
+use common::{free_port, human, latencies, latencies_after, percentiles, unique, up};
 use dnm_module::protocol::monotonic_ns;
 use iceoryx2::prelude::{LogLevel, set_log_level};
 use zenoh::Wait;
@@ -41,15 +41,15 @@ fn main() {
         "# DNM link benchmark ({SAMPLES} samples per size at {RATE_HZ} Hz, loopback, two processes)\n"
     );
     println!(
-        "| payload | raw Zenoh p50 / p99 (µs) | crossing DNMs p50 / p99 (µs) | ratio p50 | ratio p99 | local (shm) p50 / p99 (µs) | crossing / local p50 |{}",
+        "| payload | raw Zenoh p50 / p99 (µs) | crossing DNMs p50 / p99 (µs) | ratio p50 | ratio p99 | local (shm) p50 / p99 (µs) | crossing / local p50 | CPU per message, raw Zenoh / crossing (µs) |{}",
         if baseline.is_some() {
-            " baseline build: crossing p50 / p99 (µs) | ratio p50 | ratio p99 |"
+            " baseline build: crossing p50 / p99 (µs) | ratio p50 | ratio p99 | CPU per message (µs) |"
         } else {
             ""
         }
     );
     println!(
-        "|---|---|---|---|---|---|---|{}",
+        "|---|---|---|---|---|---|---|---|{}",
         if baseline.is_some() {
             "---|---|---|"
         } else {
@@ -65,15 +65,16 @@ fn main() {
             let c = self::crossing(size);
             common::use_dnm(None);
             format!(
-                " {:.1} / {:.1} | {:.2} | {:.2} |",
+                " {:.1} / {:.1} | {:.2} | {:.2} | {:.1} |",
                 c.0,
                 c.1,
                 c.0 / raw.0,
-                c.1 / raw.1
+                c.1 / raw.1,
+                c.2
             )
         });
         println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.2} | {:.2} | {:.1} / {:.1} | {:.1}x |{}",
+            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:.2} | {:.2} | {:.1} / {:.1} | {:.1}x | {:.1} / {:.1} |{}",
             human(size),
             raw.0,
             raw.1,
@@ -84,6 +85,8 @@ fn main() {
             local.0,
             local.1,
             crossing.0 / local.0,
+            raw.2,
+            crossing.2,
             before.unwrap_or_default(),
         );
     }
@@ -119,13 +122,58 @@ fn zenoh_pub(port: u16, size: usize) {
     std::thread::sleep(Duration::from_millis(500));
     let period = Duration::from_secs_f64(1.0 / RATE_HZ);
     let mut buf = vec![0u8; size];
-    for seq in 0..(SAMPLES + SKIP + 200) as u64 {
+    let sent = (SAMPLES + SKIP + 200) as u64;
+    let cpu = own_cpu();
+    for seq in 0..sent {
         buf[8..16].copy_from_slice(&seq.to_le_bytes());
         buf[0..8].copy_from_slice(&monotonic_ns().to_le_bytes());
-        // Copies the payload into Zenoh, as the DNM's egress does from shared memory.
+        // Copies the payload into Zenoh, as the DNM's egress did from shared memory.
         publisher.put(buf.clone()).wait().unwrap();
         std::thread::sleep(period);
     }
+    println!("{}", (own_cpu() - cpu) / sent as f64);
+}
+
+/// CPU seconds (user and system) this process used so far.
+fn own_cpu() -> f64 {
+    // SAFETY: getrusage fills the struct it is given.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: as above; RUSAGE_SELF is always valid.
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let t = |v: libc::timeval| v.tv_sec as f64 + v.tv_usec as f64 * 1e-6;
+    t(u.ru_utime) + t(u.ru_stime)
+}
+
+/// CPU seconds (user and system) used so far by `pids` and every process they started.
+fn tree_cpu(pids: &[u32]) -> f64 {
+    // SAFETY: sysconf has no preconditions.
+    let tck = unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64;
+    let mut stack = pids.to_vec();
+    let mut total = 0.0;
+    while let Some(pid) = stack.pop() {
+        if let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat"))
+            && let Some(end) = stat.rfind(')')
+        {
+            let f: Vec<&str> = stat[end + 2..].split_whitespace().collect();
+            let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+            total += (ticks(11) + ticks(12)) / tck;
+        }
+        // Children are listed per thread (the DNM starts modules from its own thread).
+        for task in std::fs::read_dir(format!("/proc/{pid}/task"))
+            .into_iter()
+            .flatten()
+            .flatten()
+        {
+            let children =
+                std::fs::read_to_string(task.path().join("children")).unwrap_or_default();
+            stack.extend(
+                children
+                    .split_whitespace()
+                    .filter_map(|c| c.parse::<u32>().ok()),
+            );
+        }
+    }
+    total
 }
 
 fn zenoh_sub(port: u16) {
@@ -142,11 +190,16 @@ fn zenoh_sub(port: u16) {
         .wait()
         .unwrap();
     println!("ready");
-    let lat: Vec<u64> = rx.iter().skip(SKIP).take(SAMPLES).collect();
+    let mut rx = rx.iter();
+    let _: Vec<u64> = rx.by_ref().take(SKIP).collect();
+    let cpu = own_cpu();
+    let lat: Vec<u64> = rx.take(SAMPLES).collect();
     println!("{}", serde_json::to_string(&lat).unwrap());
+    println!("{}", (own_cpu() - cpu) / SAMPLES as f64);
 }
 
-fn raw_zenoh(size: usize) -> (f64, f64) {
+/// p50 and p99 latency (µs), and the CPU per message (µs) of the publisher and the subscriber.
+fn raw_zenoh(size: usize) -> (f64, f64, f64) {
     let exe = std::env::current_exe().unwrap();
     let port = free_port();
     let sub = Command::new(&exe)
@@ -155,16 +208,24 @@ fn raw_zenoh(size: usize) -> (f64, f64) {
         .spawn()
         .unwrap();
     std::thread::sleep(Duration::from_millis(300));
-    let mut publ = Command::new(&exe)
+    let publ = Command::new(&exe)
         .args(["zpub", &port.to_string(), &size.to_string()])
+        .stdout(Stdio::piped())
         .spawn()
         .unwrap();
     let out = sub.wait_with_output().unwrap();
-    let _ = publ.kill();
-    let _ = publ.wait();
+    let pub_out = publ.wait_with_output().unwrap();
     let text = String::from_utf8(out.stdout).unwrap();
-    let lat: Vec<u64> = serde_json::from_str(text.lines().last().unwrap()).unwrap();
-    percentiles(lat)
+    let mut lines = text.lines().rev();
+    let sub_cpu: f64 = lines.next().unwrap().parse().unwrap();
+    let lat: Vec<u64> = serde_json::from_str(lines.next().unwrap()).unwrap();
+    let pub_cpu: f64 = String::from_utf8(pub_out.stdout)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    let (p50, p99) = percentiles(lat);
+    (p50, p99, (pub_cpu + sub_cpu) * 1e6)
 }
 
 // ------------------------------------------------------------------------------------------
@@ -194,7 +255,9 @@ links = ["src.out -> lat.in"]
     )
 }
 
-fn crossing(size: usize) -> (f64, f64) {
+/// p50 and p99 latency (µs), and the CPU per message (µs) of both DNM processes and their
+/// modules.
+fn crossing(size: usize) -> (f64, f64, f64) {
     let system = unique(&format!("x{size}"));
     let text = netlist(&system, size, "y");
     let port = free_port();
@@ -208,9 +271,17 @@ fn crossing(size: usize) -> (f64, f64) {
         "--connect".into(),
         format!("tcp/127.0.0.1:{port}"),
     ];
-    let _x = up(&system, &text, &zx, Some("x"), 1);
-    let _y = up(&system, &text, &zy, Some("y"), 2);
-    percentiles(latencies(&system, "y", "lat", SAMPLES, SKIP))
+    let x = up(&system, &text, &zx, Some("x"), 1);
+    let y = up(&system, &text, &zy, Some("y"), 2);
+    let pids = [x.pid(), y.pid()];
+    let mut from = None;
+    let lat = latencies_after(&system, "y", "lat", SAMPLES, SKIP, || {
+        from = Some((tree_cpu(&pids), Instant::now()));
+    });
+    let (cpu, t0) = from.unwrap();
+    let messages = t0.elapsed().as_secs_f64() * RATE_HZ;
+    let (p50, p99) = percentiles(lat);
+    (p50, p99, (tree_cpu(&pids) - cpu) / messages * 1e6)
 }
 
 fn local(size: usize) -> (f64, f64) {
