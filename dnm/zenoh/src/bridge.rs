@@ -2,9 +2,9 @@
 //! Zenoh tools. Keys are in [`dnm_proto::keys`].
 //!
 //! - **Egress.** Every output of a local module that some task links to a module on another
-//!   DNM is published on `<system>/port/<dnm>/<module>/<port>` by a task on Zenoh's
-//!   transmission runtime that the port's iceoryx2 event wakes, each new sample lent to Zenoh
-//!   without a copy. Outputs no remote input needs are not published.
+//!   DNM is published on `<system>/port/<dnm>/<module>/<port>` by a thread that waits on the
+//!   port's iceoryx2 event and lends each new sample to Zenoh without a copy. Outputs no remote
+//!   input needs are not published.
 //! - **Ingress.** Every remote output that some task links to a local module is subscribed to
 //!   and mirrored into a same-named port service in this DNM's shared memory, so the local
 //!   module reads it exactly like a local output and a task switch stays a reference change.
@@ -543,8 +543,7 @@ fn watch_peers(
         .map_err(zenoh_err("watching DNMs"))
 }
 
-/// The egress thread (which opens the routes it is sent and serves them on Zenoh's
-/// transmission runtime) and the watch thread, each serving the set of ports it is sent.
+/// The egress thread and the watch thread, each serving the set of ports it is sent.
 fn start_workers(
     session: &zenoh::Session,
     system: &str,
