@@ -78,11 +78,10 @@ struct System {
     client: zenoh::Session,
 }
 
-const NETLIST: &str = r#"
-[system]
-name = "SYSTEM"
-default_task = "remote"
-
+/// The three DNMs of the systems under test: a, with b and c under it.
+macro_rules! three_dnms {
+    () => {
+        r#"
 [[dnm]]
 name = "a"
 
@@ -93,7 +92,18 @@ parent = "a"
 [[dnm]]
 name = "c"
 parent = "a"
+"#
+    };
+}
 
+const NETLIST: &str = concat!(
+    r#"
+[system]
+name = "SYSTEM"
+default_task = "remote"
+"#,
+    three_dnms!(),
+    r#"
 [[module]]
 name = "src_a"
 kind = "ticker"
@@ -125,26 +135,19 @@ links = ["src_a.out -> relay_b.in", "relay_b.out -> relay_c.in"]
 # relay_c reads its own DNM's ticker instead.
 [task.local]
 links = ["src_a.out -> relay_b.in", "src_c.out -> relay_c.in"]
-"#;
+"#
+);
 
 /// Camera-sized samples (sent by Zenoh in fragments) crossing from a to b over the peer link
 /// and to c through the router.
-const LARGE: &str = r#"
+const LARGE: &str = concat!(
+    r#"
 [system]
 name = "SYSTEM"
 default_task = "run"
-
-[[dnm]]
-name = "a"
-
-[[dnm]]
-name = "b"
-parent = "a"
-
-[[dnm]]
-name = "c"
-parent = "a"
-
+"#,
+    three_dnms!(),
+    r#"
 [[module]]
 name = "big"
 kind = "blob_source"
@@ -164,7 +167,8 @@ dnm = "c"
 
 [task.run]
 links = ["big.out -> lat_b.in", "big.out -> lat_c.in"]
-"#;
+"#
+);
 
 impl System {
     fn start(tag: &str) -> Self {

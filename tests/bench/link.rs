@@ -146,18 +146,10 @@ fn own_cpu() -> f64 {
 
 /// CPU seconds (user and system) used so far by `pids` and every process they started.
 fn tree_cpu(pids: &[u32]) -> f64 {
-    // SAFETY: sysconf has no preconditions.
-    let tck = unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64;
     let mut stack = pids.to_vec();
     let mut total = 0.0;
     while let Some(pid) = stack.pop() {
-        if let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat"))
-            && let Some(end) = stat.rfind(')')
-        {
-            let f: Vec<&str> = stat[end + 2..].split_whitespace().collect();
-            let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-            total += (ticks(11) + ticks(12)) / tck;
-        }
+        total += dnm_core::procfs::cpu_seconds(pid).unwrap_or(0.0);
         // Children are listed per thread (the DNM starts modules from its own thread).
         for task in std::fs::read_dir(format!("/proc/{pid}/task"))
             .into_iter()
