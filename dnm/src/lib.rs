@@ -25,6 +25,7 @@ pub use dnm_router::{ZenohOptions, init_logging};
 pub use dnm_zenoh::remote;
 
 pub mod admin;
+pub mod allocator;
 pub mod host;
 
 pub use host::HostOptions;

@@ -377,6 +377,7 @@ fn main() -> ExitCode {
     // Printing into a closed pipe (`dnm check x | head`) ends the program quietly.
     // SAFETY: restoring the default disposition of SIGPIPE before any thread starts.
     unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
+    dnm::allocator::bound_for_long_runs();
     let cli = Cli::parse();
     // The demo talks to its user on stdout; its DNMs only speak up for warnings.
     dnm::init_logging(if matches!(cli.command, Cmd::Demo { .. }) {

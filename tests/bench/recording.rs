@@ -38,8 +38,12 @@ const SETTLE: Duration = Duration::from_millis(100);
 const RATE_HZ: f64 = 500.0;
 
 fn main() {
+    // The recorder runs here as in a `dnm` process: with the allocator bounded the same way
+    // (`GLIBC_TUNABLES=glibc.malloc.arena_max=8` measures glibc's defaults instead).
+    let bounded = dnm::allocator::bound_for_long_runs();
     set_log_level(LogLevel::Error);
     println!("# recording benchmark\n");
+    println!("allocator bounded as in `dnm`: {bounded}\n");
     // `cargo bench --bench recording -- latency` runs one part; no name runs them all.
     let only: Vec<String> = std::env::args()
         .skip(1)

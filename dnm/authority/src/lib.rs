@@ -229,6 +229,9 @@ pub(crate) struct Shared {
     wake: (Mutex<bool>, Condvar),
     /// Wakes the beat thread (a safing is announced at once).
     beat: (Mutex<bool>, Condvar),
+    /// Set (and its waiters woken) when the authority stops: the reconcilers wait on it
+    /// between passes.
+    halt: (Mutex<bool>, Condvar),
     /// When each DNM of the rover last answered the reconciler.
     dnms_heard: Mutex<safing::DnmsHeard>,
     /// Time tags' instants on the monotonic clock.
@@ -257,6 +260,14 @@ impl Shared {
         if let Ok((mut w, _)) = self.wake.1.wait_timeout_while(w, d, |w| !*w) {
             *w = false;
         }
+    }
+
+    /// Waits `d`, or less if the authority stops meanwhile.
+    fn pause(&self, d: Duration) {
+        let Ok(h) = self.halt.0.lock() else {
+            return;
+        };
+        let _ = self.halt.1.wait_timeout_while(h, d, |h| !*h);
     }
 }
 
@@ -332,6 +343,7 @@ impl Authority {
             heard: AtomicBool::new(false),
             wake: (Mutex::new(false), Condvar::new()),
             beat: (Mutex::new(false), Condvar::new()),
+            halt: (Mutex::new(false), Condvar::new()),
             tag_clock: Mutex::new(BTreeMap::new()),
             dnms_heard: Mutex::new(safing::DnmsHeard::default()),
             deferring: Mutex::new(None),
@@ -406,6 +418,10 @@ impl Authority {
     pub fn stop(self) {
         self.shared.stop.store(true, Ordering::Relaxed);
         self.shared.wake();
+        if let Ok(mut h) = self.shared.halt.0.lock() {
+            *h = true;
+            self.shared.halt.1.notify_all();
+        }
         safing::beat_now(&self.shared);
         for t in self.threads {
             let _ = t.join();

@@ -78,10 +78,7 @@ impl Side {
 pub(crate) fn reconcile_loop(s: &Shared, side: Side) {
     while !s.stop.load(Ordering::Relaxed) {
         reconcile(s, side);
-        let deadline = Instant::now() + s.options.reconcile_every;
-        while Instant::now() < deadline && !s.stop.load(Ordering::Relaxed) {
-            std::thread::sleep(Duration::from_millis(50).min(s.options.reconcile_every));
-        }
+        s.pause(s.options.reconcile_every);
     }
 }
 

@@ -513,6 +513,7 @@ impl Dnm {
         self.tasks = tasks;
         self.active = task;
         self.netlist = Some(netlist.clone());
+        self.netlist_digest = format!("{:016x}", netlist.digest());
         for slot in self.modules.values() {
             // Wake modules that wait for input so they take the new references now.
             let _ = slot.wake.notify();

@@ -134,6 +134,8 @@ pub struct Dnm {
     pub(crate) ports: BTreeMap<String, PortServices>,
     pub(crate) modules: BTreeMap<String, ModuleSlot>,
     pub(crate) netlist: Option<Netlist>,
+    /// The committed netlist's digest (hex), computed once at its commit.
+    pub(crate) netlist_digest: String,
     /// The committed revision.
     pub(crate) revision: u64,
     /// The newest revision number handed out (committed or not).
@@ -255,6 +257,7 @@ impl Dnm {
             ports: BTreeMap::new(),
             modules: BTreeMap::new(),
             netlist: None,
+            netlist_digest: String::new(),
             revision: 0,
             last_attempt: 0,
             tasks: Vec::new(),
@@ -419,11 +422,7 @@ impl Dnm {
             dnm: self.name.clone(),
             pid: std::process::id(),
             revision: self.revision,
-            netlist_digest: self
-                .netlist
-                .as_ref()
-                .map(|n| format!("{:016x}", n.digest()))
-                .unwrap_or_default(),
+            netlist_digest: self.netlist_digest.clone(),
             netlist_file: self.netlist.as_ref().map(|n| n.file.display().to_string()),
             active_task: self.active.clone(),
             tasks: self.tasks.clone(),
@@ -487,11 +486,7 @@ impl Dnm {
             system: self.system.clone(),
             dnm: self.name.clone(),
             revision: self.revision,
-            digest: self
-                .netlist
-                .as_ref()
-                .map(|n| format!("{:016x}", n.digest()))
-                .unwrap_or_default(),
+            digest: self.netlist_digest.clone(),
             file: self.netlist.as_ref().map(|n| n.file.display().to_string()),
             active_task: self.active.clone(),
             text: self.netlist.as_ref().map(|n| n.text.clone()),

@@ -52,12 +52,14 @@ impl Default for CpuMeter {
 }
 
 impl CpuMeter {
-    /// Takes a reading; updates `percent` when a second of wall time has passed.
+    /// Takes a reading; updates `percent` when half a second of wall time or more has passed
+    /// since the reading it was last updated from (readings taken once a second, a little
+    /// early or late, each update it).
     pub fn sample(&mut self, pid: u32) {
         let Some(cpu) = cpu_seconds(pid) else { return };
         let now = Instant::now();
         match self.last {
-            Some((t, c)) if now.duration_since(t).as_secs_f64() >= 1.0 => {
+            Some((t, c)) if now.duration_since(t).as_secs_f64() >= 0.5 => {
                 self.percent = 100.0 * (cpu - c) / now.duration_since(t).as_secs_f64();
                 self.last = Some((now, cpu));
             }

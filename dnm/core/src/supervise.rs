@@ -324,18 +324,19 @@ impl Dnm {
         }
     }
 
-    /// CPU and rate readings; memory once a second.
+    /// Rate readings on every pass; CPU and memory from `/proc` once a second (a reading of
+    /// every module's `/proc` files on each pass was most of what an idle DNM's loop cost).
     pub(crate) fn meter(&mut self) {
-        self.cpu.sample(std::process::id());
-        let read_memory = self.memory_read.elapsed() >= Duration::from_secs(1);
-        if read_memory {
+        let read_proc = self.memory_read.elapsed() >= Duration::from_secs(1);
+        if read_proc {
             self.memory_read = Instant::now();
+            self.cpu.sample(std::process::id());
             self.memory = crate::procfs::memory(std::process::id());
         }
         for slot in self.modules.values_mut() {
             if let Some(pid) = slot.pid() {
-                slot.cpu.sample(pid);
-                if read_memory {
+                if read_proc {
+                    slot.cpu.sample(pid);
                     slot.memory = crate::procfs::memory(pid);
                 }
             } else {

@@ -38,7 +38,7 @@ use crate::command::{CommandJob, command_loop};
 use crate::egress::{Counters, EGRESS_EVENT, EgressRoute, egress_loop, room};
 use crate::ingress::{Ingress, Mirror, output_message};
 use crate::lease::lease_loop;
-use crate::query::{Target, admit, query_loop};
+use crate::query::{QueryJob, Target, admit, query_loop};
 use crate::shared::{COMMAND_QUEUE, QUERY_QUEUE, Shared, TsSvc};
 use crate::watch::{WATCH_EVENT, WatchPort, watch_loop};
 use dnm_proto::keys;
@@ -48,7 +48,7 @@ use iceoryx2::prelude::*;
 use zenoh::Wait;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::Subscriber as ZSubscriber;
-use zenoh::query::{Query, Queryable};
+use zenoh::query::Queryable;
 use zenoh::sample::SampleKind;
 
 /// A DNM's presence on Zenoh, plugged into the DNM (see the module docs).
@@ -74,7 +74,9 @@ pub struct Bridge {
     pub(crate) declared_dnms: Vec<String>,
     pub(crate) query_thread: Option<std::thread::JoinHandle<()>>,
     pub(crate) command_thread: Option<std::thread::JoinHandle<()>>,
-    pub(crate) query_tx: Option<SyncSender<(Target, Query)>>,
+    pub(crate) query_tx: Option<SyncSender<QueryJob>>,
+    /// The running modules of the last snapshot: the query thread looks when they change.
+    pub(crate) running: Vec<String>,
     pub(crate) command_tx: Option<SyncSender<CommandJob>>,
     /// For the lease: it makes the DNM safe.
     pub(crate) commander: Commander,
@@ -187,6 +189,7 @@ impl Bridge {
             query_thread: Some(query_thread),
             command_thread: Some(command_thread),
             query_tx: Some(query_tx),
+            running: Vec::new(),
             command_tx: Some(command_tx),
             commander: lease_commander,
             _beats: None,
@@ -195,6 +198,14 @@ impl Bridge {
     }
 
     /// Every other DNM of the netlist and how it looks from here.
+    /// Wakes the query thread to follow the running modules and the local outputs (if its
+    /// queue is full it is awake, and looks before its next answer anyway).
+    fn tell_query_thread(&self) {
+        if let Some(tx) = &self.query_tx {
+            let _ = tx.try_send(QueryJob::Look);
+        }
+    }
+
     fn peer_reports(&self) -> Vec<PeerReport> {
         let peers = self
             .shared
@@ -397,7 +408,7 @@ fn thread_err(what: &'static str) -> impl FnOnce(std::io::Error) -> BridgeStartE
 }
 
 /// Where queryables hand the query thread their queries.
-type QueryQueue = SyncSender<(Target, Query)>;
+type QueryQueue = SyncSender<QueryJob>;
 
 /// The query thread and the queue its queryables feed.
 fn spawn_query_thread(
@@ -407,7 +418,7 @@ fn spawn_query_thread(
     prefix: &str,
     shared: &Arc<Shared>,
 ) -> Result<(JoinHandle<()>, QueryQueue), BridgeStartError> {
-    let (query_tx, query_rx) = mpsc::sync_channel::<(Target, Query)>(QUERY_QUEUE);
+    let (query_tx, query_rx) = mpsc::sync_channel::<QueryJob>(QUERY_QUEUE);
     let shared = shared.clone();
     let session = session.clone();
     let (system, dnm, prefix) = (system.to_string(), dnm.to_string(), prefix.to_string());
@@ -444,7 +455,7 @@ fn declare_queryables(
     system: &str,
     dnm: &str,
     shared: &Arc<Shared>,
-    query_tx: &SyncSender<(Target, Query)>,
+    query_tx: &SyncSender<QueryJob>,
     command_tx: &SyncSender<CommandJob>,
 ) -> Result<Vec<Queryable<()>>, BridgeStartError> {
     let mut queryables = Vec::new();
@@ -461,7 +472,7 @@ fn declare_queryables(
             .declare_queryable(key.clone())
             .callback(move |q| {
                 if admit(&shared.queries_in_flight, QUERY_QUEUE, &shared.refused)
-                    && tx.try_send((target, q)).is_err()
+                    && tx.try_send(QueryJob::Answer(target, q)).is_err()
                 {
                     shared.queries_in_flight.fetch_sub(1, Ordering::Relaxed);
                     shared.refused.fetch_add(1, Ordering::Relaxed);
@@ -692,6 +703,7 @@ impl Plugin for Bridge {
         if let Ok(mut o) = self.shared.outputs.lock() {
             *o = Some(outputs);
         }
+        self.tell_query_thread();
         if let Ok(mut w) = self.shared.wiring.lock() {
             *w = Some(Wiring::of(netlist, &self.dnm, revision, None));
         }
@@ -731,6 +743,16 @@ impl Plugin for Bridge {
         if let Ok(mut s) = self.shared.snapshot.lock() {
             *s = Some(snapshot.clone());
         }
+        let running = snapshot
+            .report
+            .modules
+            .iter()
+            .filter(|m| m.state == dnm_proto::ModuleRunState::Running)
+            .map(|m| &m.name);
+        if !running.clone().eq(self.running.iter()) {
+            self.running = running.cloned().collect();
+            self.tell_query_thread();
+        }
     }
 }
 
@@ -747,7 +769,9 @@ impl Drop for Bridge {
         self._queryables.clear();
         self.shared.stop.store(true, Ordering::Relaxed);
         self.query_tx.take();
-        self.command_tx.take();
+        if let Some(tx) = self.command_tx.take() {
+            let _ = tx.try_send(CommandJob::Stop);
+        }
         if let Some(t) = self.query_thread.take() {
             let _ = t.join();
         }

@@ -3,7 +3,7 @@
 //! method per request; the reply goes back when the DNM answers.
 
 use std::sync::atomic::Ordering;
-use std::sync::mpsc::{self, Receiver, SyncSender};
+use std::sync::mpsc::{Receiver, SyncSender};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -22,6 +22,8 @@ use zenoh::query::Query;
 pub(crate) enum CommandJob {
     Query(Query),
     Answer(Query, Response),
+    /// The bridge is dropping: return.
+    Stop,
 }
 
 /// Takes commands from Zenoh, hands switches and applies to the DNM, and replies when it
@@ -43,12 +45,17 @@ pub(crate) fn command_loop(
         door,
         jobs_tx,
     };
+    // Sleeps until a command or an answer comes (never on a timer). The thread holds a sender
+    // of its own (for the DNM's answers), so the bridge, as it drops, sets `stop` and sends
+    // `Stop`; with the queue full, `stop` ends it after the job at hand.
     loop {
-        match jobs.recv_timeout(Duration::from_millis(100)) {
+        match jobs.recv() {
             Ok(CommandJob::Answer(query, response)) => c.finish(query, &response),
             Ok(CommandJob::Query(query)) => c.take(query),
-            Err(mpsc::RecvTimeoutError::Timeout) if !shared.stop.load(Ordering::Relaxed) => {}
-            Err(_) => return,
+            Ok(CommandJob::Stop) | Err(_) => return,
+        }
+        if shared.stop.load(Ordering::Relaxed) {
+            return;
         }
     }
 }

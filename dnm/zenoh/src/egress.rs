@@ -168,7 +168,7 @@ pub(crate) fn egress_loop(
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<TsSvc>()
             .map_err(dbg("egress waitset"))?;
-        let _control_guard = waitset
+        let control_guard = waitset
             .attach_notification(&control.listener)
             .map_err(dbg("attach"))?;
         let mut guards = Vec::new();
@@ -181,19 +181,26 @@ pub(crate) fn egress_loop(
         }
         // Which routes woke it: only theirs are forwarded, a wake-up costs one port, not all.
         let mut fired = vec![false; open.len()];
-        // Sets sent before the waitset was attached count too.
+        // Sets sent before the waitset was attached count too; after that, a set comes with a
+        // notification of the control listener (and so does the DNM dropping the worker), and
+        // only then is it looked at: a sample's wake-up costs no read of the control's socket.
+        let mut control_fired = true;
         loop {
-            match control.newest() {
-                Sets::Closed => return Ok(()),
-                Sets::New(set) => {
-                    wanted = set;
-                    break;
+            if std::mem::take(&mut control_fired) {
+                match control.newest() {
+                    Sets::Closed => return Ok(()),
+                    Sets::New(set) => {
+                        wanted = set;
+                        break;
+                    }
+                    Sets::Same => {}
                 }
-                Sets::Same => {}
             }
             waitset
                 .wait_and_process_once(|id| {
-                    if let Some(i) = guards.iter().position(|g| id.has_event_from(g)) {
+                    if id.has_event_from(&control_guard) {
+                        control_fired = true;
+                    } else if let Some(i) = guards.iter().position(|g| id.has_event_from(g)) {
                         fired[i] = true;
                     }
                     CallbackProgression::Continue

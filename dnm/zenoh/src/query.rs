@@ -5,8 +5,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::mpsc::{self, Receiver};
-use std::time::Duration;
+use std::sync::mpsc::Receiver;
 
 use dnm_core::worker::{dbg, err};
 use dnm_core::{DnmReport, Snapshot};
@@ -32,6 +31,14 @@ pub(crate) enum Target {
     Wiring,
     Module,
     Port,
+}
+
+/// What wakes the query thread.
+pub(crate) enum QueryJob {
+    /// A query to answer.
+    Answer(Target, Query),
+    /// The running modules or the local outputs changed: tokens and readers follow.
+    Look,
 }
 
 /// Takes one slot of a bounded in-flight count; counts a refusal when none is left.
@@ -90,14 +97,15 @@ impl Monitor {
 }
 
 /// Answers the DNM's queries from its snapshot and the last-value readers; keeps the module
-/// liveliness tokens in step with the running modules.
+/// liveliness tokens in step with the running modules. Sleeps until a query comes or the bridge
+/// asks it to look (never on a timer); returns when the bridge drops its queues.
 pub(crate) fn query_loop(
     session: &zenoh::Session,
     system: &str,
     dnm: &str,
     prefix: &str,
     shared: &Shared,
-    queries: &Receiver<(Target, Query)>,
+    queries: &Receiver<QueryJob>,
 ) {
     let node = match dnm_config(prefix).map_err(|e| e.to_string()).and_then(|c| {
         NodeBuilder::new()
@@ -115,10 +123,8 @@ pub(crate) fn query_loop(
     let mut tokens: BTreeMap<String, LivelinessToken> = BTreeMap::new();
     let mut last_snapshot: Option<Arc<Snapshot>> = None;
     loop {
-        let job = queries.recv_timeout(Duration::from_millis(100));
-        if matches!(job, Err(mpsc::RecvTimeoutError::Disconnected))
-            || shared.stop.load(Ordering::Relaxed)
-        {
+        let Ok(job) = queries.recv() else { return };
+        if shared.stop.load(Ordering::Relaxed) {
             return;
         }
         // Outputs changed at a commit: readers follow.
@@ -154,7 +160,9 @@ pub(crate) fn query_loop(
                 sync_tokens(session, system, dnm, &mut tokens, &s.report);
             }
         }
-        let Ok((target, query)) = job else { continue };
+        let QueryJob::Answer(target, query) = job else {
+            continue;
+        };
         answer(
             system,
             dnm,
