@@ -75,6 +75,8 @@ impl Dnm {
         slot.spawned_at = Instant::now();
         slot.state = ModuleRunState::Starting;
         slot.status = Status::default();
+        // A new process: its CPU time starts from zero, not from the last one's.
+        slot.cpu = crate::procfs::CpuMeter::default();
         slot.start_at = None;
         Ok(())
     }

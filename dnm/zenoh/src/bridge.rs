@@ -197,15 +197,21 @@ impl Bridge {
         })
     }
 
-    /// Every other DNM of the netlist and how it looks from here.
-    /// Wakes the query thread to follow the running modules and the local outputs (if its
-    /// queue is full it is awake, and looks before its next answer anyway).
+    /// Wakes the query thread to follow the running modules and the local outputs: one `Look`
+    /// queued at a time, in a slot of its own beyond the queries' (a queued one is enough: the
+    /// thread reads the newest state when it takes it).
     fn tell_query_thread(&self) {
-        if let Some(tx) = &self.query_tx {
-            let _ = tx.try_send(QueryJob::Look);
+        if self.shared.look_pending.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        if let Some(tx) = &self.query_tx
+            && tx.try_send(QueryJob::Look).is_err()
+        {
+            self.shared.look_pending.store(false, Ordering::Release);
         }
     }
 
+    /// Every other DNM of the netlist and how it looks from here.
     fn peer_reports(&self) -> Vec<PeerReport> {
         let peers = self
             .shared
@@ -418,7 +424,7 @@ fn spawn_query_thread(
     prefix: &str,
     shared: &Arc<Shared>,
 ) -> Result<(JoinHandle<()>, QueryQueue), BridgeStartError> {
-    let (query_tx, query_rx) = mpsc::sync_channel::<QueryJob>(QUERY_QUEUE);
+    let (query_tx, query_rx) = mpsc::sync_channel::<QueryJob>(QUERY_QUEUE + 1);
     let shared = shared.clone();
     let session = session.clone();
     let (system, dnm, prefix) = (system.to_string(), dnm.to_string(), prefix.to_string());

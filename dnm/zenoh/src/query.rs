@@ -5,7 +5,8 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::mpsc::Receiver;
+use std::sync::mpsc::{self, Receiver};
+use std::time::Duration;
 
 use dnm_core::worker::{dbg, err};
 use dnm_core::{DnmReport, Snapshot};
@@ -122,10 +123,26 @@ pub(crate) fn query_loop(
     let mut monitors: BTreeMap<String, Monitor> = BTreeMap::new();
     let mut tokens: BTreeMap<String, LivelinessToken> = BTreeMap::new();
     let mut last_snapshot: Option<Arc<Snapshot>> = None;
+    let mut retry_tokens = false;
     loop {
-        let Ok(job) = queries.recv() else { return };
+        // A liveliness token that could not be declared is tried again within a second.
+        let job = if retry_tokens {
+            match queries.recv_timeout(Duration::from_secs(1)) {
+                Ok(job) => Some(job),
+                Err(mpsc::RecvTimeoutError::Timeout) => None,
+                Err(mpsc::RecvTimeoutError::Disconnected) => return,
+            }
+        } else {
+            match queries.recv() {
+                Ok(job) => Some(job),
+                Err(_) => return,
+            }
+        };
         if shared.stop.load(Ordering::Relaxed) {
             return;
+        }
+        if matches!(job, Some(QueryJob::Look)) {
+            shared.look_pending.store(false, Ordering::Release);
         }
         // Outputs changed at a commit: readers follow.
         if let Some(outputs) = shared.outputs.lock().ok().and_then(|mut o| o.take()) {
@@ -154,13 +171,15 @@ pub(crate) fn query_loop(
             }
         }
         let snapshot = shared.snapshot();
-        if snapshot.as_ref().map(Arc::as_ptr) != last_snapshot.as_ref().map(Arc::as_ptr) {
+        if retry_tokens
+            || snapshot.as_ref().map(Arc::as_ptr) != last_snapshot.as_ref().map(Arc::as_ptr)
+        {
             last_snapshot = snapshot.clone();
             if let Some(s) = &snapshot {
-                sync_tokens(session, system, dnm, &mut tokens, &s.report);
+                retry_tokens = !sync_tokens(session, system, dnm, &mut tokens, &s.report);
             }
         }
-        let QueryJob::Answer(target, query) = job else {
+        let Some(QueryJob::Answer(target, query)) = job else {
             continue;
         };
         answer(
@@ -178,13 +197,15 @@ pub(crate) fn query_loop(
     }
 }
 
+/// Keeps one liveliness token per running module; whether every one could be declared.
 pub(crate) fn sync_tokens(
     session: &zenoh::Session,
     system: &str,
     dnm: &str,
     tokens: &mut BTreeMap<String, LivelinessToken>,
     report: &DnmReport,
-) {
+) -> bool {
+    let mut all = true;
     let running: BTreeSet<&str> = report
         .modules
         .iter()
@@ -204,9 +225,13 @@ pub(crate) fn sync_tokens(
             Ok(t) => {
                 tokens.insert(m.to_string(), t);
             }
-            Err(e) => tracing::warn!(module = m, "liveliness token: {e}"),
+            Err(e) => {
+                all = false;
+                tracing::warn!(module = m, "liveliness token: {e}");
+            }
         }
     }
+    all
 }
 
 pub(crate) fn answer(

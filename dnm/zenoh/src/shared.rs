@@ -41,6 +41,8 @@ pub(crate) struct Shared {
     pub(crate) answered: AtomicU64,
     /// Set when the bridge is dropped: its threads end.
     pub(crate) stop: std::sync::atomic::AtomicBool,
+    /// A `Look` is queued for the query thread and not yet taken: no second one is sent.
+    pub(crate) look_pending: std::sync::atomic::AtomicBool,
     /// The system's authority, when it has one: switches and applies then come only from it
     /// (as transactions); a direct one would put this DNM on a task the others are not on.
     pub(crate) authority: std::sync::OnceLock<String>,
