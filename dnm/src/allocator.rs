@@ -8,6 +8,11 @@
 //! each keeping its own free pages. A fixed threshold of 64 KiB (large blocks mapped and
 //! unmapped on their own) and two arenas bound it (BENCHMARKS.md, "Beetle-One for an hour").
 //! Whoever sets `glibc.malloc.*` tunables in `GLIBC_TUNABLES` keeps them: nothing is changed.
+//!
+//! Only a process that records asks for it (`dnm up` and `dnm demo` unless `--no-record`): one
+//! that does not stays flat with the defaults, and with a fixed threshold Zenoh's buffers for a
+//! large sample crossing DNMs (fragments of 64 KiB) would each be a fresh mapping and its page
+//! faults (+40 µs of CPU per 225 KiB message in the link benchmark).
 
 /// Blocks of this size or more are mapped on their own and given back when freed.
 pub const MMAP_THRESHOLD: i32 = 64 * 1024;

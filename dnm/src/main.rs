@@ -92,6 +92,16 @@ struct RecordArgs {
     record_rotate: String,
 }
 
+impl Cmd {
+    /// Whether the command runs DNMs that record.
+    fn records(&self) -> bool {
+        match self {
+            Cmd::Up { record, .. } | Cmd::Demo { record, .. } => !record.no_record,
+            _ => false,
+        }
+    }
+}
+
 impl RecordArgs {
     fn downlink_cache(&self) -> anyhow::Result<std::time::Duration> {
         let ms = dnm_netlist::parse_duration_ms(&self.downlink_cache).with_context(|| {
@@ -377,8 +387,13 @@ fn main() -> ExitCode {
     // Printing into a closed pipe (`dnm check x | head`) ends the program quietly.
     // SAFETY: restoring the default disposition of SIGPIPE before any thread starts.
     unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
-    dnm::allocator::bound_for_long_runs();
     let cli = Cli::parse();
+    // Before any thread starts: a process that records bounds its allocator (the recorder's
+    // large buffers); one that does not keeps glibc's defaults, under which it stays flat and
+    // large crossing samples cost no mapping each.
+    if cli.command.records() {
+        dnm::allocator::bound_for_long_runs();
+    }
     // The demo talks to its user on stdout; its DNMs only speak up for warnings.
     dnm::init_logging(if matches!(cli.command, Cmd::Demo { .. }) {
         "warn"
