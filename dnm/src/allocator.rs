@@ -10,9 +10,9 @@
 //! Whoever sets `glibc.malloc.*` tunables in `GLIBC_TUNABLES` keeps them: nothing is changed.
 //!
 //! Only a process that records asks for it (`dnm up` and `dnm demo` unless `--no-record`): one
-//! that does not stays flat with the defaults, and with a fixed threshold Zenoh's buffers for a
-//! large sample crossing DNMs (fragments of 64 KiB) would each be a fresh mapping and its page
-//! faults (+40 µs of CPU per 225 KiB message in the link benchmark).
+//! that does not stays flat with the defaults, and with a fixed threshold a large sample
+//! crossing DNMs cost about 20 % more CPU in the link benchmark (225 KiB: most likely Zenoh's
+//! 64 KiB fragment buffers, each a fresh mapping and its page faults).
 
 /// Blocks of this size or more are mapped on their own and given back when freed.
 pub const MMAP_THRESHOLD: i32 = 64 * 1024;
