@@ -433,6 +433,39 @@ fn dnms_linked_over_zenoh_route_switch_survive_and_rejoin() {
             "liveliness tokens {tokens:?} lack {expected}"
         );
     }
+    // A module's token follows its process with no query to wake the DNM's query thread: a
+    // killed module's token goes, and comes back once its DNM has started it again.
+    let (tok_tx, tok_rx) = std::sync::mpsc::channel();
+    let _tokens_sub = sys
+        .client
+        .liveliness()
+        .declare_subscriber(sys.key("module/c/src_c"))
+        .callback(move |s| {
+            let _ = tok_tx.send(s.kind());
+        })
+        .wait()
+        .unwrap();
+    let src_c_pid = sys.report("c").unwrap()["modules"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == "src_c")
+        .and_then(|m| m["pid"].as_i64())
+        .unwrap();
+    // SAFETY: kill(2) on the module process the report names.
+    assert_eq!(unsafe { libc::kill(src_c_pid as i32, libc::SIGKILL) }, 0);
+    let kinds: Vec<zenoh::sample::SampleKind> = (0..2)
+        .map(|_| tok_rx.recv_timeout(Duration::from_secs(30)).unwrap())
+        .collect();
+    assert_eq!(
+        kinds,
+        [
+            zenoh::sample::SampleKind::Delete,
+            zenoh::sample::SampleKind::Put
+        ],
+        "src_c's token as its process was killed and started again"
+    );
+
     // Only what a remote input needs crosses the network: c publishes nothing, a and b only
     // the outputs linked to another DNM.
     let published = |dnm: &str| -> Vec<String> {

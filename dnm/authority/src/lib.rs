@@ -229,9 +229,8 @@ pub(crate) struct Shared {
     wake: (Mutex<bool>, Condvar),
     /// Wakes the beat thread (a safing is announced at once).
     beat: (Mutex<bool>, Condvar),
-    /// Set (and its waiters woken) when the authority stops: the reconcilers wait on it
-    /// between passes.
-    halt: (Mutex<bool>, Condvar),
+    /// Woken when the authority stops (`stop` set): the reconcilers wait on it between passes.
+    halt: (Mutex<()>, Condvar),
     /// When each DNM of the rover last answered the reconciler.
     dnms_heard: Mutex<safing::DnmsHeard>,
     /// Time tags' instants on the monotonic clock.
@@ -267,7 +266,10 @@ impl Shared {
         let Ok(h) = self.halt.0.lock() else {
             return;
         };
-        let _ = self.halt.1.wait_timeout_while(h, d, |h| !*h);
+        let _ = self
+            .halt
+            .1
+            .wait_timeout_while(h, d, |_| !self.stop.load(Ordering::Relaxed));
     }
 }
 
@@ -343,7 +345,7 @@ impl Authority {
             heard: AtomicBool::new(false),
             wake: (Mutex::new(false), Condvar::new()),
             beat: (Mutex::new(false), Condvar::new()),
-            halt: (Mutex::new(false), Condvar::new()),
+            halt: (Mutex::new(()), Condvar::new()),
             tag_clock: Mutex::new(BTreeMap::new()),
             dnms_heard: Mutex::new(safing::DnmsHeard::default()),
             deferring: Mutex::new(None),
@@ -418,8 +420,8 @@ impl Authority {
     pub fn stop(self) {
         self.shared.stop.store(true, Ordering::Relaxed);
         self.shared.wake();
-        if let Ok(mut h) = self.shared.halt.0.lock() {
-            *h = true;
+        // Under the lock: a reconciler that has just seen `stop` unset is waiting before this.
+        if let Ok(_h) = self.shared.halt.0.lock() {
             self.shared.halt.1.notify_all();
         }
         safing::beat_now(&self.shared);

@@ -145,7 +145,7 @@ pub struct Dnm {
     switches: VecDeque<SwitchRecord>,
     pub(crate) cpu: CpuMeter,
     pub(crate) memory: Option<Memory>,
-    pub(crate) memory_read: Instant,
+    pub(crate) proc_read: Instant,
     pub(crate) cleaned: u64,
     pub(crate) janitor: Janitor,
     /// Watches the module processes: an exit wakes the loop at once.
@@ -265,7 +265,7 @@ impl Dnm {
             switches: VecDeque::new(),
             cpu: CpuMeter::default(),
             memory: None,
-            memory_read: Instant::now() - Duration::from_secs(2),
+            proc_read: Instant::now() - Duration::from_secs(2),
             cleaned,
             janitor: Janitor::start(name, config.clone(), prompt.clone()),
             exits: Exits::start(name, config.clone(), prompt.clone()),

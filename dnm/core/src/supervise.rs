@@ -329,9 +329,9 @@ impl Dnm {
     /// Rate readings on every pass; CPU and memory from `/proc` once a second (a reading of
     /// every module's `/proc` files on each pass was most of what an idle DNM's loop cost).
     pub(crate) fn meter(&mut self) {
-        let read_proc = self.memory_read.elapsed() >= Duration::from_secs(1);
+        let read_proc = self.proc_read.elapsed() >= Duration::from_secs(1);
         if read_proc {
-            self.memory_read = Instant::now();
+            self.proc_read = Instant::now();
             self.cpu.sample(std::process::id());
             self.memory = crate::procfs::memory(std::process::id());
         }

@@ -75,8 +75,6 @@ pub struct Bridge {
     pub(crate) query_thread: Option<std::thread::JoinHandle<()>>,
     pub(crate) command_thread: Option<std::thread::JoinHandle<()>>,
     pub(crate) query_tx: Option<SyncSender<QueryJob>>,
-    /// The running modules of the last snapshot: the query thread looks when they change.
-    pub(crate) running: Vec<String>,
     pub(crate) command_tx: Option<SyncSender<CommandJob>>,
     /// For the lease: it makes the DNM safe.
     pub(crate) commander: Commander,
@@ -189,7 +187,6 @@ impl Bridge {
             query_thread: Some(query_thread),
             command_thread: Some(command_thread),
             query_tx: Some(query_tx),
-            running: Vec::new(),
             command_tx: Some(command_tx),
             commander: lease_commander,
             _beats: None,
@@ -746,17 +743,22 @@ impl Plugin for Bridge {
     }
 
     fn published(&mut self, snapshot: &Arc<Snapshot>) {
-        if let Ok(mut s) = self.shared.snapshot.lock() {
-            *s = Some(snapshot.clone());
-        }
-        let running = snapshot
-            .report
-            .modules
-            .iter()
-            .filter(|m| m.state == dnm_proto::ModuleRunState::Running)
-            .map(|m| &m.name);
-        if !running.clone().eq(self.running.iter()) {
-            self.running = running.cloned().collect();
+        let before = self
+            .shared
+            .snapshot
+            .lock()
+            .ok()
+            .and_then(|mut s| s.replace(snapshot.clone()));
+        // The query thread follows the running modules: told when they change.
+        let running = |s: &Snapshot| {
+            s.report
+                .modules
+                .iter()
+                .filter(|m| m.state == dnm_proto::ModuleRunState::Running)
+                .map(|m| m.name.clone())
+                .collect::<Vec<_>>()
+        };
+        if before.is_none_or(|b| running(&b) != running(snapshot)) {
             self.tell_query_thread();
         }
     }
