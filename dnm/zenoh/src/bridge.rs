@@ -750,15 +750,14 @@ impl Plugin for Bridge {
             .ok()
             .and_then(|mut s| s.replace(snapshot.clone()));
         // The query thread follows the running modules: told when they change.
-        let running = |s: &Snapshot| {
+        fn running(s: &Snapshot) -> impl Iterator<Item = &str> {
             s.report
                 .modules
                 .iter()
                 .filter(|m| m.state == dnm_proto::ModuleRunState::Running)
-                .map(|m| m.name.clone())
-                .collect::<Vec<_>>()
-        };
-        if before.is_none_or(|b| running(&b) != running(snapshot)) {
+                .map(|m| m.name.as_str())
+        }
+        if before.is_none_or(|b| !running(&b).eq(running(snapshot))) {
             self.tell_query_thread();
         }
     }
