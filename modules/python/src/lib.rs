@@ -3,9 +3,11 @@
 //! process loop ([`dnm_module::run_dynamic`]), which waits for its inputs with the GIL released
 //! and calls the module's `step` with it held.
 //!
-//! Inputs are handed to Python as read-only `memoryview`s of the producer's shared-memory
-//! sample (no copy; valid for the step), outputs are loaned in shared memory and handed as
-//! writable `memoryview`s to fill in place, then sent. An exception in `step` ends the process
+//! Inputs are handed to Python on the producer's shared-memory sample itself (no copy; valid
+//! for the step): a bytes input as a read-only numpy array made with numpy's C API (an image
+//! shaped from its header), a message as a read-only `memoryview` its class decodes. Outputs
+//! are loaned in shared memory and handed as writable `memoryview`s to fill in place, then
+//! sent. An exception in `step` ends the process
 //! with its traceback, which the DNM reports in the module's exit event before it applies the
 //! restart policy.
 
@@ -47,6 +49,69 @@ unsafe fn memoryview(
     }
 }
 
+/// Bytes before an image's pixels: width, height and row step, little-endian `u32`s.
+const IMAGE_HEADER: usize = 12;
+
+/// A read-only numpy array on `bytes`, made with numpy's C API (no Python code runs): `uint8`
+/// of shape `(len,)`, or with `image` and a header that fits, `(height, width, 3)` on the
+/// pixels after it with the header's row step.
+///
+/// # Safety
+/// As [`memoryview`]: the memory stays mapped while Python may use the array, beyond the
+/// borrow of `bytes`.
+unsafe fn array<'py>(py: Python<'py>, bytes: &[u8], image: bool) -> PyResult<Bound<'py, PyAny>> {
+    use numpy::npyffi::{
+        NPY_ARRAY_ALIGNED, NPY_ARRAY_C_CONTIGUOUS, NPY_TYPES, NpyTypes, PY_ARRAY_API, npy_intp,
+    };
+    let (data, mut dims, mut strides, nd) = match image.then(|| image_shape(bytes)).flatten() {
+        Some((width, height, step)) => (
+            bytes[IMAGE_HEADER..].as_ptr(),
+            [height as npy_intp, width as npy_intp, 3],
+            [step as npy_intp, 3, 1],
+            3,
+        ),
+        None => (
+            bytes.as_ptr(),
+            [bytes.len() as npy_intp, 0, 0],
+            [1, 0, 0],
+            1,
+        ),
+    };
+    let flags = if nd == 1 {
+        NPY_ARRAY_C_CONTIGUOUS | NPY_ARRAY_ALIGNED
+    } else {
+        NPY_ARRAY_ALIGNED
+    };
+    // SAFETY: `dims` and `strides` describe memory inside `bytes` (`image_shape` checked the
+    // rows fit); without the WRITEABLE flag Python cannot write it; the result (a new
+    // reference, or null with Python's exception set) is owned.
+    unsafe {
+        let a = PY_ARRAY_API.PyArray_New(
+            py,
+            PY_ARRAY_API.get_type_object(py, NpyTypes::PyArray_Type),
+            nd,
+            dims.as_mut_ptr(),
+            NPY_TYPES::NPY_UBYTE as std::os::raw::c_int,
+            strides.as_mut_ptr(),
+            data as *mut std::os::raw::c_void,
+            1,
+            flags,
+            std::ptr::null_mut(),
+        );
+        Bound::from_owned_ptr_or_err(py, a)
+    }
+}
+
+/// An image's (width, height, row step) from its header, if its rows fit in `bytes`.
+fn image_shape(bytes: &[u8]) -> Option<(usize, usize, usize)> {
+    let word = |i: usize| -> Option<usize> {
+        Some(u32::from_le_bytes(bytes.get(i..i + 4)?.try_into().ok()?) as usize)
+    };
+    let (width, height, step) = (word(0)?, word(4)?, word(8)?);
+    let end = step.checked_mul(height)?.checked_add(IMAGE_HEADER)?;
+    (step >= width.checked_mul(3)? && end <= bytes.len()).then_some((width, height, step))
+}
+
 fn module_error(e: ModuleError) -> PyErr {
     PyRuntimeError::new_err(e.to_string())
 }
@@ -85,9 +150,9 @@ impl RawIo {
         Ok(self.io()?.task().map(str::to_string))
     }
 
-    /// The newest sample of input `index` not read yet: (view, stamp_ns, seq, address).
-    fn take<'py>(&mut self, py: Python<'py>, index: usize) -> PyResult<Received<'py>> {
-        let Some((h, bytes)) = self.io()?.take_raw(index) else {
+    /// The newest sample of input `index`, new or not.
+    fn latest<'py>(&mut self, py: Python<'py>, index: usize) -> PyResult<Received<'py>> {
+        let Some((h, bytes)) = self.io()?.latest_raw(index) else {
             return Ok(None);
         };
         let (ptr, len) = (bytes.as_ptr(), bytes.len());
@@ -97,18 +162,8 @@ impl RawIo {
         Ok(Some((view, h.stamp_ns, h.seq, ptr as u64)))
     }
 
-    /// The newest sample of input `index`, new or not.
-    fn latest<'py>(&mut self, py: Python<'py>, index: usize) -> PyResult<Received<'py>> {
-        let Some((h, bytes)) = self.io()?.latest_raw(index) else {
-            return Ok(None);
-        };
-        let (ptr, len) = (bytes.as_ptr(), bytes.len());
-        // SAFETY: as in `take`.
-        let view = unsafe { memoryview(py, ptr, len, false)? };
-        Ok(Some((view, h.stamp_ns, h.seq, ptr as u64)))
-    }
-
-    /// [`RawIo::take`]'s view alone: the hot path of `io.read`.
+    /// The newest sample of a message input `index` not read yet, as a read-only view its
+    /// class decodes: the hot path of `io.read` for messages.
     fn take_view<'py>(
         &mut self,
         py: Python<'py>,
@@ -117,8 +172,31 @@ impl RawIo {
         let Some((_, bytes)) = self.io()?.take_raw(index) else {
             return Ok(None);
         };
-        // SAFETY: as in `take`.
+        // SAFETY: as in `latest`.
         unsafe { memoryview(py, bytes.as_ptr(), bytes.len(), false) }.map(Some)
+    }
+
+    /// A bytes input `index` as a read-only numpy array on its sample (an image's `(height,
+    /// width, 3)` with `image`): the newest sample not read yet (the hot path of `io.read`),
+    /// or with `latest` the newest, new or not.
+    fn array<'py>(
+        &mut self,
+        py: Python<'py>,
+        index: usize,
+        image: bool,
+        latest: bool,
+    ) -> PyResult<Option<Bound<'py, PyAny>>> {
+        let io = self.io()?;
+        let got = if latest {
+            io.latest_raw(index)
+        } else {
+            io.take_raw(index)
+        };
+        let Some((_, bytes)) = got else {
+            return Ok(None);
+        };
+        // SAFETY: as in `latest`.
+        unsafe { array(py, bytes, image) }.map(Some)
     }
 
     /// Sends `data` on output `index` (copied once into shared memory).

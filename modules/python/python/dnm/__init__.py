@@ -185,8 +185,7 @@ class Setup:
         if not port.fixed:
             # Imported now, not in the first step that reads or loans it (a stall of a few
             # hundred milliseconds there).
-            global _np
-            _np = _np or _numpy()
+            _numpy()
         return port
 
     def input(self, name):
@@ -202,29 +201,6 @@ def _numpy():
     except ImportError as e:  # pragma: no cover - numpy is a dependency of the package
         raise ImportError("variable-size ports are read as numpy arrays: pip install numpy") from e
     return numpy
-
-
-_np = None
-
-
-def _as_array(port, view):
-    """A bytes sample as a numpy array on its memory (an image shaped from its header)."""
-    global _np
-    np = _np
-    if np is None:
-        np = _np = _numpy()
-    if port.image and len(view) >= msg.IMAGE_HEADER:
-        width, height, step = np.frombuffer(view, dtype="<u4", count=3)
-        width, height, step = int(width), int(height), int(step)
-        if step >= width * 3 and len(view) >= msg.IMAGE_HEADER + step * height:
-            return np.ndarray(
-                (height, width, 3),
-                dtype=np.uint8,
-                buffer=view,
-                offset=msg.IMAGE_HEADER,
-                strides=(step, 3, 1),
-            )
-    return np.frombuffer(view, dtype=np.uint8)
 
 
 class Io:
@@ -257,32 +233,24 @@ class Io:
         if port.input is not input:
             raise TypeError(f"{port!r} is not an {'input' if input else 'output'}")
 
-    @staticmethod
-    def _value(port, got):
-        if got is None:
-            return None
-        view, _stamp, _seq, _addr = got
-        if port.fixed:
-            return port.type.decode(view)
-        return _as_array(port, view)
-
     def read(self, port):
         """The newest value on ``port`` if it arrived since the port was last read (``None``
         otherwise): a message, or a read-only numpy array on the sample's shared memory."""
         # The hot path of every module: one call into the runtime, no frames of its own.
         if port.__class__ is not Port or port.input is not True:
             self._check(port, True)
-        view = self._raw.take_view(port.index)
-        if view is None:
-            return None
         if port.fixed:
-            return port.type.decode(view)
-        return _as_array(port, view)
+            view = self._raw.take_view(port.index)
+            return None if view is None else port.type.decode(view)
+        return self._raw.array(port.index, port.image, False)
 
     def latest(self, port):
         """The newest value on ``port``, new or not."""
         self._check(port, True)
-        return self._value(port, self._raw.latest(port.index))
+        if port.fixed:
+            got = self._raw.latest(port.index)
+            return None if got is None else port.type.decode(got[0])
+        return self._raw.array(port.index, port.image, True)
 
     def header(self, port):
         """(send stamp ns, sequence number, address of the bytes) of the newest sample."""
