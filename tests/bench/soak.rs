@@ -6,7 +6,10 @@
 //!
 //! Growth is judged on the DNM process's private memory after a warm-up (the first
 //! [`WARM_UP_MIN`] minutes): a least-squares line through the minute samples, its slope with a
-//! 95 % interval. The table goes to stdout, the curve to `docs/bench/soak-memory.png`.
+//! 95 % interval; and, with recording, file by file: the lowest and highest memory between
+//! two rotations, and how the lowest moved from the file before (what the allocator keeps
+//! after the closed files' buffers were given back: a bound shows as these steps falling to
+//! the noise). The tables go to stdout, the curve to `docs/bench/soak-memory.png`.
 //!
 //! Run: `cargo build --release --workspace`, then `cargo bench -p dnm --bench soak`
 //! (`DNM_SOAK_MINUTES=10` for a shorter run, `DNM_SOAK_ROTATE=2m` for files every two minutes).
@@ -95,13 +98,49 @@ fn slope(points: &[(f64, f64)]) -> (f64, f64) {
     (b, 1.96 * se)
 }
 
+/// The recording's file rotation, as `dnm up --record-rotate` takes it (`DNM_SOAK_ROTATE`).
+fn rotate() -> String {
+    std::env::var("DNM_SOAK_ROTATE").unwrap_or_else(|_| "10m".into())
+}
+
+/// [`rotate`] in whole minutes, when it is some.
+fn rotate_minutes() -> Option<usize> {
+    let r = rotate();
+    let n: usize = r
+        .trim_end_matches(|c: char| c.is_ascii_alphabetic())
+        .parse()
+        .ok()?;
+    match r.trim_start_matches(|c: char| c.is_ascii_digit()) {
+        "m" | "min" => Some(n),
+        "h" => Some(n * 60),
+        _ => None,
+    }
+    .filter(|&m| m > 2)
+}
+
+/// Per file of the recording after the warm-up (the minutes strictly between two rotations,
+/// the samples at a rotation left out: the manifest's thread has just given pages back then):
+/// the lowest and the highest private memory of the recording DNM, KiB.
+fn per_file(readings: &[[Reading; 2]], every: usize) -> Vec<(usize, u64, u64)> {
+    (WARM_UP_MIN.div_ceil(every)..)
+        .map(|k| (k * every, (k * every + 1)..((k + 1) * every)))
+        .take_while(|(_, minutes)| minutes.end < readings.len())
+        .map(|(start, minutes)| {
+            let kib: Vec<u64> = minutes.map(|m| readings[m][0].anon_kib).collect();
+            let low = kib.iter().copied().min().unwrap_or(0);
+            let high = kib.iter().copied().max().unwrap_or(0);
+            (start, low, high)
+        })
+        .collect()
+}
+
 fn start(system: &str, record: Option<&std::path::Path>) -> Up {
     let up_args: Vec<String> = match record {
         Some(d) => vec![
             "--record-dir".into(),
             d.display().to_string(),
             "--record-rotate".into(),
-            std::env::var("DNM_SOAK_ROTATE").unwrap_or_else(|_| "10m".into()),
+            rotate(),
         ],
         None => vec!["--no-record".into()],
     };
@@ -163,7 +202,8 @@ fn walk(dir: &std::path::Path) -> usize {
 fn report(labels: &[&str; 2], readings: &[[Reading; 2]], files: usize) {
     let minutes = readings.len() - 1;
     println!(
-        "# Beetle-One for {minutes} minutes, recording (files every 10 min) and not, side by side\n"
+        "# Beetle-One for {minutes} minutes, recording (files every {}) and not, side by side\n",
+        rotate()
     );
     println!(
         "| minute | run | DNM private (KiB) | files / shared (KiB) | fds | threads | modules private (KiB) | shm files |"
@@ -218,6 +258,21 @@ fn report(labels: &[&str; 2], readings: &[[Reading; 2]], files: usize) {
                 .map(|(m, r)| (m as f64, r[i].anon_kib as f64 / 1024.0))
                 .collect(),
         });
+    }
+    if let Some(every) = rotate_minutes() {
+        println!(
+            "\nThe recording DNM per file after the warm-up, between its rotations (KiB; step: \
+             the lowest against the file before's lowest):\n"
+        );
+        println!("| file from minute | lowest | highest | step of the lowest |");
+        println!("|---|---|---|---|");
+        let files = per_file(readings, every);
+        for (i, (start, low, high)) in files.iter().enumerate() {
+            let step = i.checked_sub(1).map_or_else(String::new, |j| {
+                format!("{:+}", *low as i64 - files[j].1 as i64)
+            });
+            println!("| {start} | {low} | {high} | {step} |");
+        }
     }
     match plot::linear(
         "soak-memory",
