@@ -854,17 +854,17 @@ impl View {
         bytes: &[u8],
         unix_ns: u64,
     ) -> anyhow::Result<()> {
-        let word = |i: usize| {
-            bytes
-                .get(i * 4..i * 4 + 4)
-                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
-        };
-        let (Some(width), Some(height), Some(step)) = (word(0), word(1), word(2)) else {
+        let Some(dnm_rover::msgs::ImageLayout {
+            width,
+            height,
+            step,
+        }) = dnm_rover::msgs::ImageLayout::of(bytes)
+        else {
             return Ok(());
         };
         let pixels = &bytes[dnm_rover::msgs::IMAGE_HEADER..];
-        let row = width.saturating_mul(3);
-        if width == 0 || step < row || pixels.len() < step.saturating_mul(height) {
+        let row = width * 3;
+        if width == 0 {
             return Ok(());
         }
         let rgb: Vec<u8> = if step == row {

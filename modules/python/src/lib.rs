@@ -49,9 +49,6 @@ unsafe fn memoryview(
     }
 }
 
-/// Bytes before an image's pixels: width, height and row step, little-endian `u32`s.
-const IMAGE_HEADER: usize = 12;
-
 /// A read-only numpy array on `bytes`, made with numpy's C API (no Python code runs): `uint8`
 /// of shape `(len,)`, or with `image` and a header that fits, `(height, width, 3)` on the
 /// pixels after it with the header's row step.
@@ -60,14 +57,15 @@ const IMAGE_HEADER: usize = 12;
 /// As [`memoryview`]: the memory stays mapped while Python may use the array, beyond the
 /// borrow of `bytes`.
 unsafe fn array<'py>(py: Python<'py>, bytes: &[u8], image: bool) -> PyResult<Bound<'py, PyAny>> {
+    use dnm_rover::msgs::{IMAGE_HEADER, ImageLayout};
     use numpy::npyffi::{
         NPY_ARRAY_ALIGNED, NPY_ARRAY_C_CONTIGUOUS, NPY_TYPES, NpyTypes, PY_ARRAY_API, npy_intp,
     };
-    let (data, mut dims, mut strides, nd) = match image.then(|| image_shape(bytes)).flatten() {
-        Some((width, height, step)) => (
+    let (data, mut dims, mut strides, nd) = match image.then(|| ImageLayout::of(bytes)).flatten() {
+        Some(l) => (
             bytes[IMAGE_HEADER..].as_ptr(),
-            [height as npy_intp, width as npy_intp, 3],
-            [step as npy_intp, 3, 1],
+            [l.height as npy_intp, l.width as npy_intp, 3],
+            [l.step as npy_intp, 3, 1],
             3,
         ),
         None => (
@@ -82,8 +80,8 @@ unsafe fn array<'py>(py: Python<'py>, bytes: &[u8], image: bool) -> PyResult<Bou
     } else {
         NPY_ARRAY_ALIGNED
     };
-    // SAFETY: `dims` and `strides` describe memory inside `bytes` (`image_shape` checked the
-    // rows fit); without the WRITEABLE flag Python cannot write it; the result (a new
+    // SAFETY: `dims` and `strides` describe memory inside `bytes` (`ImageLayout::of` checked
+    // the rows fit); without the WRITEABLE flag Python cannot write it; the result (a new
     // reference, or null with Python's exception set) is owned.
     unsafe {
         let a = PY_ARRAY_API.PyArray_New(
@@ -100,16 +98,6 @@ unsafe fn array<'py>(py: Python<'py>, bytes: &[u8], image: bool) -> PyResult<Bou
         );
         Bound::from_owned_ptr_or_err(py, a)
     }
-}
-
-/// An image's (width, height, row step) from its header, if its rows fit in `bytes`.
-fn image_shape(bytes: &[u8]) -> Option<(usize, usize, usize)> {
-    let word = |i: usize| -> Option<usize> {
-        Some(u32::from_le_bytes(bytes.get(i..i + 4)?.try_into().ok()?) as usize)
-    };
-    let (width, height, step) = (word(0)?, word(4)?, word(8)?);
-    let end = step.checked_mul(height)?.checked_add(IMAGE_HEADER)?;
-    (step >= width.checked_mul(3)? && end <= bytes.len()).then_some((width, height, step))
 }
 
 fn module_error(e: ModuleError) -> PyErr {

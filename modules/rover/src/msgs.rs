@@ -287,6 +287,84 @@ impl BytesMessage for Image {
 /// Bytes of the header in front of an [`Image`]'s pixels.
 pub const IMAGE_HEADER: usize = 12;
 
+/// Where an [`Image`]'s pixels lie in its bytes, as its header says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ImageLayout {
+    pub width: usize,
+    pub height: usize,
+    /// Bytes from one row to the next, at least `3 * width`.
+    pub step: usize,
+}
+
+impl ImageLayout {
+    /// The layout of the image in `bytes`, if its header is whole, its rows are at least a
+    /// row of pixels wide and all of them fit in `bytes`; `None` for anything else (a short or
+    /// lying header from a faulty producer).
+    pub fn of(bytes: &[u8]) -> Option<Self> {
+        let word = |i: usize| -> Option<usize> {
+            Some(u32::from_le_bytes(bytes.get(i * 4..i * 4 + 4)?.try_into().ok()?) as usize)
+        };
+        let (width, height, step) = (word(0)?, word(1)?, word(2)?);
+        let end = step.checked_mul(height)?.checked_add(IMAGE_HEADER)?;
+        (step >= width.checked_mul(3)? && end <= bytes.len()).then_some(Self {
+            width,
+            height,
+            step,
+        })
+    }
+}
+
+#[cfg(test)]
+mod image_tests {
+    use super::*;
+
+    fn image(width: u32, height: u32, step: u32, pixels: usize) -> Vec<u8> {
+        let mut b: Vec<u8> = [width, height, step]
+            .iter()
+            .flat_map(|w| w.to_le_bytes())
+            .collect();
+        b.resize(IMAGE_HEADER + pixels, 0);
+        b
+    }
+
+    #[test]
+    fn an_image_s_layout_is_read_from_its_header_when_its_rows_fit() {
+        let layout = ImageLayout::of(&image(320, 240, 960, 960 * 240)).unwrap();
+        assert_eq!((layout.width, layout.height, layout.step), (320, 240, 960));
+        // Padded rows.
+        assert_eq!(ImageLayout::of(&image(2, 2, 8, 16)).unwrap().step, 8);
+    }
+
+    #[test]
+    fn a_short_or_lying_header_gives_no_layout() {
+        assert_eq!(
+            ImageLayout::of(&[1, 0, 0, 0, 1, 0]),
+            None,
+            "header cut short"
+        );
+        assert_eq!(
+            ImageLayout::of(&image(320, 240, 960, 960 * 239)),
+            None,
+            "rows missing"
+        );
+        assert_eq!(
+            ImageLayout::of(&image(320, 240, 959, 960 * 240)),
+            None,
+            "rows too narrow"
+        );
+        assert_eq!(
+            ImageLayout::of(&image(u32::MAX, 1, u32::MAX, 16)),
+            None,
+            "overflow"
+        );
+        assert_eq!(
+            ImageLayout::of(&image(1, u32::MAX, u32::MAX, 16)),
+            None,
+            "overflow"
+        );
+    }
+}
+
 /// Telemetry for the operator, as JSON.
 #[derive(Debug, Clone, Copy)]
 pub struct Telemetry;
