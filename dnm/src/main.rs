@@ -374,8 +374,11 @@ enum ModuleOp {
         system: String,
         #[arg(long)]
         name: String,
+        /// Another kind: the module starts from that kind's defaults and the `--param`s given.
         #[arg(long)]
         kind: Option<String>,
+        /// `key=value` (a TOML value), repeatable: changes these; the module's other
+        /// parameters keep their values (unless `--kind` changes the kind).
         #[arg(long = "param")]
         params: Vec<String>,
         #[arg(long)]

@@ -149,12 +149,27 @@ pub fn edit_netlist(text: &str, edit: &ModuleEdit) -> Result<(String, String), M
                 .find(|m| m.get("name").and_then(|n| n.as_str()) == Some(name.as_str()))
                 .and_then(|m| m.as_table_mut())
                 .ok_or_else(|| ModuleEditError::NoModule(name.clone()))?;
-            if let Some(k) = kind {
+            // Another kind starts from its own defaults; the same kind keeps the parameters
+            // not given (an operator changing one does not reset the others).
+            let same_kind = kind
+                .as_deref()
+                .is_none_or(|k| m.get("kind").and_then(|v| v.as_str()) == Some(k));
+            if let Some(k) = kind.as_ref().filter(|_| !same_kind) {
                 m.insert("kind".into(), k.clone().into());
                 m.remove("params");
             }
             if !ps.is_empty() {
-                m.insert("params".into(), params(ps)?.into());
+                let mut merged = match m.get("params") {
+                    Some(toml::Value::Table(t)) => t.clone(),
+                    Some(_) => {
+                        return Err(shape(&format!(
+                            "has `params` of `{name}` that are not a table"
+                        )));
+                    }
+                    None => toml::Table::new(),
+                };
+                merged.extend(params(ps)?);
+                m.insert("params".into(), merged.into());
             }
             format!("replaced module `{name}`")
         }
@@ -191,7 +206,8 @@ links = ["a.out -> b.in"]
     }
 
     #[test]
-    fn replace_sets_kind_and_params_and_unknown_modules_are_refused() {
+    fn replace_sets_kind_and_params_keeps_the_others_of_the_same_kind_and_refuses_unknown_modules()
+    {
         let edit = ModuleEdit::Replace {
             name: "b".into(),
             kind: Some("logger".into()),
@@ -203,6 +219,44 @@ links = ["a.out -> b.in"]
             "{text}"
         );
         assert!(text.contains(r#"tag = "x""#), "{text}");
+        // The same kind: the parameters given change, the others stay.
+        let (text, _) = edit_netlist(
+            &text,
+            &ModuleEdit::Replace {
+                name: "b".into(),
+                kind: None,
+                params: vec!["level=3".into()],
+            },
+        )
+        .unwrap();
+        assert!(
+            text.contains("level = 3") && text.contains(r#"tag = "x""#),
+            "{text}"
+        );
+        let (text, _) = edit_netlist(
+            &text,
+            &ModuleEdit::Replace {
+                name: "b".into(),
+                kind: Some("logger".into()),
+                params: vec!["level=4".into()],
+            },
+        )
+        .unwrap();
+        assert!(text.contains("level = 4") && text.contains("tag"), "{text}");
+        // Another kind starts from its own defaults.
+        let (text, _) = edit_netlist(
+            &text,
+            &ModuleEdit::Replace {
+                name: "b".into(),
+                kind: Some("printer".into()),
+                params: vec!["width=80".into()],
+            },
+        )
+        .unwrap();
+        assert!(
+            text.contains("width = 80") && !text.contains("level") && !text.contains("tag"),
+            "{text}"
+        );
         let e = edit_netlist(TEXT, &ModuleEdit::Remove { name: "z".into() }).unwrap_err();
         assert_eq!(e, ModuleEditError::NoModule("z".into()));
         assert!(e.to_string().contains("no module `z`"), "{e}");

@@ -79,7 +79,9 @@ pub enum ModuleEdit {
         #[serde(default)]
         links: Vec<String>,
     },
-    /// A module restarted as another kind or with other parameters.
+    /// A module restarted as another kind or with other parameters: `params` (`key=value`)
+    /// change those; the others keep their values unless `kind` names another kind, which
+    /// starts from its own defaults.
     Replace {
         name: String,
         #[serde(default)]
