@@ -284,6 +284,33 @@ fn bad_netlist_is_refused_and_the_running_task_continues() {
     assert!(!r.ok && r.error.unwrap().contains("unknown task `c`"));
 }
 
+/// The shared-memory files of DNM `main` of `system` (iceoryx2's node counter aside, which
+/// iceoryx2 keeps by design).
+fn shared_memory_of(system: &str) -> Vec<String> {
+    let prefix = format!("dnm_{system}_main_");
+    std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter(|f| f.starts_with(&prefix) && !f.ends_with(".global_mgmt"))
+        .collect()
+}
+
+#[test]
+fn a_dnm_stopped_cleanly_leaves_no_shared_memory_behind() {
+    let mut sys = System::start(PIPELINE);
+    // The admin socket served a request: its thread holds the DNM's commanders.
+    assert!(sys.ask(&Request::Status).ok);
+    assert!(!shared_memory_of(&sys.name).is_empty());
+    // SIGTERM, as a service manager stops it (Ctrl-C takes the same path). Looked at while
+    // this test's own iceoryx2 node lives: dropped, it would sweep what a dead process left.
+    // SAFETY: kill(2) on our own child, not reaped yet.
+    unsafe { libc::kill(sys.child.id() as i32, libc::SIGTERM) };
+    let exit = sys.child.wait().unwrap();
+    assert!(exit.success(), "{exit}");
+    let left = shared_memory_of(&sys.name);
+    assert!(left.is_empty(), "left in /dev/shm: {left:?}");
+}
+
 #[test]
 fn check_reports_errors_with_location_and_exit_code() {
     let dir = std::env::temp_dir().join(format!("dnm-check-{}", std::process::id()));

@@ -159,15 +159,22 @@ fn request_one(system: &str, path: &Path, req: &Request) -> Result<Response, Adm
 /// Connections the admin socket serves at once; more are refused as busy.
 const ADMIN_CONNECTIONS: usize = 16;
 
-/// Serves each connection on its own thread, so a long apply never holds up a switch.
+/// Serves each connection on its own thread, so a long apply never holds up a switch, until
+/// `stop` is set (and a connection wakes the accept). The DNMs' commanders go with it: each
+/// holds a port of its DNM's wake-up event, which a thread left running at exit would keep
+/// in shared memory.
 pub(crate) fn serve(
     listener: &UnixListener,
     system: &str,
     authority: Option<&str>,
     dnms: &[Commander],
+    stop: &std::sync::atomic::AtomicBool,
 ) {
     let busy = Arc::new(std::sync::atomic::AtomicUsize::new(0));
     for stream in listener.incoming() {
+        if stop.load(std::sync::atomic::Ordering::Acquire) {
+            return;
+        }
         let Ok(stream) = stream else { continue };
         let taken = busy
             .fetch_update(

@@ -5,6 +5,7 @@
 
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{self, SyncSender};
 use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
@@ -65,6 +66,23 @@ pub struct Host {
     system: String,
     hosted: Hosted,
     socket: PathBuf,
+    admin: Option<Admin>,
+}
+
+/// The admin socket's thread, and how to stop it.
+struct Admin {
+    stop: Arc<AtomicBool>,
+    thread: JoinHandle<()>,
+}
+
+impl Admin {
+    /// Stops the thread: the flag, then a connection of our own to wake its accept.
+    fn stop(self, socket: &std::path::Path) {
+        self.stop.store(true, Ordering::Release);
+        if UnixStream::connect(socket).is_ok() {
+            let _ = self.thread.join();
+        }
+    }
 }
 
 impl std::fmt::Debug for Host {
@@ -139,9 +157,19 @@ impl Host {
         let follows = follow
             .then(|| netlist.authority().map(str::to_string))
             .flatten();
-        std::thread::Builder::new()
+        let stop = Arc::new(AtomicBool::new(false));
+        let stopped = stop.clone();
+        let thread = std::thread::Builder::new()
             .name("dnm-admin".into())
-            .spawn(move || serve(&listener, &system, follows.as_deref(), &commanders))
+            .spawn(move || {
+                serve(
+                    &listener,
+                    &system,
+                    follows.as_deref(),
+                    &commanders,
+                    &stopped,
+                );
+            })
             .context("spawning admin thread")?;
         Ok(Host {
             authority,
@@ -149,16 +177,22 @@ impl Host {
             system: netlist.system.clone(),
             hosted,
             socket,
+            admin: Some(Admin { stop, thread }),
         })
     }
 }
 
 impl Drop for Host {
     fn drop(&mut self) {
+        // No command comes in while the DNMs stop.
+        if let Some(admin) = self.admin.take() {
+            admin.stop(&self.socket);
+        }
         self.hosted.stop_and_join();
         if let Some(a) = self.authority.take() {
             a.stop();
         }
+        // The system's folder stays: another process of the system may be binding in it.
         let _ = std::fs::remove_file(&self.socket);
     }
 }
