@@ -312,6 +312,52 @@ fn a_dnm_stopped_cleanly_leaves_no_shared_memory_behind() {
 }
 
 #[test]
+fn watch_prints_an_output_s_values_decoded_and_names_what_exists_when_asked_wrong() {
+    let at = support::endpoint(support::free_port());
+    let sys = System::start_with(PIPELINE, &["--no-multicast", "--listen", &at]);
+    let global = ["--no-multicast", "--connect", at.as_str()];
+    let watch =
+        |args: &[&str]| sys.dnm(&[&global[..], &["watch", "--system", &sys.name], args].concat());
+
+    let out = watch(&["relay.out", "--count", "3", "--json", "--rate", "full"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 3, "{lines:?}");
+    // Task `a`: the relay forwards src_a's ticks, numbered one after the other.
+    assert!(lines.iter().all(|l| l["value"]["origin"] == 1), "{lines:?}");
+    let seqs: Vec<u64> = lines
+        .iter()
+        .map(|l| l["value"]["seq"].as_u64().unwrap())
+        .collect();
+    assert!(seqs.windows(2).all(|w| w[1] > w[0]), "{seqs:?}");
+    assert!(
+        lines.iter().all(|l| l["unix_ns"].as_u64().unwrap() > 0),
+        "{lines:?}"
+    );
+
+    let out = watch(&["relay.nope", "--count", "1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("module `relay` has no output `nope`; its outputs: out"),
+        "{err}"
+    );
+    let out = watch(&["zz.out", "--count", "1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("its modules: src_a, src_b, relay, pair"),
+        "{err}"
+    );
+}
+
+#[test]
 fn check_reports_errors_with_location_and_exit_code() {
     let dir = std::env::temp_dir().join(format!("dnm-check-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

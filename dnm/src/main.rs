@@ -15,6 +15,7 @@ mod linksim;
 mod monitor_cmd;
 mod place_cmd;
 mod session_view;
+mod watch_cmd;
 use dnm::admin::{Request, Response, request};
 use dnm::{DnmReport, HostOptions};
 
@@ -328,6 +329,9 @@ enum Cmd {
     /// Emulate a radio link between two endpoints (delay, bandwidth, loss, outages), no root
     /// needed.
     Linksim(linksim::LinkArgs),
+    /// Print an output's values as they come, decoded by its message type (over Zenoh; the
+    /// DNM publishes it only while someone watches).
+    Watch(watch_cmd::WatchArgs),
     /// List the standard module kinds.
     Kinds {
         /// Also the kinds this netlist declares (`[kind.NAME] exec = ...`, in any language).
@@ -531,6 +535,7 @@ fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Cmd::Kinds { netlist, json } => kinds(netlist.as_deref(), json),
+        Cmd::Watch(args) => watch_cmd::run(&z.options(), &args),
     }
 }
 
