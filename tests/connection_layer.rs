@@ -319,7 +319,17 @@ fn watch_prints_an_output_s_values_decoded_and_names_what_exists_when_asked_wron
     let watch =
         |args: &[&str]| sys.dnm(&[&global[..], &["watch", "--system", &sys.name], args].concat());
 
-    let out = watch(&["relay.out", "--count", "3", "--json", "--rate", "full"]);
+    // `--timeout`: a hang guard, never reached when it works.
+    let out = watch(&[
+        "relay.out",
+        "--count",
+        "3",
+        "--json",
+        "--rate",
+        "full",
+        "--timeout",
+        "60",
+    ]);
     assert!(
         out.status.success(),
         "{}",
@@ -351,6 +361,7 @@ fn watch_prints_an_output_s_values_decoded_and_names_what_exists_when_asked_wron
     );
     let out = watch(&["zz.out", "--count", "1"]);
     let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
     assert!(
         err.contains("its modules: src_a, src_b, relay, pair"),
         "{err}"

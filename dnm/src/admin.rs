@@ -160,22 +160,24 @@ fn request_one(system: &str, path: &Path, req: &Request) -> Result<Response, Adm
 const ADMIN_CONNECTIONS: usize = 16;
 
 /// Serves each connection on its own thread, so a long apply never holds up a switch, until
-/// `stop` is set (and a connection wakes the accept). The DNMs' commanders go with it: each
-/// holds a port of its DNM's wake-up event, which a thread left running at exit would keep
-/// in shared memory.
+/// `stop` is set (and the listener shut down wakes the accept). Returns the threads of the
+/// connections still being served: each holds the DNMs' commanders, ports of their wake-up
+/// events in shared memory, which a thread left running at exit would keep there.
 pub(crate) fn serve(
     listener: &UnixListener,
     system: &str,
     authority: Option<&str>,
     dnms: &[Commander],
     stop: &std::sync::atomic::AtomicBool,
-) {
+) -> Vec<std::thread::JoinHandle<()>> {
     let busy = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let mut serving: Vec<std::thread::JoinHandle<()>> = Vec::new();
     for stream in listener.incoming() {
         if stop.load(std::sync::atomic::Ordering::Acquire) {
-            return;
+            break;
         }
         let Ok(stream) = stream else { continue };
+        serving.retain(|t| !t.is_finished());
         let taken = busy
             .fetch_update(
                 std::sync::atomic::Ordering::AcqRel,
@@ -198,11 +200,15 @@ pub(crate) fn serve(
                 serve_one(&stream, &system, authority.as_deref(), &dnms);
                 slot.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
             });
-        if let Err(e) = spawned {
-            busy.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
-            tracing::warn!("admin connection dropped: {e}");
+        match spawned {
+            Ok(t) => serving.push(t),
+            Err(e) => {
+                busy.fetch_sub(1, std::sync::atomic::Ordering::AcqRel);
+                tracing::warn!("admin connection dropped: {e}");
+            }
         }
     }
+    serving
 }
 
 fn serve_one(stream: &UnixStream, system: &str, authority: Option<&str>, dnms: &[Commander]) {

@@ -39,9 +39,12 @@ pub enum GroundCmd {
     /// Replace a module (another kind or other parameters).
     Replace {
         name: String,
+        /// Another kind: the module starts from that kind's defaults and the `--param`s given.
         #[arg(long)]
         kind: Option<String>,
-        /// `key=value` (repeatable).
+        /// `key=value` (repeatable): changes these; the module's other parameters keep their
+        /// values unless `--kind` changes the kind (to return one to its default, apply a
+        /// netlist without it).
         #[arg(long = "param")]
         params: Vec<String>,
         #[command(flatten)]

@@ -3,6 +3,7 @@
 //! ([`crate::admin`]). Stopping, on any path (a failed start, [`Host::stop`], a dropped host),
 //! is written once: [`Hosted`]'s and [`Host`]'s `Drop`.
 
+use std::os::fd::AsRawFd as _;
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -66,23 +67,38 @@ pub struct Host {
     system: String,
     hosted: Hosted,
     socket: PathBuf,
+    /// The socket file as bound: removed at the end only if it is still ours.
+    socket_id: Option<(u64, u64)>,
     admin: Option<Admin>,
 }
 
 /// The admin socket's thread, and how to stop it.
 struct Admin {
+    listener: Arc<UnixListener>,
     stop: Arc<AtomicBool>,
-    thread: JoinHandle<()>,
+    /// Ends with the connections still being served.
+    thread: JoinHandle<Vec<JoinHandle<()>>>,
 }
 
 impl Admin {
-    /// Stops the thread: the flag, then a connection of our own to wake its accept.
-    fn stop(self, socket: &std::path::Path) {
+    /// Stops taking connections: the flag, then the listening socket shut down under its
+    /// accept (which wakes it: on Linux a shut-down listener's accept returns). Returns the
+    /// threads of the connections still being served, to join once the DNMs no longer answer
+    /// slowly.
+    fn stop(self) -> Vec<JoinHandle<()>> {
         self.stop.store(true, Ordering::Release);
-        if UnixStream::connect(socket).is_ok() {
-            let _ = self.thread.join();
-        }
+        // SAFETY: shutdown(2) on the listener's descriptor, which `self.listener` keeps open.
+        unsafe { libc::shutdown(self.listener.as_raw_fd(), libc::SHUT_RDWR) };
+        self.thread.join().unwrap_or_default()
     }
+}
+
+/// Identifies a file: its device and inode.
+fn file_id(path: &std::path::Path) -> Option<(u64, u64)> {
+    use std::os::unix::fs::MetadataExt as _;
+    std::fs::symlink_metadata(path)
+        .ok()
+        .map(|m| (m.dev(), m.ino()))
 }
 
 impl std::fmt::Debug for Host {
@@ -157,19 +173,13 @@ impl Host {
         let follows = follow
             .then(|| netlist.authority().map(str::to_string))
             .flatten();
+        let socket_id = file_id(&socket);
+        let listener = Arc::new(listener);
         let stop = Arc::new(AtomicBool::new(false));
-        let stopped = stop.clone();
+        let (served, stopped) = (listener.clone(), stop.clone());
         let thread = std::thread::Builder::new()
             .name("dnm-admin".into())
-            .spawn(move || {
-                serve(
-                    &listener,
-                    &system,
-                    follows.as_deref(),
-                    &commanders,
-                    &stopped,
-                );
-            })
+            .spawn(move || serve(&served, &system, follows.as_deref(), &commanders, &stopped))
             .context("spawning admin thread")?;
         Ok(Host {
             authority,
@@ -177,23 +187,34 @@ impl Host {
             system: netlist.system.clone(),
             hosted,
             socket,
-            admin: Some(Admin { stop, thread }),
+            socket_id,
+            admin: Some(Admin {
+                listener,
+                stop,
+                thread,
+            }),
         })
     }
 }
 
 impl Drop for Host {
     fn drop(&mut self) {
-        // No command comes in while the DNMs stop.
-        if let Some(admin) = self.admin.take() {
-            admin.stop(&self.socket);
-        }
+        // No command comes in while the DNMs stop; those being served are answered (a DNM
+        // stopping refuses what it has not started) and their threads let go of the DNMs'
+        // commanders, each a port of its DNM's wake-up event in shared memory.
+        let serving = self.admin.take().map(Admin::stop).unwrap_or_default();
         self.hosted.stop_and_join();
+        for t in serving {
+            let _ = t.join();
+        }
         if let Some(a) = self.authority.take() {
             a.stop();
         }
-        // The system's folder stays: another process of the system may be binding in it.
-        let _ = std::fs::remove_file(&self.socket);
+        // Not another process's, bound in its place; the system's folder stays (another
+        // process of the system may be binding in it).
+        if self.socket_id.is_some() && file_id(&self.socket) == self.socket_id {
+            let _ = std::fs::remove_file(&self.socket);
+        }
     }
 }
 

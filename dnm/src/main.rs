@@ -382,7 +382,8 @@ enum ModuleOp {
         #[arg(long)]
         kind: Option<String>,
         /// `key=value` (a TOML value), repeatable: changes these; the module's other
-        /// parameters keep their values (unless `--kind` changes the kind).
+        /// parameters keep their values unless `--kind` changes the kind (to return one to its
+        /// default, apply a netlist without it).
         #[arg(long = "param")]
         params: Vec<String>,
         #[arg(long)]

@@ -29,7 +29,13 @@ pub struct WatchArgs {
     /// One JSON object per line: `{"unix_ns", "seq", "value"}` (camera frames: their size).
     #[arg(long)]
     json: bool,
+    /// Give up (exit status 1) when no sample came for this many seconds (default: wait).
+    #[arg(long)]
+    timeout: Option<u64>,
 }
+
+/// After this long without a sample, say what may be wrong (and go on waiting).
+const QUIET_NOTE: Duration = Duration::from_secs(5);
 
 /// Why an output cannot be watched.
 #[derive(Debug, thiserror::Error)]
@@ -44,6 +50,13 @@ enum WatchCmdError {
          --zenoh-config)"
     )]
     NoSystem(String),
+    #[error(
+        "{answers} DNM(s) of system `{system}` answered, but not with a wiring this `dnm` can \
+         read: is it the same version as the system's?"
+    )]
+    Unreadable { system: String, answers: usize },
+    #[error("no sample of {0} for {1} s (--timeout)")]
+    Quiet(String, u64),
     #[error("system `{system}` has no module `{module}`; its modules: {known}")]
     NoModule {
         system: String,
@@ -67,7 +80,14 @@ pub fn run(z: &dnm::ZenohOptions, args: &WatchArgs) -> anyhow::Result<ExitCode> 
     let rate = WatchRate::parse(&args.rate.to_lowercase())
         .ok_or_else(|| WatchCmdError::Rate(args.rate.clone()))?;
     let session = z.open()?;
-    let wirings = wirings(&session, &args.system);
+    let (wirings, unreadable) = wirings(&session, &args.system);
+    if wirings.is_empty() && unreadable > 0 {
+        return Err(WatchCmdError::Unreadable {
+            system: args.system.clone(),
+            answers: unreadable,
+        }
+        .into());
+    }
     let (dnm, spec) = find(&args.system, &wirings, module, port)?;
     let key = keys::watch(&args.system, &dnm, module, port, rate);
     let subscriber = session
@@ -82,10 +102,33 @@ pub fn run(z: &dnm::ZenohOptions, args: &WatchArgs) -> anyhow::Result<ExitCode> 
         );
     }
     let mut seen = 0u64;
+    let mut quiet = Duration::ZERO;
+    let give_up = args.timeout.map(Duration::from_secs);
     while args.count.is_none_or(|n| seen < n) {
-        let sample = subscriber
-            .recv()
-            .map_err(|e| anyhow::anyhow!("the subscription to {key} ended: {e}"))?;
+        let wait = give_up.map_or(QUIET_NOTE, |g| g.saturating_sub(quiet).min(QUIET_NOTE));
+        let sample = match subscriber.recv_timeout(wait) {
+            Ok(Some(s)) => s,
+            Ok(None) => {
+                quiet += wait;
+                if give_up.is_some_and(|g| quiet >= g) {
+                    return Err(WatchCmdError::Quiet(
+                        format!("{module}.{port}"),
+                        args.timeout.unwrap_or_default(),
+                    )
+                    .into());
+                }
+                if quiet == QUIET_NOTE && seen == 0 {
+                    eprintln!(
+                        "nothing from {module}.{port} yet: is the module running and in the task \
+                         in force (`dnm status`)? does this identity's access allow --rate {}?",
+                        rate.chunk()
+                    );
+                }
+                continue;
+            }
+            Err(e) => anyhow::bail!("the subscription to {key} ended: {e}"),
+        };
+        quiet = Duration::ZERO;
         seen += 1;
         let header = sample
             .attachment()
@@ -102,8 +145,8 @@ pub fn run(z: &dnm::ZenohOptions, args: &WatchArgs) -> anyhow::Result<ExitCode> 
     Ok(ExitCode::SUCCESS)
 }
 
-/// The wirings the system's DNMs answer.
-fn wirings(session: &zenoh::Session, system: &str) -> Vec<Wiring> {
+/// The wirings the system's DNMs answer, and how many answers could not be read as one.
+fn wirings(session: &zenoh::Session, system: &str) -> (Vec<Wiring>, usize) {
     let Ok(replies) = session
         .get(keys::wiring(system, "*"))
         .target(zenoh::query::QueryTarget::All)
@@ -111,17 +154,19 @@ fn wirings(session: &zenoh::Session, system: &str) -> Vec<Wiring> {
         .timeout(WIRING_TIMEOUT)
         .wait()
     else {
-        return Vec::new();
+        return (Vec::new(), 0);
     };
-    let mut out = Vec::new();
+    let (mut out, mut unreadable) = (Vec::new(), 0);
     while let Ok(r) = replies.recv() {
-        if let Ok(s) = r.result()
-            && let Ok(w) = serde_json::from_slice::<Wiring>(&s.payload().to_bytes())
+        match r
+            .result()
+            .map(|s| serde_json::from_slice::<Wiring>(&s.payload().to_bytes()))
         {
-            out.push(w);
+            Ok(Ok(w)) => out.push(w),
+            _ => unreadable += 1,
         }
     }
-    out
+    (out, unreadable)
 }
 
 /// The DNM hosting `module` and the spec of its output `port`, from the newest wiring.

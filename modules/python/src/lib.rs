@@ -80,9 +80,14 @@ unsafe fn array<'py>(py: Python<'py>, bytes: &[u8], image: bool) -> PyResult<Bou
     } else {
         NPY_ARRAY_ALIGNED
     };
+    // The array's base: a read-only view of the sample, so that numpy refuses to make the
+    // array writable whatever its version (numpy 1.x let an array with no base be).
+    // SAFETY: as this function's.
+    let base = unsafe { memoryview(py, bytes.as_ptr(), bytes.len(), false)? };
     // SAFETY: `dims` and `strides` describe memory inside `bytes` (`ImageLayout::of` checked
     // the rows fit); without the WRITEABLE flag Python cannot write it; the result (a new
-    // reference, or null with Python's exception set) is owned.
+    // reference, or null with Python's exception set) is owned, and the base's reference is
+    // given to it (PyArray_SetBaseObject steals it, also when it fails).
     unsafe {
         let a = PY_ARRAY_API.PyArray_New(
             py,
@@ -96,7 +101,11 @@ unsafe fn array<'py>(py: Python<'py>, bytes: &[u8], image: bool) -> PyResult<Bou
             flags,
             std::ptr::null_mut(),
         );
-        Bound::from_owned_ptr_or_err(py, a)
+        let a = Bound::from_owned_ptr_or_err(py, a)?;
+        if PY_ARRAY_API.PyArray_SetBaseObject(py, a.as_ptr().cast(), base.into_ptr()) < 0 {
+            return Err(PyErr::fetch(py));
+        }
+        Ok(a)
     }
 }
 

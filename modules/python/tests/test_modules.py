@@ -279,6 +279,12 @@ class ZeroCopy(dnm.Module):
         assert a.nbytes == MIB and a.dtype == np.uint8, (a.nbytes, a.dtype)
         assert a.__array_interface__["data"][0] == address, "the input was copied"
         assert not a.flags.writeable
+        # Nor can it be made writable: the sample is its producer's and every reader's.
+        try:
+            a.flags.writeable = True
+            raise AssertionError("an input was made writable")
+        except ValueError:
+            pass
         out = io.loan(self.copy, MIB)
         assert out.__array_interface__["data"][0] == io.loan_address, "the output is not the loan"
         out[:] = a
