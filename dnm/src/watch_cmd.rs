@@ -181,9 +181,7 @@ fn find(
         .max_by_key(|w| w.revision)
         .ok_or_else(|| WatchCmdError::NoSystem(system.to_string()))?;
     let m = wiring
-        .modules
-        .iter()
-        .find(|m| m.name == module)
+        .module(module)
         .ok_or_else(|| WatchCmdError::NoModule {
             system: system.to_string(),
             module: module.to_string(),
