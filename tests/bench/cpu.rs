@@ -4,7 +4,7 @@
 //! `/proc/<pid>/task/*/stat`. With `DNM_BASELINE=/path/to/other/dnm` (another build's `dnm`,
 //! its `dnm-module-host` beside it) the same is measured with that build, the builds taking
 //! turns in one run, so a change is compared against what it replaces on this machine at the
-//! same time.
+//! same time. Beside the DNM process, what its fifteen module processes used together.
 //!
 //! Run: `cargo build --release --workspace`, then `cargo bench -p dnm --bench cpu`.
 
@@ -15,7 +15,7 @@ mod common;
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use common::{unique, up_beetle, use_dnm};
+use common::{tree_cpu_seconds, unique, up_beetle, use_dnm};
 use iceoryx2::prelude::{LogLevel, set_log_level};
 
 const ROUNDS: usize = 3;
@@ -64,10 +64,12 @@ fn role(name: &str) -> &'static str {
         .map_or("other", |(_, r)| r)
 }
 
-/// CPU seconds by thread role, and the wall time they were used over.
-type Usage = (BTreeMap<&'static str, f64>, f64);
+/// CPU seconds by thread role, the wall time they were used over, and the CPU seconds of the
+/// module processes.
+type Usage = (BTreeMap<&'static str, f64>, f64, f64);
 
-/// One measurement: CPU seconds by role over [`MEASURE`], and the wall time.
+/// One measurement: CPU seconds by role over [`MEASURE`], the wall time, and what the module
+/// processes used meanwhile.
 fn measure(recording: bool) -> Usage {
     let system = unique(if recording { "cpur" } else { "cpun" });
     let rec = std::env::temp_dir().join(unique("cpurec"));
@@ -78,9 +80,17 @@ fn measure(recording: bool) -> Usage {
     };
     let up = up_beetle(&system, &up_args, "cpu");
     std::thread::sleep(WARM_UP);
-    let (before, t0) = (threads(up.pid()), Instant::now());
+    let (before, tree0, t0) = (
+        threads(up.pid()),
+        tree_cpu_seconds(up.pid()),
+        Instant::now(),
+    );
     std::thread::sleep(MEASURE);
-    let (after, wall) = (threads(up.pid()), t0.elapsed().as_secs_f64());
+    let (after, tree1, wall) = (
+        threads(up.pid()),
+        tree_cpu_seconds(up.pid()),
+        t0.elapsed().as_secs_f64(),
+    );
     drop(up);
     let _ = std::fs::remove_dir_all(&rec);
     let mut by_role = BTreeMap::new();
@@ -88,7 +98,8 @@ fn measure(recording: bool) -> Usage {
         let was = before.get(tid).map_or(0.0, |(_, b)| *b);
         *by_role.entry(role(name)).or_insert(0.0) += s - was;
     }
-    (by_role, wall)
+    let dnm: f64 = by_role.values().sum();
+    (by_role, wall, (tree1 - tree0 - dnm).max(0.0))
 }
 
 fn main() {
@@ -103,16 +114,19 @@ fn main() {
         for (b, (label, exe)) in builds.iter().enumerate() {
             use_dnm(exe.clone());
             for recording in [false, true] {
-                let (roles, wall) = measure(recording);
+                let (roles, wall, modules) = measure(recording);
                 eprintln!(
-                    "round {round}, {label}, recording {recording}: {:.2} % of a core",
-                    roles.values().sum::<f64>() / wall * 100.0
+                    "round {round}, {label}, recording {recording}: {:.2} % of a core, the \
+                     modules {:.2} %",
+                    roles.values().sum::<f64>() / wall * 100.0,
+                    modules / wall * 100.0
                 );
                 let t = total.entry((b, recording)).or_default();
                 for (r, s) in roles {
                     *t.0.entry(r).or_insert(0.0) += s;
                 }
                 t.1 += wall;
+                t.2 += modules;
             }
         }
     }
@@ -123,7 +137,7 @@ fn main() {
     );
     let roles: std::collections::BTreeSet<&str> = total
         .values()
-        .flat_map(|(r, _)| r.keys().copied())
+        .flat_map(|(r, _, _)| r.keys().copied())
         .collect();
     let columns: Vec<(usize, bool)> = total.keys().copied().collect();
     let head: Vec<String> = columns
@@ -139,7 +153,7 @@ fn main() {
     println!("| thread role | {} |", head.join(" | "));
     println!("|---|{}", "---|".repeat(columns.len()));
     let pct = |c: &(usize, bool), role: Option<&str>| {
-        let (r, wall) = &total[c];
+        let (r, wall, _) = &total[c];
         let s: f64 = match role {
             Some(x) => r.get(x).copied().unwrap_or(0.0),
             None => r.values().sum(),
@@ -158,4 +172,9 @@ fn main() {
         .map(|c| format!("**{:.2}**", pct(c, None)))
         .collect();
     println!("| **the DNM process** | {} |", cells.join(" | "));
+    let cells: Vec<String> = columns
+        .iter()
+        .map(|c| format!("{:.2}", total[c].2 / total[c].1 * 100.0))
+        .collect();
+    println!("| the module processes, together | {} |", cells.join(" | "));
 }

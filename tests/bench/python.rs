@@ -33,9 +33,10 @@ use common::{human, latencies_after, percentiles, tree_cpu_seconds, unique, up};
 
 const SIZES: [usize; 3] = [64, 4096, 1 << 20];
 /// Samples per round; each pair runs [`ROUNDS`] times, the pairs taking turns, and its samples
-/// are pooled (the machine's noise then falls on every pair alike).
+/// are pooled (the machine's noise then falls on every pair alike; each round's p50s go to
+/// stderr).
 const SAMPLES: usize = 700;
-const ROUNDS: usize = 3;
+const ROUNDS: usize = 6;
 const RATE_HZ: f64 = 500.0;
 const SKIP: usize = 100;
 
@@ -384,9 +385,17 @@ fn main() {
         let (mut rust, mut python, mut dora_r) =
             (Round::default(), Round::default(), Round::default());
         let mut lost = 0;
-        for _ in 0..ROUNDS {
-            rust.add(hop(size, None));
-            python.add(hop(size, Some(&exec)));
+        for round in 0..ROUNDS {
+            let (r, p) = (hop(size, None), hop(size, Some(&exec)));
+            // Round by round: the machine's phases show as both pairs moving together.
+            eprintln!(
+                "{} round {round}: Rust p50 {:.1} µs, Python p50 {:.1} µs",
+                human(size),
+                percentiles(r.lat.clone()).0,
+                percentiles(p.lat.clone()).0
+            );
+            rust.add(r);
+            python.add(p);
             if with_dora {
                 let (d, l) = dora_hop(&dora, size, &dir);
                 dora_r.add(d);

@@ -181,10 +181,10 @@ pub(crate) struct Shm<'a> {
 struct Waiter<'w, 'a> {
     waitset: &'w WaitSet<Svc>,
     // Dropped in the reverse order of attaching.
-    _sources: Vec<WaitSetGuard<'w, 'a, Svc>>,
+    sources: Vec<WaitSetGuard<'w, 'a, Svc>>,
     heartbeat: Option<WaitSetGuard<'w, 'static, Svc>>,
     tick: Option<WaitSetGuard<'w, 'static, Svc>>,
-    _wake: WaitSetGuard<'w, 'a, Svc>,
+    wake: WaitSetGuard<'w, 'a, Svc>,
 }
 
 /// What woke one wait.
@@ -196,6 +196,26 @@ struct Wake {
     beat: bool,
     /// The DNM or a source notified.
     woken: bool,
+    /// Which of them: the DNM's wake event, and the sources by their place in
+    /// [`Wakers::sources`] (bit `i`; every source from the 64th on is bit 63).
+    fired: Fired,
+}
+
+/// The wake events a wait reported.
+#[derive(Default, Clone, Copy)]
+struct Fired {
+    control: bool,
+    sources: u64,
+}
+
+impl Fired {
+    fn source(&mut self, i: usize) {
+        self.sources |= 1 << i.min(63);
+    }
+
+    fn has_source(&self, i: usize) -> bool {
+        self.sources & (1 << i.min(63)) != 0
+    }
 }
 
 impl Wake {
@@ -206,6 +226,7 @@ impl Wake {
             ticked: true,
             beat: false,
             woken: false,
+            fired: Fired::default(),
         }
     }
 }
@@ -372,7 +393,7 @@ impl<'a> Process<'a> {
                 continue;
             }
             if wake.woken {
-                check_plans = self.wakers.clear()?;
+                check_plans = self.wakers.clear(wake.fired)?;
             }
 
             // The reference swap: one read of the task word decides every input of this step.
@@ -557,15 +578,21 @@ impl DnmLink {
 }
 
 impl Wakers {
-    /// Consumes the notifications that woke a wait; true if the DNM's wake event was among
-    /// them (it posted a plan, or stops the module).
-    fn clear(&self) -> Result<bool, ModuleError> {
+    /// Consumes the notifications of the events that woke a wait, and only theirs (one that
+    /// came after the wait returned wakes the next one); true if the DNM's wake event was
+    /// among them (it posted a plan, or stops the module). An event that did not fire costs no
+    /// read of its socket: most wake-ups are one source's.
+    fn clear(&self, fired: Fired) -> Result<bool, ModuleError> {
         let mut control = false;
-        self.wake
-            .try_wait(|_| control = true)
-            .map_err(ipc("wake"))?;
-        for l in &self.sources {
-            l.try_wait(|_| ()).map_err(ipc("listener"))?;
+        if fired.control {
+            self.wake
+                .try_wait(|_| control = true)
+                .map_err(ipc("wake"))?;
+        }
+        for (i, l) in self.sources.iter().enumerate() {
+            if fired.has_source(i) {
+                l.try_wait(|_| ()).map_err(ipc("listener"))?;
+            }
         }
         Ok(control)
     }
@@ -602,10 +629,10 @@ impl<'w, 'a> Waiter<'w, 'a> {
         }
         Ok(Self {
             waitset,
-            _sources: sources,
+            sources,
             heartbeat,
             tick,
-            _wake: wake,
+            wake,
         })
     }
 
@@ -614,6 +641,7 @@ impl<'w, 'a> Waiter<'w, 'a> {
         let mut ticked = false;
         let mut woken = false;
         let mut beat = false;
+        let mut fired = Fired::default();
         let result = self
             .waitset
             .wait_and_process_once(|id| {
@@ -627,6 +655,11 @@ impl<'w, 'a> Waiter<'w, 'a> {
                     beat = true;
                 } else {
                     woken = true;
+                    if id.has_event_from(&self.wake) {
+                        fired.control = true;
+                    } else if let Some(i) = self.sources.iter().position(|g| id.has_event_from(g)) {
+                        fired.source(i);
+                    }
                 }
                 CallbackProgression::Continue
             })
@@ -636,6 +669,7 @@ impl<'w, 'a> Waiter<'w, 'a> {
             ticked,
             beat,
             woken,
+            fired,
         })
     }
 }
@@ -1087,6 +1121,18 @@ mod tests {
     use super::*;
     use crate::Kind;
     use crate::msg::Tick;
+
+    #[test]
+    fn a_wait_clears_only_the_sources_that_fired_and_past_64_all_of_the_rest() {
+        let mut fired = Fired::default();
+        fired.source(2);
+        assert!(fired.has_source(2));
+        assert!(!fired.has_source(0) && !fired.has_source(3) && !fired.control);
+        // Sources from the 64th on share the last bit: one of them firing clears them all.
+        fired.source(70);
+        assert!(fired.has_source(63) && fired.has_source(64) && fired.has_source(200));
+        assert!(!fired.has_source(62));
+    }
 
     fn source(module: &str) -> Source {
         Source {
