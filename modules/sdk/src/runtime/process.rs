@@ -1,7 +1,7 @@
 //! The module process: opens the module's ports in its DNM's shared memory, follows the DNM's
 //! plans, and runs the module's step on its trigger. Blocks on an iceoryx2 WaitSet; never spins.
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use dnm_netlist::{KindSpec, Payload, PortSpec, Trigger};
 use iceoryx2::port::listener::Listener;
@@ -209,6 +209,12 @@ struct Fired {
 }
 
 impl Fired {
+    /// Every event, fired or not.
+    const ALL: Self = Self {
+        control: true,
+        sources: u64::MAX,
+    };
+
     fn source(&mut self, i: usize) {
         self.sources |= 1 << i.min(63);
     }
@@ -366,6 +372,10 @@ impl<'a> Process<'a> {
 
         // Plans already posted (history) are handled before the first wait.
         let mut check_plans = true;
+        // Once a heartbeat every event is drained, fired or not: when two notifiers race,
+        // iceoryx2 can leave an event marked notified with its socket empty, after which it
+        // sends nothing and the wait set never reports it; a drain resets it.
+        let mut swept_at = Instant::now();
         loop {
             if check_plans {
                 check_plans = false;
@@ -392,8 +402,13 @@ impl<'a> Process<'a> {
             if wake.result == WaitSetRunResult::Interrupt {
                 continue;
             }
-            if wake.woken {
-                check_plans = self.wakers.clear(wake.fired)?;
+            let mut fired = wake.fired;
+            if swept_at.elapsed() >= HEARTBEAT {
+                swept_at = Instant::now();
+                fired = Fired::ALL;
+            }
+            if wake.woken || fired.control {
+                check_plans = self.wakers.clear(fired)?;
             }
 
             // The reference swap: one read of the task word decides every input of this step.
@@ -581,7 +596,7 @@ impl Wakers {
     /// Consumes the notifications of the events that woke a wait, and only theirs (one that
     /// came after the wait returned wakes the next one); true if the DNM's wake event was
     /// among them (it posted a plan, or stops the module). An event that did not fire costs no
-    /// read of its socket: most wake-ups are one source's.
+    /// read of its socket, but once a heartbeat (see `serve`): most wake-ups are one source's.
     fn clear(&self, fired: Fired) -> Result<bool, ModuleError> {
         let mut control = false;
         if fired.control {
@@ -1132,6 +1147,7 @@ mod tests {
         fired.source(70);
         assert!(fired.has_source(63) && fired.has_source(64) && fired.has_source(200));
         assert!(!fired.has_source(62));
+        assert!(Fired::ALL.control && (0..100).all(|i| Fired::ALL.has_source(i)));
     }
 
     fn source(module: &str) -> Source {
