@@ -194,9 +194,7 @@ struct Wake {
     ticked: bool,
     /// The heartbeat timer of an on-input module fired.
     beat: bool,
-    /// The DNM or a source notified.
-    woken: bool,
-    /// Which of them: the DNM's wake event, and the sources by their place in
+    /// Which events notified: the DNM's wake event, and the sources by their place in
     /// [`Wakers::sources`] (bit `i`; every source from the 64th on is bit 63).
     fired: Fired,
 }
@@ -222,6 +220,11 @@ impl Fired {
     fn has_source(&self, i: usize) -> bool {
         self.sources & (1 << i.min(63)) != 0
     }
+
+    /// The DNM or a source notified.
+    fn any(&self) -> bool {
+        self.control || self.sources != 0
+    }
 }
 
 impl Wake {
@@ -231,7 +234,6 @@ impl Wake {
             result: WaitSetRunResult::AllEventsHandled,
             ticked: true,
             beat: false,
-            woken: false,
             fired: Fired::default(),
         }
     }
@@ -407,7 +409,7 @@ impl<'a> Process<'a> {
                 swept_at = Instant::now();
                 fired = Fired::ALL;
             }
-            if wake.woken || fired.control {
+            if fired.any() {
                 check_plans = self.wakers.clear(fired)?;
             }
 
@@ -654,7 +656,6 @@ impl<'w, 'a> Waiter<'w, 'a> {
     /// Blocks until a timer fires, something notifies, or a signal arrives.
     fn wait(&self) -> Result<Wake, ModuleError> {
         let mut ticked = false;
-        let mut woken = false;
         let mut beat = false;
         let mut fired = Fired::default();
         let result = self
@@ -668,13 +669,10 @@ impl<'w, 'a> Waiter<'w, 'a> {
                     .is_some_and(|g| id.has_event_from(g))
                 {
                     beat = true;
-                } else {
-                    woken = true;
-                    if id.has_event_from(&self.wake) {
-                        fired.control = true;
-                    } else if let Some(i) = self.sources.iter().position(|g| id.has_event_from(g)) {
-                        fired.source(i);
-                    }
+                } else if id.has_event_from(&self.wake) {
+                    fired.control = true;
+                } else if let Some(i) = self.sources.iter().position(|g| id.has_event_from(g)) {
+                    fired.source(i);
                 }
                 CallbackProgression::Continue
             })
@@ -683,7 +681,6 @@ impl<'w, 'a> Waiter<'w, 'a> {
             result,
             ticked,
             beat,
-            woken,
             fired,
         })
     }
