@@ -1,6 +1,7 @@
 //! The connection layer when things go wrong, with real processes and real shared memory: a
 //! failed apply, a source that went quiet, a hung module, a slow apply beside an emergency
-//! switch, a removed module, a recorder that lost its disk.
+//! switch, a removed module, a recorder that lost its disk, a service a killed process left
+//! half-created.
 
 #![allow(clippy::unwrap_used)] // test helpers: failing loudly is right
 
@@ -195,6 +196,88 @@ fn a_failed_apply_leaves_the_dnm_as_it_was_and_a_retry_succeeds() {
         ticks.iter().rev().take(5).all(|t| t.origin == 3),
         "{ticks:?}"
     );
+}
+
+/// The file of event service `name`'s description in `sys`'s DNM's namespace, found by
+/// creating the service once (its name is a hash of the service's).
+fn description_of(sys: &System, name: &str) -> PathBuf {
+    use iceoryx2::prelude::SemanticString;
+    let g = &sys.node.config().global;
+    let text = |b: &[u8]| String::from_utf8(b.to_vec()).unwrap();
+    let dir = Path::new(&text(g.root_path().as_bytes())).join(text(g.service.directory.as_bytes()));
+    let prefix = text(g.prefix.as_bytes());
+    let list = || -> Vec<PathBuf> {
+        std::fs::read_dir(&dir)
+            .unwrap()
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| {
+                let n = p.file_name().unwrap().to_string_lossy();
+                n.starts_with(&prefix) && n.ends_with(".service")
+            })
+            .collect()
+    };
+    let before = list();
+    let service = dnm_module::event_service(&sys.node, name).unwrap();
+    let new: Vec<_> = list().into_iter().filter(|p| !before.contains(p)).collect();
+    drop(service);
+    assert_eq!(new.len(), 1, "{new:?}");
+    new[0].clone()
+}
+
+/// Leaves at `file` what a process killed while creating a service leaves: the description
+/// written but still writable (iceoryx2 makes it read-only once the service is created).
+fn abandon(file: &Path) {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::write(file, "").unwrap();
+    std::fs::set_permissions(file, std::fs::Permissions::from_mode(0o600)).unwrap();
+}
+
+fn abandoned(file: &Path) -> bool {
+    use std::os::unix::fs::PermissionsExt;
+    std::fs::metadata(file).is_ok_and(|m| m.permissions().mode() & 0o777 == 0o600)
+}
+
+#[test]
+fn a_service_a_killed_process_left_half_created_does_not_keep_its_module_from_starting() {
+    let sys = System::start(CHAIN);
+    // What a process killed while it creates `src_c`'s output event leaves (the relay opening
+    // it for a new revision, say): its description written but never made read-only, which
+    // iceoryx2 takes for a service still being created, forever.
+    let file = description_of(&sys, "src_c/out/ev");
+    abandon(&file);
+
+    let grown = format!(
+        "{CHAIN}\n[[module]]\nname = \"src_c\"\nkind = \"ticker\"\nparams = {{ origin = 3 }}\n\n\
+         [task.c]\nlinks = [\"src_c.out -> relay.in\"]\n"
+    );
+    let out = apply(&sys, &grown, "grown.toml");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(!abandoned(&file), "the service was created afresh");
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    let r = sys.ask(&Request::Switch { task: "c".into() });
+    assert!(r.ok, "{r:?}");
+    let ticks = collect::<Tick>(&relay, |t| t.iter().filter(|x| x.origin == 3).count() >= 5);
+    assert!(ticks.iter().any(|t| t.origin == 3), "{ticks:?}");
+}
+
+#[test]
+fn the_dnm_frees_a_half_created_service_after_a_process_dies_without_anyone_opening_it() {
+    let sys = System::start(CHAIN);
+    let file = description_of(&sys, "gone/out/ev");
+    abandon(&file);
+    // A death makes the DNM sweep its shared memory. The description is too young to call
+    // abandoned then (it could be one being written), so a sweep the creation timeout later
+    // removes it.
+    let victim = module(&sys.status(), "relay").pid.unwrap();
+    signal(victim, libc::SIGKILL);
+    support::eventually("the half-created service to be removed", || {
+        (!file.exists()).then_some(())
+    });
 }
 
 #[test]

@@ -58,7 +58,10 @@ impl System {
             .arg(&path)
             .env("DNM_MODULE_HOST", module_host())
             .env("DNM_RECORD_DIR", &dir)
-            .env("RUST_LOG", "warn")
+            .env(
+                "RUST_LOG",
+                std::env::var("DNM_TEST_LOG").unwrap_or("warn".into()),
+            )
             .stdout(Stdio::null())
             .spawn()
             .unwrap();

@@ -3,11 +3,11 @@
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
-use dnm_module::event_service;
 use dnm_module::protocol::DNM_EVENT;
+use dnm_module::{event_service, remove_abandoned_services};
 use iceoryx2::prelude::*;
 
 use crate::slot::Svc;
@@ -94,11 +94,28 @@ fn sweep_loop(dnm: &str, config: &Config, rx: &Receiver<()>, counts: &Counts, pr
     let waker = event_service(&node, DNM_EVENT)
         .ok()
         .and_then(|f| f.notifier_builder().create().ok());
-    while rx.recv().is_ok() {
+    // While a sweep leaves a service description unfinished but too young to call abandoned,
+    // the next sweep comes after iceoryx2's creation timeout, asked for or not: a module that
+    // starts later then finds the service already freed instead of waiting that timeout.
+    let mut recheck = false;
+    loop {
+        let next = if recheck {
+            match rx.recv_timeout(config.global.creation_timeout) {
+                Ok(()) | Err(RecvTimeoutError::Timeout) => true,
+                Err(RecvTimeoutError::Disconnected) => false,
+            }
+        } else {
+            rx.recv().is_ok()
+        };
+        if !next {
+            return;
+        }
         let asked = counts.asked.load(Ordering::Relaxed);
         let started = std::time::Instant::now();
         let cleaned = node.try_cleanup_dead_nodes().cleanups;
-        tracing::debug!(dnm, cleaned, took = ?started.elapsed(), "swept");
+        let abandoned = remove_abandoned_services(config);
+        recheck = abandoned.undecided > 0;
+        tracing::debug!(dnm, cleaned, ?abandoned, took = ?started.elapsed(), "swept");
         counts.cleaned.fetch_add(cleaned, Ordering::Relaxed);
         counts.done.store(asked, Ordering::Release);
         prompt.store(true, Ordering::Release);

@@ -200,6 +200,7 @@ impl Dnm {
             .create::<Svc>()
             .map_err(ipc("node"))?;
         let cleaned = node.try_cleanup_dead_nodes().cleanups;
+        dnm_module::remove_abandoned_services(&config);
         if cleaned > 0 {
             tracing::info!(
                 dnm = name,

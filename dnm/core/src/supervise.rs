@@ -246,7 +246,13 @@ impl Dnm {
         while i < self.stopping.len() {
             let s = &mut self.stopping[i];
             match s.child.try_wait() {
-                Ok(Some(_)) | Err(_) => {
+                Ok(Some(status)) => {
+                    any_died = true;
+                    tracing::info!(dnm = %self.name, module = %s.module, %status, "module stopped");
+                    self.stopping.swap_remove(i);
+                    continue;
+                }
+                Err(_) => {
                     any_died = true;
                     tracing::info!(dnm = %self.name, module = %s.module, "module stopped");
                     self.stopping.swap_remove(i);

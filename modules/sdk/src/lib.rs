@@ -37,6 +37,7 @@ mod runtime;
 
 pub use host::{Registration, Registry, host_main};
 pub use kind::Kind;
+pub use runtime::abandoned::{AbandonedSweep, remove_abandoned_services};
 pub use runtime::author::{BytesInput, BytesOutput, Input, Io, Module, ModuleError, Output, Setup};
 pub use runtime::offline::{Offline, Stepper};
 pub use runtime::process::{MakeModule, run_dynamic};

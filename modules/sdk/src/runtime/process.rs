@@ -12,6 +12,7 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use iceoryx2::sample_mut::SampleMut;
 use iceoryx2::waitset::{WaitSet, WaitSetGuard, WaitSetRunResult};
+use iceoryx2_bb_posix::signal::SignalHandler;
 
 use super::author::{Io, Module, ModuleError, Ports, Setup, ipc};
 use super::offline::Stepper;
@@ -246,6 +247,11 @@ impl<'a> Process<'a> {
         spec: KindSpec,
         make: &mut MakeModule<'_>,
     ) -> Result<Self, ModuleError> {
+        // iceoryx2 turns SIGTERM and SIGINT into a termination request once its handler is
+        // installed, which its first wait does. Installed before any service is opened, a
+        // module stopped while it opens them (an apply refused while it starts) finishes and
+        // exits at its first wait, instead of dying with a service half-created.
+        let _ = SignalHandler::termination_requested();
         let mut config =
             dnm_config(&launch.prefix).map_err(|e| ModuleError::Launch(e.to_string()))?;
         // What dead processes left is the DNM's to sweep (it has, before it starts this one):

@@ -3,8 +3,14 @@
 
 use dnm_netlist::Payload;
 use iceoryx2::prelude::*;
+use iceoryx2::service::builder::blackboard::BlackboardOpenError;
+use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
+use iceoryx2::service::builder::publish_subscribe::{
+    PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
+};
 use iceoryx2::service::port_factory::blackboard::PortFactory as BlackboardFactory;
 
+use super::abandoned::remove_abandoned_services;
 use super::author::{ModuleError, ipc};
 use crate::protocol::*;
 
@@ -36,19 +42,22 @@ pub fn port_service_for<S: iceoryx2::service::Service>(
     ModuleError,
 > {
     let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
-    node.service_builder(&service_name)
-        .publish_subscribe::<[u8]>()
-        .user_header::<PortHeader>()
-        .payload_alignment(Alignment::new(8).ok_or_else(|| ModuleError::Ipc("alignment".into()))?)
-        .max_publishers(MAX_PORT_PUBLISHERS)
-        .max_subscribers(max_subscribers)
-        .subscriber_max_buffer_size(crate::protocol::recorder_buffer(payload))
-        .subscriber_max_borrowed_samples(PORT_BORROWED)
-        .history_size(1)
-        .enable_safe_overflow(true)
-        .max_nodes(MAX_MODULES)
-        .open_or_create()
-        .map_err(ipc("port service"))
+    let alignment = Alignment::new(8).ok_or_else(|| ModuleError::Ipc("alignment".into()))?;
+    recovering(node, pub_sub_hangs, || {
+        node.service_builder(&service_name)
+            .publish_subscribe::<[u8]>()
+            .user_header::<PortHeader>()
+            .payload_alignment(alignment)
+            .max_publishers(MAX_PORT_PUBLISHERS)
+            .max_subscribers(max_subscribers)
+            .subscriber_max_buffer_size(crate::protocol::recorder_buffer(payload))
+            .subscriber_max_borrowed_samples(PORT_BORROWED)
+            .history_size(1)
+            .enable_safe_overflow(true)
+            .max_nodes(MAX_MODULES)
+            .open_or_create()
+    })
+    .map_err(ipc("port service"))
 }
 
 /// Opens (or creates) an event service with the settings every DNM uses.
@@ -66,24 +75,28 @@ pub fn event_service_for<S: iceoryx2::service::Service>(
     listeners: usize,
 ) -> Result<iceoryx2::service::port_factory::event::PortFactory<S>, ModuleError> {
     let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
-    node.service_builder(&service_name)
-        .event()
-        .max_listeners(listeners)
-        .max_notifiers(MAX_MODULES)
-        .max_nodes(MAX_MODULES)
-        .open_or_create()
-        .map_err(ipc("event service"))
+    recovering(node, event_hangs, || {
+        node.service_builder(&service_name)
+            .event()
+            .max_listeners(listeners)
+            .max_notifiers(MAX_MODULES)
+            .max_nodes(MAX_MODULES)
+            .open_or_create()
+    })
+    .map_err(ipc("event service"))
 }
 
 /// Opens the DNM's active-task blackboard.
 pub(crate) fn task_board(node: &Node<Svc>) -> Result<BlackboardFactory<Svc, u64>, ModuleError> {
     let service_name: ServiceName = TASK_SERVICE.try_into().map_err(ipc("service name"))?;
-    node.service_builder(&service_name)
-        .blackboard_opener::<u64>()
-        .max_readers(MAX_MODULES)
-        .max_nodes(MAX_MODULES)
-        .open()
-        .map_err(ipc("task blackboard (is the DNM running?)"))
+    recovering(node, board_hangs, || {
+        node.service_builder(&service_name)
+            .blackboard_opener::<u64>()
+            .max_readers(MAX_MODULES)
+            .max_nodes(MAX_MODULES)
+            .open()
+    })
+    .map_err(ipc("task blackboard (is the DNM running?)"))
 }
 
 /// The plan service of a module (the DNM publishes, the module subscribes).
@@ -98,14 +111,16 @@ pub fn plan_service_factory(
         .as_str()
         .try_into()
         .map_err(ipc("service name"))?;
-    node.service_builder(&name)
-        .publish_subscribe::<[u8]>()
-        .history_size(PLAN_HISTORY)
-        .subscriber_max_buffer_size(4)
-        .max_publishers(1)
-        .max_subscribers(2)
-        .open_or_create()
-        .map_err(ipc("plan service"))
+    recovering(node, pub_sub_hangs, || {
+        node.service_builder(&name)
+            .publish_subscribe::<[u8]>()
+            .history_size(PLAN_HISTORY)
+            .subscriber_max_buffer_size(4)
+            .max_publishers(1)
+            .max_subscribers(2)
+            .open_or_create()
+    })
+    .map_err(ipc("plan service"))
 }
 
 /// The status service of a module.
@@ -120,15 +135,57 @@ pub fn status_service_factory(
         .as_str()
         .try_into()
         .map_err(ipc("service name"))?;
-    node.service_builder(&name)
-        .publish_subscribe::<Status>()
-        .history_size(1)
-        .subscriber_max_buffer_size(4)
-        .max_publishers(2)
-        .max_subscribers(2)
-        .enable_safe_overflow(true)
-        .open_or_create()
-        .map_err(ipc("status service"))
+    recovering(node, pub_sub_hangs, || {
+        node.service_builder(&name)
+            .publish_subscribe::<Status>()
+            .history_size(1)
+            .subscriber_max_buffer_size(4)
+            .max_publishers(2)
+            .max_subscribers(2)
+            .enable_safe_overflow(true)
+            .open_or_create()
+    })
+    .map_err(ipc("status service"))
+}
+
+/// Runs `open`; if the service hangs in creation because a process died creating it, removes
+/// what it abandoned (see [`super::abandoned`]) and runs `open` once more. iceoryx2 has waited
+/// its creation timeout before saying so, so what is still unfinished now was abandoned.
+fn recovering<S: iceoryx2::service::Service, T, E>(
+    node: &Node<S>,
+    hangs: fn(&E) -> bool,
+    mut open: impl FnMut() -> Result<T, E>,
+) -> Result<T, E> {
+    match open() {
+        Err(e) if hangs(&e) => {
+            if remove_abandoned_services(node.config()).removed > 0 {
+                open()
+            } else {
+                Err(e)
+            }
+        }
+        done => done,
+    }
+}
+
+fn event_hangs(e: &EventOpenOrCreateError) -> bool {
+    matches!(
+        e,
+        EventOpenOrCreateError::EventOpenError(EventOpenError::HangsInCreation)
+    )
+}
+
+fn pub_sub_hangs(e: &PublishSubscribeOpenOrCreateError) -> bool {
+    matches!(
+        e,
+        PublishSubscribeOpenOrCreateError::PublishSubscribeOpenError(
+            PublishSubscribeOpenError::HangsInCreation
+        )
+    )
+}
+
+fn board_hangs(e: &BlackboardOpenError) -> bool {
+    matches!(e, BlackboardOpenError::HangsInCreation)
 }
 
 /// A DNM's task word read from outside the DNM, as its modules read it: for tools and tests
