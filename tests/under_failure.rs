@@ -198,31 +198,30 @@ fn a_failed_apply_leaves_the_dnm_as_it_was_and_a_retry_succeeds() {
     );
 }
 
-/// The file of event service `name`'s description in `sys`'s DNM's namespace, found by
-/// creating the service once (its name is a hash of the service's).
+/// The file of event service `name`'s description in `sys`'s DNM's namespace (named after a
+/// hash of the service's name), found by creating the service once and reading descriptions.
 fn description_of(sys: &System, name: &str) -> PathBuf {
     use iceoryx2::prelude::SemanticString;
     let g = &sys.node.config().global;
     let text = |b: &[u8]| String::from_utf8(b.to_vec()).unwrap();
     let dir = Path::new(&text(g.root_path().as_bytes())).join(text(g.service.directory.as_bytes()));
     let prefix = text(g.prefix.as_bytes());
-    let list = || -> Vec<PathBuf> {
-        std::fs::read_dir(&dir)
-            .unwrap()
-            .flatten()
-            .map(|e| e.path())
-            .filter(|p| {
-                let n = p.file_name().unwrap().to_string_lossy();
-                n.starts_with(&prefix) && n.ends_with(".service")
-            })
-            .collect()
-    };
-    let before = list();
     let service = dnm_module::event_service(&sys.node, name).unwrap();
-    let new: Vec<_> = list().into_iter().filter(|p| !before.contains(p)).collect();
+    let says = format!("service_name = \"{name}\"");
+    let file = std::fs::read_dir(&dir)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.file_name()
+                .unwrap()
+                .to_string_lossy()
+                .starts_with(&prefix)
+        })
+        .find(|p| std::fs::read_to_string(p).is_ok_and(|t| t.contains(&says)))
+        .unwrap();
     drop(service);
-    assert_eq!(new.len(), 1, "{new:?}");
-    new[0].clone()
+    file
 }
 
 /// Leaves at `file` what a process killed while creating a service leaves: the description

@@ -33,8 +33,10 @@ impl Janitor {
     /// Starts the thread for the DNM `name` whose shared memory lives under `config`; a finished
     /// sweep sets `prompt` and wakes the DNM.
     pub(crate) fn start(name: &str, config: Config, prompt: Arc<AtomicBool>) -> Self {
-        // One sweep waiting is enough: it covers every exit seen before it starts.
+        // One sweep waiting is enough: it covers every exit seen before it starts. The first
+        // one, at once, finds what processes of an earlier DNM left half-created.
         let (tx, rx) = sync_channel(1);
+        let _ = tx.try_send(());
         let counts = Arc::new(Counts::default());
         let c = counts.clone();
         let dnm = name.to_string();

@@ -200,7 +200,6 @@ impl Dnm {
             .create::<Svc>()
             .map_err(ipc("node"))?;
         let cleaned = node.try_cleanup_dead_nodes().cleanups;
-        dnm_module::remove_abandoned_services(&config);
         if cleaned > 0 {
             tracing::info!(
                 dnm = name,
@@ -209,21 +208,27 @@ impl Dnm {
             );
         }
         let board_name: ServiceName = TASK_SERVICE.try_into().map_err(ipc("service name"))?;
-        let board = node
-            .service_builder(&board_name)
-            .blackboard_creator::<u64>()
-            .max_readers(MAX_MODULES)
-            .max_nodes(MAX_MODULES)
-            .add::<u64>(TASK_WORD_KEY, task_word(0, NO_TASK))
-            .add::<u64>(SWITCHED_AT_KEY, 0)
-            .create()
-            .map_err(|e| {
-                tracing::debug!("blackboard create: {e:?}");
-                DnmError::AlreadyRunning {
-                    system: system.into(),
-                    dnm: name.into(),
-                }
-            })?;
+        // A DNM killed while it created the board left it half-created: removed, then created.
+        let board = dnm_module::recovering(
+            &config,
+            |_| false,
+            || {
+                node.service_builder(&board_name)
+                    .blackboard_creator::<u64>()
+                    .max_readers(MAX_MODULES)
+                    .max_nodes(MAX_MODULES)
+                    .add::<u64>(TASK_WORD_KEY, task_word(0, NO_TASK))
+                    .add::<u64>(SWITCHED_AT_KEY, 0)
+                    .create()
+            },
+        )
+        .map_err(|e| {
+            tracing::debug!("blackboard create: {e:?}");
+            DnmError::AlreadyRunning {
+                system: system.into(),
+                dnm: name.into(),
+            }
+        })?;
         let writer = board
             .writer_builder()
             .create()

@@ -43,7 +43,7 @@ pub use runtime::offline::{Offline, Stepper};
 pub use runtime::process::{MakeModule, run_dynamic};
 pub use runtime::services::{
     TaskWatch, event_service, event_service_for, plan_service_factory, port_service,
-    port_service_for, status_service_factory,
+    port_service_for, recovering, status_service_factory,
 };
 
 /// Logs to stderr through `tracing`, filtered by `RUST_LOG` (default `info`); iceoryx2's own

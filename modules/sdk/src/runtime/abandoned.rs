@@ -1,27 +1,36 @@
 //! Services a process left half-created when it died.
 //!
-//! iceoryx2 (0.10) creates a service's static description as a file with the permissions of
-//! one being written, writes it, then makes it read-only: only a read-only description is
-//! finished. A process killed between those two steps (SIGKILL, or SIGTERM while a module is
-//! still opening its services) leaves the file writable for good. Everyone who opens the
-//! service afterwards waits iceoryx2's creation timeout and fails with `HangsInCreation`, and
-//! iceoryx2's dead-node cleanup reads such a file as absent, so it never removes it: the
-//! module whose output it is can never start again in that namespace.
+//! iceoryx2 (0.10) creates a service in this order: the creating node's tag for it, then the
+//! service's static description (a file created writable, written, synced, then made
+//! read-only: only a read-only description is finished), then its dynamic state. A process
+//! killed before the description is finished (SIGKILL, a crash) leaves it writable for good.
+//! Everyone who opens the service afterwards waits iceoryx2's creation timeout and fails with
+//! `HangsInCreation`, and iceoryx2's dead-node cleanup reads such a file as absent, so it
+//! never removes it: the module whose service it is could never start again in that
+//! namespace.
 //!
-//! A live process finishes a description within microseconds, and iceoryx2 itself gives up on
-//! one unfinished after its creation timeout. So a description still unfinished after that
-//! timeout was abandoned, and removing it lets the next open create the service afresh. It is
-//! the only thing the dead creator left: its dynamic state is created after the description
-//! is finished.
+//! A description is abandoned when it is unfinished, no live node holds the tag its creator
+//! wrote before creating it, and it has been unfinished for longer than the creation timeout
+//! (a second guard, for a creator whose tag this process cannot see). Removing it lets the
+//! next open create the service afresh: it is the only thing the dead creator left (its tag
+//! goes with its node in iceoryx2's dead-node cleanup, its dynamic state did not exist yet).
+//! Every sweep of a namespace's directory holds a lock on it, so two processes recovering the
+//! same service never remove each other's fresh one.
 
+use std::os::fd::AsRawFd;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime};
 
 use iceoryx2::config::Config;
-use iceoryx2::prelude::SemanticString;
+use iceoryx2::node::{Node, NodeState, NodeView};
+use iceoryx2::prelude::{CallbackProgression, SemanticString, ipc};
 
-/// The permissions of a description still being written (iceoryx2's `INIT_PERMISSIONS`).
+/// The permissions of a description still being written (iceoryx2's `INIT_PERMISSIONS`; a
+/// finished one is read-only).
 const BEING_WRITTEN: u32 = 0o600;
+
+/// A service hash: 40 hexadecimal digits (SHA-1), as iceoryx2 names descriptions.
+const HASH_LEN: usize = 40;
 
 /// A description found abandoned, and whether removing it worked.
 #[derive(Debug)]
@@ -33,101 +42,164 @@ struct Abandoned {
 /// What [`remove_abandoned_services`] did.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct AbandonedSweep {
-    /// Descriptions removed.
+    /// Descriptions removed (or found removed by another process meanwhile).
     pub removed: usize,
-    /// Descriptions unfinished for less than the creation timeout: being written now, or
-    /// abandoned too recently to tell. A sweep after the timeout decides.
+    /// Unfinished descriptions left alone: being written by a live process, or abandoned too
+    /// recently to tell. A sweep after the creation timeout decides.
     pub undecided: usize,
 }
 
-/// Removes the service descriptions of `config`'s namespace that have been unfinished for
-/// longer than its creation timeout, and logs each. A directory that cannot be read holds
-/// none this process could remove.
+/// Removes the abandoned service descriptions of `config`'s namespace, logging each. A
+/// directory that cannot be read holds none this process could remove.
 pub fn remove_abandoned_services(config: &Config) -> AbandonedSweep {
-    let (found, undecided) = find_and_remove(config);
+    let (found, undecided) = find_and_remove(config, config.global.creation_timeout);
+    let mut removed = 0;
     for a in &found {
         match &a.removed {
-            Ok(()) => tracing::warn!(
-                file = %a.file.display(),
-                "removed a service a process left half-created when it died"
-            ),
+            Ok(()) => {
+                removed += 1;
+                tracing::warn!(
+                    file = %a.file.display(),
+                    "removed a service a process left half-created when it died"
+                );
+            }
+            // Another process's sweep removed it first.
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => removed += 1,
             Err(e) => tracing::warn!(
                 file = %a.file.display(),
                 "cannot remove a service a process left half-created: {e}"
             ),
         }
     }
-    AbandonedSweep {
-        removed: found.iter().filter(|a| a.removed.is_ok()).count(),
-        undecided,
-    }
+    AbandonedSweep { removed, undecided }
 }
 
-/// The descriptions found abandoned (and removed), and how many unfinished ones are too young
-/// to tell.
-fn find_and_remove(config: &Config) -> (Vec<Abandoned>, usize) {
-    let age = config.global.creation_timeout;
-    let Some((dir, prefix, suffix)) = description_files(config) else {
+/// The descriptions found abandoned (and removed), unfinished for longer than `timeout`, and
+/// how many unfinished ones were left.
+fn find_and_remove(config: &Config, timeout: Duration) -> (Vec<Abandoned>, usize) {
+    let Some(names) = Names::of(config) else {
         return (Vec::new(), 0);
     };
-    let Ok(entries) = std::fs::read_dir(&dir) else {
+    let Ok(dir) = std::fs::File::open(&names.services) else {
+        return (Vec::new(), 0);
+    };
+    // SAFETY: flock(2) on a descriptor this function owns; released when `dir` closes.
+    if unsafe { libc::flock(dir.as_raw_fd(), libc::LOCK_EX) } != 0 {
+        return (Vec::new(), 0);
+    }
+    let Ok(entries) = std::fs::read_dir(&names.services) else {
         return (Vec::new(), 0);
     };
     let now = SystemTime::now();
+    let mut creators: Option<Vec<PathBuf>> = None;
     let mut found = Vec::new();
     let mut undecided = 0;
     for entry in entries.flatten() {
-        let name = entry.file_name();
-        let Some(name) = name.to_str() else { continue };
-        if !(name.starts_with(&prefix) && name.ends_with(&suffix)) {
-            continue;
-        }
         let path = entry.path();
-        match unfinished_for(&path, now) {
-            Some(for_) if for_ > age => {
-                let removed = std::fs::remove_file(&path);
-                found.push(Abandoned {
-                    file: path,
-                    removed,
-                });
-            }
-            Some(_) => undecided += 1,
-            None => {}
+        let Some(hash) = names.hash_of(&entry.file_name()) else {
+            continue;
+        };
+        let Some(for_) = unfinished_for(&path, now) else {
+            continue;
+        };
+        let live = creators.get_or_insert_with(|| live_node_dirs(config));
+        let held = live.iter().any(|d| d.join(names.tag(&hash)).exists());
+        if !held && for_ > timeout {
+            let removed = std::fs::remove_file(&path);
+            found.push(Abandoned {
+                file: path,
+                removed,
+            });
+        } else {
+            undecided += 1;
         }
     }
     (found, undecided)
 }
 
-/// How long the description at `path` has been unfinished, if it is.
+/// How long the description at `path` has been unfinished, if it is. One last written in the
+/// future (the clock set back since) has been unfinished at least since the clock changed.
 fn unfinished_for(path: &Path, now: SystemTime) -> Option<Duration> {
     use std::os::unix::fs::PermissionsExt;
     let meta = std::fs::symlink_metadata(path).ok()?;
     if !meta.is_file() || meta.permissions().mode() & 0o777 != BEING_WRITTEN {
         return None;
     }
-    // A time in the future (a clock set back) reads as just written.
     Some(
         now.duration_since(meta.modified().ok()?)
-            .unwrap_or_default(),
+            .unwrap_or(Duration::MAX),
     )
 }
 
-/// The directory of `config`'s service descriptions, and their names' prefix and suffix.
-fn description_files(config: &Config) -> Option<(PathBuf, String, String)> {
-    let text = |bytes: &[u8]| std::str::from_utf8(bytes).ok().map(str::to_owned);
-    let root = text(config.global.root_path().as_bytes())?;
-    let services = text(config.global.service.directory.as_bytes())?;
-    Some((
-        Path::new(&root).join(services),
-        text(config.global.prefix.as_bytes())?,
-        text(
-            config
-                .global
-                .service
-                .static_config_storage_suffix
-                .as_bytes(),
-        )?,
-    ))
+/// The folders of the nodes of `config`'s namespace that may be alive (alive, or in a state
+/// this process cannot judge), where their service tags are.
+fn live_node_dirs(config: &Config) -> Vec<PathBuf> {
+    let Some(root) = text(config.global.node_dir().as_bytes()) else {
+        return Vec::new();
+    };
+    let mut dirs = Vec::new();
+    let listed = Node::<ipc::Service>::list(config, |state| {
+        let id = match &state {
+            NodeState::Alive(view) => Some(view.id()),
+            NodeState::Dead(_) => None,
+            NodeState::Inaccessible(id) | NodeState::Undefined(id) => Some(id),
+        };
+        if let Some(id) = id {
+            dirs.push(Path::new(&root).join(id.value().to_string()));
+        }
+        CallbackProgression::Continue
+    });
+    if listed.is_err() {
+        // Nodes that cannot be listed may all be alive: every tag counts.
+        return std::fs::read_dir(&root)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|e| e.path())
+            .collect();
+    }
+    dirs
+}
+
+fn text(bytes: &[u8]) -> Option<String> {
+    std::str::from_utf8(bytes).ok().map(str::to_owned)
+}
+
+/// Where and under which names a namespace keeps its service descriptions and tags.
+struct Names {
+    services: PathBuf,
+    prefix: String,
+    suffix: String,
+    tag_suffix: String,
+}
+
+impl Names {
+    fn of(config: &Config) -> Option<Self> {
+        let g = &config.global;
+        Some(Self {
+            services: Path::new(&text(g.root_path().as_bytes())?)
+                .join(text(g.service.directory.as_bytes())?),
+            prefix: text(g.prefix.as_bytes())?,
+            suffix: text(g.service.static_config_storage_suffix.as_bytes())?,
+            tag_suffix: text(g.node.service_tag_suffix.as_bytes())?,
+        })
+    }
+
+    /// The service hash a file of this namespace's descriptions is named after (exactly a
+    /// hash: a namespace whose prefix starts with this one's is another's).
+    fn hash_of(&self, name: &std::ffi::OsStr) -> Option<String> {
+        let hash = name
+            .to_str()?
+            .strip_prefix(&self.prefix)?
+            .strip_suffix(&self.suffix)?;
+        (hash.len() == HASH_LEN && hash.bytes().all(|b| b.is_ascii_hexdigit()))
+            .then(|| hash.to_owned())
+    }
+
+    /// The file name of a node's tag for the service `hash`.
+    fn tag(&self, hash: &str) -> String {
+        format!("{}{hash}{}", self.prefix, self.tag_suffix)
+    }
 }
 
 #[cfg(test)]
@@ -135,9 +207,8 @@ mod tests {
     use super::*;
     use crate::protocol::dnm_config;
     use crate::runtime::services::event_service;
-    use iceoryx2::prelude::{Node, NodeBuilder, ipc};
+    use iceoryx2::prelude::NodeBuilder;
     use std::os::unix::fs::PermissionsExt;
-    use std::path::Path;
 
     /// A namespace of its own for each test, and a node in it.
     fn namespace(tag: &str) -> (Config, Node<ipc::Service>) {
@@ -146,28 +217,22 @@ mod tests {
         (config, node)
     }
 
-    /// The file of the description of event service `name`, found by creating the service
-    /// once (a description's name is a hash of the service's).
+    /// The file of the description of event service `name` (named after a hash of the
+    /// service's name), found by creating the service once and reading the descriptions.
     fn description_of(config: &Config, node: &Node<ipc::Service>, name: &str) -> PathBuf {
-        let (dir, prefix, suffix) = description_files(config).unwrap();
-        let list = || -> Vec<PathBuf> {
-            std::fs::read_dir(&dir)
-                .unwrap()
-                .flatten()
-                .map(|e| e.path())
-                .filter(|p| {
-                    let n = p.file_name().unwrap().to_str().unwrap();
-                    n.starts_with(&prefix) && n.ends_with(&suffix)
-                })
-                .collect()
-        };
-        let before = list();
+        let names = Names::of(config).unwrap();
         let service = event_service(node, name).unwrap();
-        let new: Vec<_> = list().into_iter().filter(|p| !before.contains(p)).collect();
+        let says = format!("service_name = \"{name}\"");
+        let file = std::fs::read_dir(&names.services)
+            .unwrap()
+            .flatten()
+            .filter(|e| names.hash_of(&e.file_name()).is_some())
+            .map(|e| e.path())
+            .find(|p| std::fs::read_to_string(p).is_ok_and(|t| t.contains(&says)))
+            .unwrap();
         drop(service);
-        assert_eq!(new.len(), 1, "{new:?}");
-        assert!(!new[0].exists(), "the service outlived its only user");
-        new[0].clone()
+        assert!(!file.exists(), "the service outlived its only user");
+        file
     }
 
     /// Leaves at `file` what a creator killed before finishing leaves: the description,
@@ -184,7 +249,8 @@ mod tests {
         let file = description_of(&config, &node, "m/out/ev");
         abandon(&file, Duration::ZERO);
 
-        // What the module whose output it is meets when it starts again.
+        // What the module whose output it is meets when it starts again: iceoryx2 waits its
+        // creation timeout, then the description is abandoned by every rule.
         let service = event_service(&node, "m/out/ev").expect("the service opens");
         let mode = std::fs::metadata(&file).unwrap().permissions().mode() & 0o777;
         assert_ne!(mode, BEING_WRITTEN, "the description was created afresh");
@@ -197,27 +263,66 @@ mod tests {
     }
 
     #[test]
-    fn only_descriptions_unfinished_past_the_creation_timeout_are_removed() {
+    fn only_descriptions_unfinished_past_the_timeout_are_removed() {
         let (config, node) = namespace("age");
         let old = description_of(&config, &node, "old/ev");
         let young = description_of(&config, &node, "young/ev");
-        let timeout = config.global.creation_timeout;
-        abandon(&old, timeout * 2);
-        abandon(&young, Duration::ZERO);
-        // A finished service of the same namespace.
+        // A finished service of the same namespace, and an unfinished one of a namespace
+        // whose prefix starts with this one's.
         let _alive = event_service(&node, "alive/ev").unwrap();
+        let names = Names::of(&config).unwrap();
+        let hash = names.hash_of(old.file_name().unwrap()).unwrap();
+        let other = names
+            .services
+            .join(format!("{}b_{hash}{}", names.prefix, names.suffix));
+        let hour = Duration::from_secs(3600);
+        abandon(&old, hour * 2);
+        abandon(&young, Duration::ZERO);
+        abandon(&other, hour * 2);
 
-        let (found, undecided) = find_and_remove(&config);
+        let (found, undecided) = find_and_remove(&config, hour);
         assert_eq!(found.len(), 1, "{found:?}");
-        assert_eq!(undecided, 1);
         assert_eq!(found[0].file, old);
         assert!(found[0].removed.is_ok());
-        assert!(!old.exists());
-        assert!(young.exists(), "one being written now is left alone");
+        assert_eq!(undecided, 1, "the young one is left for a later sweep");
+        assert!(young.exists());
+        assert!(
+            other.exists(),
+            "another namespace's file is not this one's to judge"
+        );
         std::fs::remove_file(&young).unwrap();
+        std::fs::remove_file(&other).unwrap();
         assert_eq!(
             remove_abandoned_services(&config),
             AbandonedSweep::default()
         );
+    }
+
+    #[test]
+    fn a_description_whose_creator_is_alive_is_left_however_old() {
+        let (config, node) = namespace("live");
+        let file = description_of(&config, &node, "slow/ev");
+        let names = Names::of(&config).unwrap();
+        let hash = names.hash_of(file.file_name().unwrap()).unwrap();
+        // What a live creator has when it writes the description: its tag for the service.
+        let tag = Path::new(&text(config.global.node_dir().as_bytes()).unwrap())
+            .join(node.id().value().to_string())
+            .join(names.tag(&hash));
+        std::fs::write(&tag, "").unwrap();
+        abandon(&file, Duration::from_secs(7200));
+
+        assert_eq!(
+            remove_abandoned_services(&config),
+            AbandonedSweep {
+                removed: 0,
+                undecided: 1
+            }
+        );
+        assert!(file.exists());
+        // Its creator gone (iceoryx2 removes a dead node's tags), the description is
+        // abandoned.
+        std::fs::remove_file(&tag).unwrap();
+        assert_eq!(remove_abandoned_services(&config).removed, 1);
+        assert!(!file.exists());
     }
 }

@@ -248,10 +248,14 @@ impl<'a> Process<'a> {
         make: &mut MakeModule<'_>,
     ) -> Result<Self, ModuleError> {
         // iceoryx2 turns SIGTERM and SIGINT into a termination request once its handler is
-        // installed, which its first wait does. Installed before any service is opened, a
-        // module stopped while it opens them (an apply refused while it starts) finishes and
-        // exits at its first wait, instead of dying with a service half-created.
-        let _ = SignalHandler::termination_requested();
+        // installed, which its first wait would do. Installed before any service is opened, a
+        // module stopped while it creates one is never killed half-way through: it finishes
+        // and exits at its first wait, or its open is interrupted and it exits with the error.
+        if SignalHandler::termination_requested() {
+            // One arrived as the handler was installed: raised again for the first wait.
+            // SAFETY: raise(3) with iceoryx2's handler for SIGTERM installed.
+            unsafe { libc::raise(libc::SIGTERM) };
+        }
         let mut config =
             dnm_config(&launch.prefix).map_err(|e| ModuleError::Launch(e.to_string()))?;
         // What dead processes left is the DNM's to sweep (it has, before it starts this one):

@@ -43,7 +43,7 @@ pub fn port_service_for<S: iceoryx2::service::Service>(
 > {
     let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
     let alignment = Alignment::new(8).ok_or_else(|| ModuleError::Ipc("alignment".into()))?;
-    recovering(node, pub_sub_hangs, || {
+    recovering(node.config(), pub_sub_hangs, || {
         node.service_builder(&service_name)
             .publish_subscribe::<[u8]>()
             .user_header::<PortHeader>()
@@ -75,7 +75,7 @@ pub fn event_service_for<S: iceoryx2::service::Service>(
     listeners: usize,
 ) -> Result<iceoryx2::service::port_factory::event::PortFactory<S>, ModuleError> {
     let service_name: ServiceName = name.try_into().map_err(ipc("service name"))?;
-    recovering(node, event_hangs, || {
+    recovering(node.config(), event_hangs, || {
         node.service_builder(&service_name)
             .event()
             .max_listeners(listeners)
@@ -89,7 +89,7 @@ pub fn event_service_for<S: iceoryx2::service::Service>(
 /// Opens the DNM's active-task blackboard.
 pub(crate) fn task_board(node: &Node<Svc>) -> Result<BlackboardFactory<Svc, u64>, ModuleError> {
     let service_name: ServiceName = TASK_SERVICE.try_into().map_err(ipc("service name"))?;
-    recovering(node, board_hangs, || {
+    recovering(node.config(), board_hangs, || {
         node.service_builder(&service_name)
             .blackboard_opener::<u64>()
             .max_readers(MAX_MODULES)
@@ -111,7 +111,7 @@ pub fn plan_service_factory(
         .as_str()
         .try_into()
         .map_err(ipc("service name"))?;
-    recovering(node, pub_sub_hangs, || {
+    recovering(node.config(), pub_sub_hangs, || {
         node.service_builder(&name)
             .publish_subscribe::<[u8]>()
             .history_size(PLAN_HISTORY)
@@ -135,7 +135,7 @@ pub fn status_service_factory(
         .as_str()
         .try_into()
         .map_err(ipc("service name"))?;
-    recovering(node, pub_sub_hangs, || {
+    recovering(node.config(), pub_sub_hangs, || {
         node.service_builder(&name)
             .publish_subscribe::<Status>()
             .history_size(1)
@@ -148,23 +148,38 @@ pub fn status_service_factory(
     .map_err(ipc("status service"))
 }
 
-/// Runs `open`; if the service hangs in creation because a process died creating it, removes
-/// what it abandoned (see [`super::abandoned`]) and runs `open` once more. iceoryx2 has waited
-/// its creation timeout before saying so, so what is still unfinished now was abandoned.
-fn recovering<S: iceoryx2::service::Service, T, E>(
-    node: &Node<S>,
+/// How many times [`recovering`] runs an open.
+const OPEN_ATTEMPTS: usize = 3;
+
+/// Runs `open`, which opens or creates a service of `config`'s namespace; when it fails, removes
+/// what processes that died creating a service abandoned (see [`super::abandoned`]) and runs it
+/// again if that may help: something was removed, or the service hangs in creation (`hangs`)
+/// and another process removed it meanwhile. An unfinished description too young to judge is
+/// judged again after iceoryx2's creation timeout (this thread sleeps). Runs `open` at most
+/// three times.
+pub fn recovering<T, E>(
+    config: &iceoryx2::config::Config,
     hangs: fn(&E) -> bool,
     mut open: impl FnMut() -> Result<T, E>,
 ) -> Result<T, E> {
-    match open() {
-        Err(e) if hangs(&e) => {
-            if remove_abandoned_services(node.config()).removed > 0 {
-                open()
-            } else {
-                Err(e)
-            }
+    let mut attempt = 1;
+    loop {
+        let e = match open() {
+            Ok(t) => return Ok(t),
+            Err(e) => e,
+        };
+        if attempt == OPEN_ATTEMPTS {
+            return Err(e);
         }
-        done => done,
+        attempt += 1;
+        let mut sweep = remove_abandoned_services(config);
+        if sweep.removed == 0 && sweep.undecided > 0 {
+            std::thread::sleep(config.global.creation_timeout);
+            sweep = remove_abandoned_services(config);
+        }
+        if sweep.removed == 0 && !hangs(&e) {
+            return Err(e);
+        }
     }
 }
 
