@@ -13,6 +13,13 @@ use dnm_module::{event_service, port_service};
 use dnm_netlist::Payload;
 use iceoryx2::prelude::*;
 
+// A bench that loads the system tests' `support` too has this file twice, with two registries
+// of ports handed out: those benches (fleet, ground) take every port from `support`'s.
+#[path = "../support/port.rs"]
+#[allow(clippy::duplicate_mod)]
+mod port;
+pub use port::free_port;
+
 pub fn human(size: usize) -> String {
     match size {
         s if s >= 1 << 20 => format!("{} MiB", s >> 20),
@@ -298,26 +305,6 @@ pub fn stamped_latencies(
         }
     }
     got
-}
-
-/// A TCP port free on loopback right now.
-pub fn free_port() -> u16 {
-    // Ports are often taken some time after they are chosen (a rig chooses all of its own
-    // before it starts anything), and the kernel may offer a port it offered before in the
-    // meantime: one never handed out in this process is taken.
-    static GIVEN: std::sync::Mutex<Vec<u16>> = std::sync::Mutex::new(Vec::new());
-    let mut given = GIVEN.lock().unwrap_or_else(|e| e.into_inner());
-    loop {
-        let port = std::net::TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port();
-        if !given.contains(&port) {
-            given.push(port);
-            return port;
-        }
-    }
 }
 
 /// utime + stime of a process so far, in seconds.

@@ -3,31 +3,13 @@
 #![allow(dead_code)] // each test file uses its own subset
 
 pub mod ground;
+mod port;
 pub mod system;
 pub mod webdriver;
 
-use std::net::TcpListener;
-use std::time::{Duration, Instant};
+pub use port::free_port;
 
-/// A TCP port free on loopback right now.
-pub fn free_port() -> u16 {
-    // Ports are often taken some time after they are chosen (a rig chooses all of its own
-    // before it starts anything), and the kernel may offer a port it offered before in the
-    // meantime: one never handed out in this process is taken.
-    static GIVEN: std::sync::Mutex<Vec<u16>> = std::sync::Mutex::new(Vec::new());
-    let mut given = GIVEN.lock().unwrap_or_else(|e| e.into_inner());
-    loop {
-        let port = TcpListener::bind("127.0.0.1:0")
-            .unwrap()
-            .local_addr()
-            .unwrap()
-            .port();
-        if !given.contains(&port) {
-            given.push(port);
-            return port;
-        }
-    }
-}
+use std::time::{Duration, Instant};
 
 /// `tcp/127.0.0.1:<port>`.
 pub fn endpoint(port: u16) -> String {

@@ -58,10 +58,7 @@ impl System {
             .arg(&path)
             .env("DNM_MODULE_HOST", module_host())
             .env("DNM_RECORD_DIR", &dir)
-            .env(
-                "RUST_LOG",
-                std::env::var("DNM_TEST_LOG").unwrap_or("warn".into()),
-            )
+            .env("RUST_LOG", "warn")
             .stdout(Stdio::null())
             .spawn()
             .unwrap();

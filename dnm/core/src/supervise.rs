@@ -245,23 +245,20 @@ impl Dnm {
         let mut i = 0;
         while i < self.stopping.len() {
             let s = &mut self.stopping[i];
-            match s.child.try_wait() {
-                Ok(Some(status)) => {
-                    any_died = true;
-                    tracing::info!(dnm = %self.name, module = %s.module, %status, "module stopped");
-                    self.stopping.swap_remove(i);
-                    continue;
-                }
-                Err(_) => {
-                    any_died = true;
-                    tracing::info!(dnm = %self.name, module = %s.module, "module stopped");
-                    self.stopping.swap_remove(i);
-                    continue;
-                }
-                Ok(None) if now >= s.kill_at => {
-                    let _ = s.child.kill();
-                }
-                Ok(None) => {}
+            let gone = match s.child.try_wait() {
+                Ok(Some(status)) => Some(status.to_string()),
+                // Not ours to wait for any more: gone either way.
+                Err(e) => Some(format!("not known ({e})")),
+                Ok(None) => None,
+            };
+            if let Some(status) = gone {
+                any_died = true;
+                tracing::info!(dnm = %self.name, module = %s.module, %status, "module stopped");
+                self.stopping.swap_remove(i);
+                continue;
+            }
+            if now >= s.kill_at {
+                let _ = s.child.kill();
             }
             i += 1;
         }

@@ -812,7 +812,7 @@ fn open_file(
         .compression(Some(mcap::Compression::Zstd))
         // The fastest zstd, on the writer's own thread: a recorder shares the computer with the
         // modules. The mcap crate's default, one zstd worker per core, kept worker threads and
-        // their buffers (some 13 MB a DNM) alive for nothing a 1 MiB chunk needs.
+        // their buffers (some 13 MB a DNM, reserved) alive for nothing a 1 MiB chunk needs.
         .compression_level(1)
         .compression_threads(0)
         .profile("ros2")

@@ -14,8 +14,8 @@
 //! (a second guard, for a creator whose tag this process cannot see). Removing it lets the
 //! next open create the service afresh: it is the only thing the dead creator left (its tag
 //! goes with its node in iceoryx2's dead-node cleanup, its dynamic state did not exist yet).
-//! Every sweep of a namespace's directory holds a lock on it, so two processes recovering the
-//! same service never remove each other's fresh one.
+//! Every sweep holds a lock on the services directory (shared by the namespaces of one
+//! machine), so two processes recovering the same service never remove each other's fresh one.
 
 use std::os::fd::AsRawFd;
 use std::path::{Path, PathBuf};
