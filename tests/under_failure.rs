@@ -1,7 +1,7 @@
 //! The connection layer when things go wrong, with real processes and real shared memory: a
 //! failed apply, a source that went quiet, a hung module, a slow apply beside an emergency
-//! switch, a removed module, a recorder that lost its disk, a service a killed process left
-//! half-created.
+//! switch, a removed module, a recorder that lost its disk, a service (a module's, the DNM's
+//! task board) a killed process left half-created.
 
 #![allow(clippy::unwrap_used)] // test helpers: failing loudly is right
 
@@ -201,14 +201,21 @@ fn a_failed_apply_leaves_the_dnm_as_it_was_and_a_retry_succeeds() {
 /// The file of event service `name`'s description in `sys`'s DNM's namespace (named after a
 /// hash of the service's name), found by creating the service once and reading descriptions.
 fn description_of(sys: &System, name: &str) -> PathBuf {
+    let service = dnm_module::event_service(&sys.node, name).unwrap();
+    let file = existing_description(sys, name);
+    drop(service);
+    file
+}
+
+/// The description file of service `name`, which exists in `sys`'s DNM's namespace.
+fn existing_description(sys: &System, name: &str) -> PathBuf {
     use iceoryx2::prelude::SemanticString;
     let g = &sys.node.config().global;
     let text = |b: &[u8]| String::from_utf8(b.to_vec()).unwrap();
     let dir = Path::new(&text(g.root_path().as_bytes())).join(text(g.service.directory.as_bytes()));
     let prefix = text(g.prefix.as_bytes());
-    let service = dnm_module::event_service(&sys.node, name).unwrap();
     let says = format!("service_name = \"{name}\"");
-    let file = std::fs::read_dir(&dir)
+    std::fs::read_dir(&dir)
         .unwrap()
         .flatten()
         .map(|e| e.path())
@@ -219,9 +226,7 @@ fn description_of(sys: &System, name: &str) -> PathBuf {
                 .starts_with(&prefix)
         })
         .find(|p| std::fs::read_to_string(p).is_ok_and(|t| t.contains(&says)))
-        .unwrap();
-    drop(service);
-    file
+        .unwrap_or_else(|| panic!("no description of {name} in {}", dir.display()))
 }
 
 /// Leaves at `file` what a process killed while creating a service leaves: the description
@@ -276,6 +281,48 @@ fn the_dnm_frees_a_half_created_service_after_a_process_dies_without_anyone_open
     signal(victim, libc::SIGKILL);
     support::eventually("the half-created service to be removed", || {
         (!file.exists()).then_some(())
+    });
+}
+
+#[test]
+fn a_dnm_starts_over_a_task_board_its_killed_predecessor_left_half_created() {
+    let mut sys = System::start(CHAIN);
+    let board = existing_description(&sys, dnm_module::protocol::TASK_SERVICE);
+    // The DNM and its modules killed, and the board left as a DNM killed while it created it
+    // leaves it: the description written, never made read-only.
+    let modules: Vec<u32> = sys.status().modules.iter().filter_map(|m| m.pid).collect();
+    sys.child.kill().unwrap();
+    sys.child.wait().unwrap();
+    for pid in modules {
+        // SAFETY: kill(2) on a module process of our test system; it may have gone already.
+        unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    }
+    abandon(&board);
+
+    sys.child = Command::new(env!("CARGO_BIN_EXE_dnm"))
+        .arg("up")
+        .arg(sys.dir.join("netlist.toml"))
+        .env("DNM_MODULE_HOST", module_host())
+        .env("DNM_RECORD_DIR", &sys.dir)
+        .env("RUST_LOG", "warn")
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    sys.wait_for("the DNM started again, its modules running", |r| {
+        r.dnms.iter().all(|d| {
+            d.modules.len() == 3 && d.modules.iter().all(|m| m.state == ModuleRunState::Running)
+        })
+    });
+    assert!(!abandoned(&board), "the board was created afresh");
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    let ticks = collect::<Tick>(&relay, |t| t.len() >= 5);
+    assert!(ticks.iter().all(|t| t.origin == 1), "{ticks:?}");
+    // It records, also when it started within the second its predecessor's session folder is
+    // named after (its files then follow the predecessor's in that folder).
+    sys.wait_for("the restarted DNM recording", |r| {
+        let rec = r.dnms[0].recording.as_ref();
+        assert!(rec.is_some_and(|x| x.error.is_none()), "{rec:?}");
+        rec.is_some_and(|x| x.messages > 0)
     });
 }
 

@@ -8,7 +8,8 @@
 //!    every half second, same payloads; what the recorder recorded and dropped meanwhile.
 //!
 //! Run: `cargo bench -p dnm --bench recording` (or `-- writer`, `-- live`, `-- latency` for
-//! one part; `DNM_BENCH_SIZES=230400` for the latency of camera frames alone, about 13 minutes).
+//! one part; `DNM_BENCH_SIZES=230400` for the latency of camera frames alone, about 13 minutes;
+//! `DNM_BENCH_RECORDER_WORKERS=0,1` to compare recorders with 0 and 1 zstd workers in one run).
 //! The latency part takes about 40 minutes.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // a benchmark harness: failing loudly is right
@@ -178,10 +179,13 @@ links = ["t1.out -> r1.in"]
 
 fn latency() {
     println!(
-        "| payload | recording off p50 / p99 (µs) | recording on p50 / p99 (µs) | added p50 | added p99 | added p99, 90 % interval | noise floor p50 / p99 (off against off) | recorded / dropped while on |"
+        "| payload | zstd workers | recording off p50 / p99 (µs) | recording on p50 / p99 (µs) | added p50 | added p99 | added p99, 90 % interval | noise floor p50 / p99 (off against off) | recorded / dropped while on |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
-    let window_count = env_or("DNM_BENCH_WINDOWS", vec![WINDOWS])[0].max(2);
+    println!("|---|---|---|---|---|---|---|---|---|");
+    // `DNM_BENCH_RECORDER_WORKERS=0,1` compares recorders in one system: the on windows take
+    // turns between the worker counts, each off window between two on windows.
+    let workers = env_or("DNM_BENCH_RECORDER_WORKERS", vec![0]);
+    let window_count = env_or("DNM_BENCH_WINDOWS", vec![WINDOWS])[0].max(2 * workers.len());
     // `DNM_BENCH_SIZES=230400` measures camera frames only.
     for size in env_or("DNM_BENCH_SIZES", vec![64usize, 4096, 320 * 240 * 3]) {
         let system = unique(&format!("l{size}"));
@@ -210,15 +214,18 @@ links = ["src.out -> lat.in"]
         let (samples, windows, recorded, dropped) = std::thread::scope(|s| {
             let reader = s.spawn(|| timed_latencies(&system, "local", "lat", &stop));
             std::thread::sleep(SETTLE);
-            // (from, to, recording): a recorder's start and stop fall between windows.
-            let mut windows: Vec<(Instant, Instant, bool)> = Vec::new();
-            let (mut recorded, mut dropped) = (0, 0);
+            // (from, to, the recorder's mode if it was on): a recorder's start and stop fall
+            // between windows.
+            let mut windows: Vec<(Instant, Instant, Option<usize>)> = Vec::new();
+            let (mut recorded, mut dropped) = (vec![0; workers.len()], vec![0; workers.len()]);
             let mut toggling = Duration::ZERO;
             for w in 0..window_count {
                 if w % 2 == 1 {
+                    let mode = (w / 2) % workers.len();
                     let t = Instant::now();
                     let mut options = RecordOptions::timestamped(&dir);
                     options.stem = format!("w{w}");
+                    options.compression_workers = workers[mode] as u32;
                     let mut recorder = Recorder::start("local", &prefix, options).unwrap();
                     recorder.commit(&parsed, "local", 1);
                     let from = Instant::now();
@@ -228,13 +235,13 @@ links = ["src.out -> lat.in"]
                     let report = recorder.report();
                     drop(recorder);
                     toggling += to.elapsed();
-                    recorded += report.messages;
-                    dropped += report.dropped;
-                    windows.push((from, to, true));
+                    recorded[mode] += report.messages;
+                    dropped[mode] += report.dropped;
+                    windows.push((from, to, Some(mode)));
                 } else {
                     let from = Instant::now();
                     std::thread::sleep(WINDOW);
-                    windows.push((from, Instant::now(), false));
+                    windows.push((from, Instant::now(), None));
                 }
             }
             stop.store(true, Ordering::Relaxed);
@@ -257,12 +264,8 @@ links = ["src.out -> lat.in"]
                 per_window[i].push(ns);
             }
         }
-        let on_w: Vec<&Vec<u64>> = (0..windows.len())
-            .filter(|&i| windows[i].2)
-            .map(|i| &per_window[i])
-            .collect();
         let off_w: Vec<&Vec<u64>> = (0..windows.len())
-            .filter(|&i| !windows[i].2)
+            .filter(|&i| windows[i].2.is_none())
             .map(|i| &per_window[i])
             .collect();
         // Off windows alternate between two halves: their difference is what the measurement
@@ -270,26 +273,59 @@ links = ["src.out -> lat.in"]
         let off_a: Vec<&Vec<u64>> = off_w.iter().copied().step_by(2).collect();
         let off_b: Vec<&Vec<u64>> = off_w.iter().copied().skip(1).step_by(2).collect();
         let pool = |w: &[&Vec<u64>]| w.iter().flat_map(|v| v.iter().copied()).collect::<Vec<_>>();
-        let (off, on) = (pool(&off_w), pool(&on_w));
-        let n = (off.len(), on.len());
-        let (off, on) = (percentiles(off), percentiles(on));
+        let off_n = pool(&off_w).len();
+        let off = percentiles(pool(&off_w));
         let (a, b) = (percentiles(pool(&off_a)), percentiles(pool(&off_b)));
-        let (lo, hi) = bootstrap_p99_ratio(&off_w, &on_w);
-        println!(
-            "| {} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.1} % | {:+.1} % | {:+.1} % … {:+.1} % | {:+.1} % / {:+.1} % | {recorded} / {dropped} |",
-            human(size),
-            off.0,
-            off.1,
-            on.0,
-            on.1,
-            (on.0 / off.0 - 1.0) * 100.0,
-            (on.1 / off.1 - 1.0) * 100.0,
-            (lo - 1.0) * 100.0,
-            (hi - 1.0) * 100.0,
-            (b.0 / a.0 - 1.0) * 100.0,
-            (b.1 / a.1 - 1.0) * 100.0,
-        );
-        eprintln!("{}: {} samples off, {} on", human(size), n.0, n.1);
+        for (mode, n_workers) in workers.iter().enumerate() {
+            let on_w: Vec<&Vec<u64>> = (0..windows.len())
+                .filter(|&i| windows[i].2 == Some(mode))
+                .map(|i| &per_window[i])
+                .collect();
+            let on_n = pool(&on_w).len();
+            let on = percentiles(pool(&on_w));
+            let (lo, hi) = bootstrap_p99_ratio(&off_w, &on_w);
+            println!(
+                "| {} | {n_workers} | {:.1} / {:.1} | {:.1} / {:.1} | {:+.1} % | {:+.1} % | {:+.1} % … {:+.1} % | {:+.1} % / {:+.1} % | {} / {} |",
+                human(size),
+                off.0,
+                off.1,
+                on.0,
+                on.1,
+                (on.0 / off.0 - 1.0) * 100.0,
+                (on.1 / off.1 - 1.0) * 100.0,
+                (lo - 1.0) * 100.0,
+                (hi - 1.0) * 100.0,
+                (b.0 / a.0 - 1.0) * 100.0,
+                (b.1 / a.1 - 1.0) * 100.0,
+                recorded[mode],
+                dropped[mode],
+            );
+            eprintln!(
+                "{}, {n_workers} zstd workers: {off_n} samples off, {on_n} on",
+                human(size)
+            );
+        }
+        // Two recorders against each other, when there are two: the second's p99 over the
+        // first's, resampled the same way.
+        if let [first, second] = workers[..] {
+            let mode_w = |m: usize| -> Vec<&Vec<u64>> {
+                (0..windows.len())
+                    .filter(|&i| windows[i].2 == Some(m))
+                    .map(|i| &per_window[i])
+                    .collect()
+            };
+            let (w0, w1) = (mode_w(0), mode_w(1));
+            let (p0, p1) = (percentiles(pool(&w0)), percentiles(pool(&w1)));
+            let (lo, hi) = bootstrap_p99_ratio(&w0, &w1);
+            println!(
+                "\n{}: {second} zstd workers against {first}: p50 {:+.1} %, p99 {:+.1} % (90 % interval {:+.1} % … {:+.1} %)\n",
+                human(size),
+                (p1.0 / p0.0 - 1.0) * 100.0,
+                (p1.1 / p0.1 - 1.0) * 100.0,
+                (lo - 1.0) * 100.0,
+                (hi - 1.0) * 100.0,
+            );
+        }
     }
 }
 

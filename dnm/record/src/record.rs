@@ -58,6 +58,8 @@ const QUEUE: usize = 65_536;
 const QUEUE_BYTES: u64 = 256 << 20;
 /// Longest a chunk stays open: what a crash can lose.
 const CHUNK_PERIOD: Duration = Duration::from_secs(1);
+/// Most files a DNM numbers in one folder: past it, a file that exists is an error.
+const MAX_FILES: u64 = 1_000_000;
 /// Buffers the reader keeps for reuse: small samples' (up to [`LARGE_PAYLOAD_BYTES`])...
 const SPARE_SMALL: usize = 256;
 /// ...and large samples' (a camera frame then costs no allocation and no fresh pages).
@@ -81,6 +83,9 @@ pub struct RecordOptions {
     /// Where the downlink plan's messages (and the switches and events) go as they are
     /// written.
     pub tap: Option<Arc<dyn Tap>>,
+    /// zstd worker threads beside each file's writer; 0 (the default): the writer compresses
+    /// on its own thread, which costs a rover computer no threads or buffers of their own.
+    pub compression_workers: u32,
 }
 
 impl RecordOptions {
@@ -97,6 +102,7 @@ impl RecordOptions {
             rotate_after: Duration::from_secs(3600),
             session: false,
             tap: None,
+            compression_workers: 0,
         }
     }
 
@@ -121,6 +127,7 @@ impl RecordOptions {
             rotate_bytes: self.rotate_bytes,
             rotate_after: self.rotate_after,
             tap: self.tap,
+            compression_workers: self.compression_workers,
             ..Self::session(&self.dir, system)
         }
     }
@@ -786,35 +793,56 @@ impl<W: std::io::Seek> std::io::Seek for Counting<W> {
     }
 }
 
+/// Creates DNM `dnm`'s file number `index` in `options.dir`, or the first number after it that
+/// no file has: an existing file is never overwritten. One exists when a DNM started again
+/// within the second its session folder is named after (a crash, then a quick restart): its
+/// files follow its predecessor's. `index` becomes the number used.
+fn create_file(
+    dnm: &str,
+    options: &RecordOptions,
+    index: &mut u64,
+) -> Result<(PathBuf, File), String> {
+    loop {
+        // `.n` numbers a DNM's later files: a DNM's name has no dot, so `rec-cam.2.mcap` is
+        // never another DNM's first file.
+        let name = if *index == 0 {
+            format!("{}-{dnm}.mcap", options.stem)
+        } else {
+            format!("{}-{dnm}.{index}.mcap", options.stem)
+        };
+        let path = options.dir.join(name);
+        match File::options().write(true).create_new(true).open(&path) {
+            Ok(file) => return Ok((path, file)),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && *index < MAX_FILES => {
+                tracing::info!(
+                    file = %path.display(),
+                    "a file of this name exists (an earlier run's): numbering after it"
+                );
+                *index += 1;
+            }
+            Err(e) => return Err(format!("{}: {e}", path.display())),
+        }
+    }
+}
+
 fn open_file(
     dnm: &str,
     options: &RecordOptions,
-    index: u64,
+    index: &mut u64,
     ports: &[RecPort],
     netlist: Option<&(u64, String, String)>,
     clock: Clock,
 ) -> Result<OpenFile, String> {
-    // `.n` numbers a DNM's later files: a DNM's name has no dot, so `rec-cam.2.mcap` is never
-    // another DNM's first file. An existing file is never overwritten.
-    let name = if index == 0 {
-        format!("{}-{dnm}.mcap", options.stem)
-    } else {
-        format!("{}-{dnm}.{index}.mcap", options.stem)
-    };
-    let path = options.dir.join(name);
-    let file = File::options()
-        .write(true)
-        .create_new(true)
-        .open(&path)
-        .map_err(|e| format!("{}: {e}", path.display()))?;
+    let (path, file) = create_file(dnm, options, index)?;
     let written = Arc::new(AtomicU64::new(0));
     let mut writer = mcap::WriteOptions::new()
         .compression(Some(mcap::Compression::Zstd))
-        // The fastest zstd, on the writer's own thread: a recorder shares the computer with the
-        // modules. The mcap crate's default, one zstd worker per core, kept worker threads and
-        // their buffers (some 13 MB a DNM, reserved) alive for nothing a 1 MiB chunk needs.
+        // The fastest zstd, by default on the writer's own thread: a recorder shares the
+        // computer with the modules. The mcap crate's default, one zstd worker per core, kept
+        // worker threads and their buffers (some 13 MB a DNM, reserved) alive for nothing a
+        // 1 MiB chunk needs.
         .compression_level(1)
-        .compression_threads(0)
+        .compression_threads(options.compression_workers)
         .profile("ros2")
         .library("dnm")
         .chunk_size(Some(1 << 20))
@@ -1174,7 +1202,7 @@ impl Writer<'_> {
         let f = open_file(
             self.dnm,
             self.options,
-            self.index,
+            &mut self.index,
             &self.ports,
             self.netlist.as_ref(),
             self.clock,
@@ -1372,48 +1400,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("dnm-rotate-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
-        let options = RecordOptions {
-            dir: dir.clone(),
-            stem: "t".into(),
-            only: Vec::new(),
-            rotate_bytes,
-            rotate_after: Duration::from_secs(3600),
-            session: true,
-            tap: None,
-        };
-        let (tx, rx) = mpsc::sync_channel(n as usize + 2);
-        tx.send(Item::Netlist {
-            revision: 1,
-            file: "t.toml".into(),
-            text: "[system]\nname = \"t\"\n".into(),
-        })
-        .unwrap();
-        tx.send(Item::Ports(vec![RecPort {
-            downlink: None,
-            module: "m".into(),
-            port: "out".into(),
-            message,
-        }]))
-        .unwrap();
-        for seq in 0..n {
-            tx.send(Item::Sample {
-                port: 0,
-                header: PortHeader {
-                    stamp_ns: monotonic_ns(),
-                    seq,
-                    task_word: 0,
-                },
-                bytes: payload(seq),
-                encoded: false,
-            })
-            .unwrap();
-        }
-        drop(tx);
-        let counters = Counters::default();
-        let (spare, _spares) = mpsc::sync_channel(n as usize);
-        write_loop("d", &options, &rx, &spare, &counters, Clock::new()).unwrap();
-        crate::session::settle();
-        assert_eq!(counters.messages.load(Ordering::Relaxed), n);
+        write_run(&dir, n, rotate_bytes, message, &payload);
         let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
             .unwrap()
             .map(|e| e.unwrap().path())
@@ -1458,6 +1445,85 @@ mod tests {
         seqs.sort_unstable();
         let _ = std::fs::remove_dir_all(&dir);
         (files, seqs)
+    }
+
+    /// One recorder's run of `n` samples into session folder `dir`, as [`write_samples`] makes
+    /// them.
+    fn write_run(
+        dir: &Path,
+        n: u64,
+        rotate_bytes: u64,
+        message: MessageType,
+        payload: &impl Fn(u64) -> Vec<u8>,
+    ) {
+        let options = RecordOptions {
+            dir: dir.to_path_buf(),
+            stem: "t".into(),
+            only: Vec::new(),
+            rotate_bytes,
+            rotate_after: Duration::from_secs(3600),
+            session: true,
+            tap: None,
+            compression_workers: 0,
+        };
+        let (tx, rx) = mpsc::sync_channel(n as usize + 2);
+        tx.send(Item::Netlist {
+            revision: 1,
+            file: "t.toml".into(),
+            text: "[system]\nname = \"t\"\n".into(),
+        })
+        .unwrap();
+        tx.send(Item::Ports(vec![RecPort {
+            downlink: None,
+            module: "m".into(),
+            port: "out".into(),
+            message,
+        }]))
+        .unwrap();
+        for seq in 0..n {
+            tx.send(Item::Sample {
+                port: 0,
+                header: PortHeader {
+                    stamp_ns: monotonic_ns(),
+                    seq,
+                    task_word: 0,
+                },
+                bytes: payload(seq),
+                encoded: false,
+            })
+            .unwrap();
+        }
+        drop(tx);
+        let counters = Counters::default();
+        let (spare, _spares) = mpsc::sync_channel(n as usize);
+        write_loop("d", &options, &rx, &spare, &counters, Clock::new()).unwrap();
+        crate::session::settle();
+        assert_eq!(counters.messages.load(Ordering::Relaxed), n);
+    }
+
+    #[test]
+    fn a_dnm_started_again_within_its_sessions_second_numbers_its_files_after_the_first_runs() {
+        let dir = std::env::temp_dir().join(format!("dnm-rerun-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let tick = |seq: u64| bytemuck::bytes_of(&Tick { origin: 1, seq }).to_vec();
+        // Two runs of DNM `d` in one session folder: the second finds the first's file.
+        write_run(&dir, 10, 1 << 30, Tick::message_type(), &tick);
+        write_run(&dir, 10, 1 << 30, Tick::message_type(), &tick);
+        crate::session::settle();
+        let mut names: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".mcap"))
+            .collect();
+        names.sort();
+        assert_eq!(names, ["t-d.1.mcap", "t-d.mcap"]);
+        let manifest: crate::session::Manifest =
+            serde_json::from_slice(&std::fs::read(dir.join(crate::session::MANIFEST)).unwrap())
+                .unwrap();
+        assert_eq!(manifest.messages, 20);
+        assert!(manifest.files.iter().all(|f| f.complete));
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
