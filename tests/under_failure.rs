@@ -233,8 +233,9 @@ fn existing_description(sys: &System, name: &str) -> PathBuf {
 /// written but still writable (iceoryx2 makes it read-only once the service is created).
 fn abandon(file: &Path) {
     use std::os::unix::fs::PermissionsExt;
-    std::fs::write(file, "").unwrap();
+    // Writable first: a finished description is read-only, even to its owner.
     std::fs::set_permissions(file, std::fs::Permissions::from_mode(0o600)).unwrap();
+    std::fs::write(file, "").unwrap();
 }
 
 fn abandoned(file: &Path) -> bool {
@@ -288,16 +289,41 @@ fn the_dnm_frees_a_half_created_service_after_a_process_dies_without_anyone_open
 fn a_dnm_starts_over_a_task_board_its_killed_predecessor_left_half_created() {
     let mut sys = System::start(CHAIN);
     let board = existing_description(&sys, dnm_module::protocol::TASK_SERVICE);
-    // The DNM and its modules killed, and the board left as a DNM killed while it created it
-    // leaves it: the description written, never made read-only.
+    // The DNM and its modules killed. The DNM is stopped first, so that it reaps none of them
+    // and their pids stay theirs until they are all signalled.
     let modules: Vec<u32> = sys.status().modules.iter().filter_map(|m| m.pid).collect();
+    signal(sys.child.id(), libc::SIGSTOP);
+    for pid in modules {
+        signal(pid, libc::SIGKILL);
+    }
     sys.child.kill().unwrap();
     sys.child.wait().unwrap();
-    for pid in modules {
-        // SAFETY: kill(2) on a module process of our test system; it may have gone already.
-        unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+    for name in ["src_a", "src_b", "relay"] {
+        support::eventually(&format!("{name}'s process gone"), || {
+            processes_of(&sys.name, name).is_empty().then_some(())
+        });
     }
+    // The board left as a DNM killed while it created it leaves it: the description written,
+    // never made read-only.
     abandon(&board);
+    // Session folders for the seconds the restart may start in, as a run started then would
+    // have left them: the restarted DNM must record into a folder of its own.
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs();
+    let taken: Vec<PathBuf> = (now.saturating_sub(2)..now + 30)
+        .map(|t| {
+            let dir = sys.dir.join(dnm::session::session_name(&sys.name, t));
+            std::fs::create_dir_all(&dir).unwrap();
+            let file = dir.join("rec-main.mcap");
+            if !file.exists() {
+                std::fs::write(&file, b"another run's").unwrap();
+            }
+            file
+        })
+        .collect();
+    let before: Vec<Vec<u8>> = taken.iter().map(|f| std::fs::read(f).unwrap()).collect();
 
     sys.child = Command::new(env!("CARGO_BIN_EXE_dnm"))
         .arg("up")
@@ -313,17 +339,37 @@ fn a_dnm_starts_over_a_task_board_its_killed_predecessor_left_half_created() {
             d.modules.len() == 3 && d.modules.iter().all(|m| m.state == ModuleRunState::Running)
         })
     });
-    assert!(!abandoned(&board), "the board was created afresh");
+    assert!(
+        std::fs::metadata(&board).is_ok_and(|m| {
+            use std::os::unix::fs::PermissionsExt;
+            m.permissions().mode() & 0o777 == 0o400
+        }),
+        "the board was created afresh"
+    );
     let relay = sys.subscribe::<Tick>("relay", "out");
     let ticks = collect::<Tick>(&relay, |t| t.len() >= 5);
     assert!(ticks.iter().all(|t| t.origin == 1), "{ticks:?}");
-    // It records, also when it started within the second its predecessor's session folder is
-    // named after (its files then follow the predecessor's in that folder).
-    sys.wait_for("the restarted DNM recording", |r| {
+    // It records, into a session folder of its own: the one named after the second it started
+    // in was taken, so its name carries `-2`; the earlier run's files are untouched.
+    let recording = sys.wait_for("the restarted DNM recording", |r| {
         let rec = r.dnms[0].recording.as_ref();
         assert!(rec.is_some_and(|x| x.error.is_none()), "{rec:?}");
         rec.is_some_and(|x| x.messages > 0)
     });
+    let file = PathBuf::from(&recording.dnms[0].recording.as_ref().unwrap().file);
+    let folder = file
+        .parent()
+        .unwrap()
+        .file_name()
+        .unwrap()
+        .to_string_lossy();
+    assert!(
+        file.ends_with("rec-main.mcap") && folder.starts_with(&sys.name) && folder.ends_with("-2"),
+        "{}",
+        file.display()
+    );
+    let after: Vec<Vec<u8>> = taken.iter().map(|f| std::fs::read(f).unwrap()).collect();
+    assert!(before == after, "an earlier run's file was written to");
 }
 
 #[test]

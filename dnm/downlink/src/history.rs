@@ -114,12 +114,10 @@ struct Files {
 impl Files {
     /// The system's session folders beside the one now, oldest first, the one now last.
     fn sessions(&self) -> Vec<PathBuf> {
-        let prefix = format!("{}-", self.system);
-        // `<system>-<YYYYMMDD>T<HHMMSS>Z`: another system whose name extends this one's is
-        // not taken for it.
-        let ours = |name: &str| {
-            name.strip_prefix(&prefix)
-                .is_some_and(|t| t.len() == 16 && t.as_bytes()[8] == b'T' && t.ends_with('Z'))
+        let session = |p: &PathBuf| {
+            p.file_name()
+                .and_then(|n| n.to_str())
+                .and_then(|n| dnm_record::session::session_of(&self.system, n))
         };
         let mut out: Vec<PathBuf> = self
             .dir
@@ -131,9 +129,10 @@ impl Files {
             .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
             .map(|e| e.path())
             .filter(|p| *p != self.dir)
-            .filter(|p| p.file_name().and_then(|n| n.to_str()).is_some_and(ours))
+            .filter(|p| session(p).is_some())
             .collect();
-        out.sort();
+        // By start time, then run (`-2` after the run that started within the same second).
+        out.sort_by_key(|p| session(p));
         out.push(self.dir.clone());
         out
     }

@@ -70,7 +70,7 @@ const SPARE_LARGE: usize = 8;
 pub struct RecordOptions {
     /// Folder of the files (`recordings/` by default).
     pub dir: PathBuf,
-    /// File name stem; files are `<stem>-<dnm>[-<n>].mcap`.
+    /// File name stem; files are `<stem>-<dnm>[.n].mcap`.
     pub stem: String,
     /// Record only these modules or `module/port`s (all when empty).
     pub only: Vec<String>,
@@ -106,14 +106,17 @@ impl RecordOptions {
         }
     }
 
-    /// A session of `system` under `root`: `root/<system>-<UTC time>/rec-<dnm>[-<n>].mcap` and
-    /// its manifest (see [`crate::session`]), 1 GiB or 1 hour per file.
+    /// A session of `system` under `root`: `root/<system>-<UTC time>/rec-<dnm>[.n].mcap` and
+    /// its manifest (see [`crate::session`]), 1 GiB or 1 hour per file. The folder is made here
+    /// and is this run's alone: one of that name already there (a run started within the same
+    /// second, as a process restarted at once after a crash is) makes this one
+    /// `<system>-<UTC time>-2`, and so on.
     pub fn session(root: &Path, system: &str) -> Self {
         let secs = SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| d.as_secs());
         Self {
-            dir: root.join(crate::session::session_name(system, secs)),
+            dir: crate::session::claim_folder(root, &crate::session::session_name(system, secs)),
             stem: "rec".into(),
             session: true,
             ..Self::timestamped(root)
@@ -794,9 +797,9 @@ impl<W: std::io::Seek> std::io::Seek for Counting<W> {
 }
 
 /// Creates DNM `dnm`'s file number `index` in `options.dir`, or the first number after it that
-/// no file has: an existing file is never overwritten. One exists when a DNM started again
-/// within the second its session folder is named after (a crash, then a quick restart): its
-/// files follow its predecessor's. `index` becomes the number used.
+/// no file has: an existing file is never overwritten. (A session's folder is its run's alone;
+/// files of one stem in a folder given by the operator can be another run's.) `index` becomes
+/// the number used.
 fn create_file(
     dnm: &str,
     options: &RecordOptions,
@@ -814,7 +817,7 @@ fn create_file(
         match File::options().write(true).create_new(true).open(&path) {
             Ok(file) => return Ok((path, file)),
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists && *index < MAX_FILES => {
-                tracing::info!(
+                tracing::warn!(
                     file = %path.display(),
                     "a file of this name exists (an earlier run's): numbering after it"
                 );
@@ -1502,26 +1505,47 @@ mod tests {
     }
 
     #[test]
-    fn a_dnm_started_again_within_its_sessions_second_numbers_its_files_after_the_first_runs() {
+    fn a_recorder_numbers_its_files_after_those_an_earlier_run_left_in_its_folder() {
         let dir = std::env::temp_dir().join(format!("dnm-rerun-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
-        let tick = |seq: u64| bytemuck::bytes_of(&Tick { origin: 1, seq }).to_vec();
-        // Two runs of DNM `d` in one session folder: the second finds the first's file.
-        write_run(&dir, 10, 1 << 30, Tick::message_type(), &tick);
-        write_run(&dir, 10, 1 << 30, Tick::message_type(), &tick);
+        // Random origins do not compress: the first run rotates through several files.
+        let mut x = 0x9e37_79b9_7f4a_7c15_u64;
+        let random = std::sync::Mutex::new(move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        });
+        let tick = |seq: u64| {
+            let origin = random.lock().unwrap()();
+            bytemuck::bytes_of(&Tick { origin, seq }).to_vec()
+        };
+        let mcaps = || {
+            let mut names: Vec<String> = std::fs::read_dir(&dir)
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .filter(|n| n.ends_with(".mcap"))
+                .collect();
+            names.sort();
+            names
+        };
+        write_run(&dir, 300_000, 1 << 20, Tick::message_type(), &tick);
+        let first = mcaps().len();
+        assert!(first >= 2, "{:?}", mcaps());
+        // A second run of DNM `d` with the same stem in the same folder: its files follow.
+        write_run(&dir, 300_000, 1 << 20, Tick::message_type(), &tick);
         crate::session::settle();
-        let mut names: Vec<String> = std::fs::read_dir(&dir)
-            .unwrap()
-            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-            .filter(|n| n.ends_with(".mcap"))
-            .collect();
-        names.sort();
-        assert_eq!(names, ["t-d.1.mcap", "t-d.mcap"]);
+        let names = mcaps();
+        assert!(names.len() > first, "{names:?}");
+        let mut expected: Vec<String> = (1..names.len()).map(|n| format!("t-d.{n}.mcap")).collect();
+        expected.push("t-d.mcap".into());
+        expected.sort();
+        assert_eq!(names, expected);
         let manifest: crate::session::Manifest =
             serde_json::from_slice(&std::fs::read(dir.join(crate::session::MANIFEST)).unwrap())
                 .unwrap();
-        assert_eq!(manifest.messages, 20);
+        assert_eq!(manifest.messages, 600_000);
         assert!(manifest.files.iter().all(|f| f.complete));
         let _ = std::fs::remove_dir_all(&dir);
     }

@@ -1,5 +1,5 @@
-//! A recording session is one folder, `recordings/<system>-<UTC time>/`: every DNM's MCAP files
-//! of one run and a manifest (`manifest.json`, in the spirit of rosbag2's `metadata.yaml`):
+//! A recording session is one folder, `recordings/<system>-<UTC time>[-<n>]/` (see
+//! [`claim_folder`]): every DNM's MCAP files of one run and a manifest (`manifest.json`, in the spirit of rosbag2's `metadata.yaml`):
 //! the files, the DNMs, the revisions, the time range, message counts per file and channel, and
 //! the netlists. The manifest is built from the files' own MCAP summaries (read with seeks, so
 //! a file of any size costs a few reads), written when a recorder closes its files, and can be
@@ -96,6 +96,49 @@ pub enum SessionError {
         #[source]
         source: std::io::Error,
     },
+}
+
+/// Makes this run's session folder `root/<name>`, or `root/<name>-2`, `-3`, ... when a folder of
+/// that name exists (another run's, started within the same second). Made with `mkdir`, so two
+/// processes never take the same one. A folder that cannot be made (no permission, no space)
+/// is returned as it is, for the recorder's start to report.
+pub fn claim_folder(root: &Path, name: &str) -> PathBuf {
+    let _ = std::fs::create_dir_all(root);
+    for n in 1..=MAX_RUNS_PER_SECOND {
+        let dir = if n == 1 {
+            root.join(name)
+        } else {
+            root.join(format!("{name}-{n}"))
+        };
+        match std::fs::create_dir(&dir) {
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            _ => return dir,
+        }
+    }
+    root.join(name)
+}
+
+/// Runs of one system whose sessions may start within one second (see [`claim_folder`]).
+const MAX_RUNS_PER_SECOND: u32 = 1000;
+
+/// The session's start time and its run within that second, from a session folder's name
+/// (`<system>-<YYYYMMDDTHHMMSSZ>[-<n>]`, see [`claim_folder`]), if it is one of `system`'s:
+/// another system whose name extends this one's is not taken for it.
+pub fn session_of(system: &str, folder: &str) -> Option<(String, u32)> {
+    let t = folder.strip_prefix(system)?.strip_prefix('-')?;
+    let (time, run) = match t.split_once("Z-") {
+        Some((time, n)) => (
+            format!("{time}Z"),
+            n.parse::<u32>().ok().filter(|n| *n >= 2)?,
+        ),
+        None => (t.to_string(), 1),
+    };
+    let b = time.as_bytes();
+    let stamp = b.len() == 16
+        && b[8] == b'T'
+        && b[15] == b'Z'
+        && b[..8].iter().chain(&b[9..15]).all(u8::is_ascii_digit);
+    stamp.then_some((time, run))
 }
 
 /// `<system>-<YYYYMMDDTHHMMSSZ>` for a session started at `unix_s`.
@@ -609,6 +652,35 @@ mod tests {
         let m = index(&dir).unwrap();
         assert!(m.files.iter().all(|f| !f.complete && f.error.is_some()));
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_run_started_within_the_second_of_another_takes_a_folder_of_its_own() {
+        let root = std::env::temp_dir().join(format!("dnm-claim-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let name = session_name("b", 1_795_000_000);
+        let first = claim_folder(&root, &name);
+        let second = claim_folder(&root, &name);
+        let third = claim_folder(&root, &name);
+        assert_eq!(first, root.join("b-20261118T110640Z"));
+        assert_eq!(second, root.join("b-20261118T110640Z-2"));
+        assert_eq!(third, root.join("b-20261118T110640Z-3"));
+        assert!(first.is_dir() && second.is_dir() && third.is_dir());
+        let _ = std::fs::remove_dir_all(&root);
+    }
+
+    #[test]
+    fn session_folders_are_told_by_system_time_and_run() {
+        let t = "20261118T110640Z";
+        assert_eq!(session_of("b", &format!("b-{t}")), Some((t.into(), 1)));
+        assert_eq!(session_of("b", &format!("b-{t}-2")), Some((t.into(), 2)));
+        assert_eq!(session_of("b", &format!("b-{t}-12")), Some((t.into(), 12)));
+        // Another system whose name extends this one's, and names that are not sessions.
+        assert_eq!(session_of("b", &format!("b-x-{t}")), None);
+        assert_eq!(session_of("b", &format!("b-{t}-1")), None);
+        assert_eq!(session_of("b", &format!("b-{t}-x")), None);
+        assert_eq!(session_of("b", "b-2026111xT110640Z"), None);
+        assert_eq!(session_of("b", &format!("bb-{t}")), None);
     }
 
     #[test]
