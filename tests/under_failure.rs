@@ -233,9 +233,10 @@ fn existing_description(sys: &System, name: &str) -> PathBuf {
 /// written but still writable (iceoryx2 makes it read-only once the service is created).
 fn abandon(file: &Path) {
     use std::os::unix::fs::PermissionsExt;
-    // Writable first: a finished description is read-only, even to its owner.
-    std::fs::set_permissions(file, std::fs::Permissions::from_mode(0o600)).unwrap();
+    // Made anew: a finished description is read-only, even to its owner.
+    let _ = std::fs::remove_file(file);
     std::fs::write(file, "").unwrap();
+    std::fs::set_permissions(file, std::fs::Permissions::from_mode(0o600)).unwrap();
 }
 
 fn abandoned(file: &Path) -> bool {

@@ -75,6 +75,14 @@ pub fn port_limits(payload: &dnm_netlist::Payload) -> (usize, usize) {
 }
 /// Samples a reader may hold at once (the latest value plus one being swapped in).
 pub const PORT_BORROWED: usize = 2;
+/// Connections of publishers gone (a module restarted or replaced) whose samples a subscriber
+/// has not read yet that it keeps, beside its live ones. iceoryx2's default, 128, gives every
+/// subscriber a table of 131 connections of 3.6 KB, written through at its creation: about
+/// 470 KB per subscriber, 20 MB of Beetle-One's DNM process without recording. 16 is five
+/// replacements of every publisher a port admits; past it the oldest gone publisher's unread
+/// samples are dropped (iceoryx2 warns), never one a reader holds (it keeps at least
+/// [`PORT_BORROWED`] for those).
+pub const EXPIRED_CONNECTIONS: usize = 16;
 /// Modules one DNM hosts at most.
 pub const MAX_MODULES: usize = 256;
 
@@ -150,6 +158,10 @@ pub fn dnm_config(prefix: &str) -> Result<Config, DnmConfigError> {
     };
     let mut config = Config::default();
     config.global.prefix = FileName::new(prefix.as_bytes()).map_err(bad)?;
+    config
+        .defaults
+        .publish_subscribe
+        .subscriber_expired_connection_buffer = EXPIRED_CONNECTIONS;
     let mut nodes = config.global.node.directory;
     nodes
         .add_path_entry(&Path::new(prefix.as_bytes()).map_err(bad)?)
