@@ -132,7 +132,7 @@ impl Files {
             .filter(|p| session(p).is_some())
             .collect();
         // By start time, then run (`-2` after the run that started within the same second).
-        out.sort_by_key(|p| session(p));
+        out.sort_by_cached_key(session);
         out.push(self.dir.clone());
         out
     }

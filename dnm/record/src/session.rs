@@ -1,9 +1,9 @@
 //! A recording session is one folder, `recordings/<system>-<UTC time>[-<n>]/` (see
-//! [`claim_folder`]): every DNM's MCAP files of one run and a manifest (`manifest.json`, in the spirit of rosbag2's `metadata.yaml`):
-//! the files, the DNMs, the revisions, the time range, message counts per file and channel, and
-//! the netlists. The manifest is built from the files' own MCAP summaries (read with seeks, so
-//! a file of any size costs a few reads), written when a recorder closes its files, and can be
-//! built again at any time (`dnm recordings DIR`).
+//! [`claim_folder`]): every DNM's MCAP files of one run and a manifest (`manifest.json`, in the
+//! spirit of rosbag2's `metadata.yaml`): the files, the DNMs, the revisions, the time range,
+//! message counts per file and channel, and the netlists. The manifest is built from the files'
+//! own MCAP summaries (read with seeks, so a file of any size costs a few reads), written when a
+//! recorder closes its files, and can be built again at any time (`dnm recordings DIR`).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fs::File;
