@@ -295,6 +295,59 @@ fn shared_memory_of(system: &str) -> Vec<String> {
         .collect()
 }
 
+/// A DNM builds its report for the Zenoh side when something in it changes or a tool asks,
+/// not on every supervision tick; a tool asking over Zenoh still gets the live figures.
+#[test]
+fn reports_are_made_when_asked_and_carry_the_live_figures() {
+    use zenoh::Wait;
+    let port = support::free_port();
+    let sys = System::start_with(
+        PIPELINE,
+        &["--no-multicast", "--listen", &support::endpoint(port)],
+    );
+    let session = support::zenoh_client(port);
+    let over_zenoh = || -> Option<dnm::DnmReport> {
+        let replies = session
+            .get(format!("{}/dnm/main", sys.name))
+            .timeout(std::time::Duration::from_secs(5))
+            .wait()
+            .ok()?;
+        let reply = replies.recv().ok()?;
+        serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
+    };
+    let steps = |r: &dnm::DnmReport| r.modules.iter().find(|m| m.name == "src_a").unwrap().steps;
+    let first = support::eventually("the DNM's report over Zenoh", over_zenoh);
+    // The ticker steps forty times more (at least 200 ms, as the DNM itself counts them,
+    // through the admin socket)...
+    let direct = sys.wait_for("forty more steps", |r| {
+        r.dnms[0]
+            .modules
+            .iter()
+            .any(|m| m.name == "src_a" && m.steps >= steps(&first) + 40)
+    });
+    // ...and a tool asking now is shown them, though the DNM makes a report for the Zenoh side
+    // only once a second unless asked.
+    let second = support::eventually("the DNM's report over Zenoh", over_zenoh);
+    assert!(
+        steps(&second) > steps(&first),
+        "the figures did not move: {} then {} steps (the DNM itself counted {})",
+        steps(&first),
+        steps(&second),
+        steps(&direct.dnms[0])
+    );
+    // Thirty ticks go by: the DNM made a few reports in them, not one a tick.
+    sys.wait_for("thirty ticks", |r| {
+        r.dnms[0].supervision.passes >= second.supervision.passes + 30
+    });
+    let third = support::eventually("the DNM's report over Zenoh", over_zenoh);
+    let passes = third.supervision.passes - second.supervision.passes;
+    let snapshots = third.supervision.snapshots - second.supervision.snapshots;
+    assert!(
+        snapshots * 2 < passes,
+        "{snapshots} reports made in {passes} ticks"
+    );
+}
+
 #[test]
 fn a_dnm_stopped_cleanly_leaves_no_shared_memory_behind() {
     let mut sys = System::start(PIPELINE);

@@ -37,6 +37,7 @@ mod pending;
 pub mod plan;
 mod plugin;
 pub mod procfs;
+mod publish;
 mod safe;
 mod slot;
 mod supervise;
@@ -52,6 +53,7 @@ pub use error::DnmError;
 pub use node::{Commander, Dnm, clear_stop_if_idle, request_stop};
 pub use options::{DnmOptions, module_host_path};
 pub use plugin::{Context, Plugin, PluginPrepareError, Snapshot};
+pub use publish::SNAPSHOT_EVERY;
 
 use dnm_netlist::Netlist;
 

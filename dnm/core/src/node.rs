@@ -28,8 +28,9 @@ use crate::exits::Exits;
 use crate::janitor::Janitor;
 use crate::options::DnmOptions;
 use crate::pending::{Decided, HeldSwitch, NEAR, Outcome, PendingApply, QueuedApply, Scheduled};
-use crate::plugin::{Plugin, Snapshot};
+use crate::plugin::Plugin;
 use crate::procfs::CpuMeter;
+use crate::publish::Watched;
 use crate::slot::{ModuleSlot, PortServices, Stopping, Svc};
 
 type TsSvc = ipc_threadsafe::Service;
@@ -40,6 +41,8 @@ pub(crate) const COMMAND_QUEUE: usize = 64;
 const ANSWERED: usize = 1024;
 /// Shortest time between two checks of the modules' processes.
 const SUPERVISE_EVERY: Duration = Duration::from_millis(10);
+/// How often the DNM reads its own and its modules' memory from `/proc`.
+pub(crate) const MEMORY_EVERY: Duration = Duration::from_secs(5);
 
 /// Set when this process was asked to terminate; every DNM loop of the process stops.
 static STOP: AtomicBool = AtomicBool::new(false);
@@ -142,10 +145,11 @@ pub struct Dnm {
     pub(crate) last_attempt: u64,
     pub(crate) tasks: Vec<String>,
     pub(crate) active: Option<String>,
-    switches: VecDeque<SwitchRecord>,
+    pub(crate) switches: VecDeque<SwitchRecord>,
     pub(crate) cpu: CpuMeter,
     pub(crate) memory: Option<Memory>,
     pub(crate) proc_read: Instant,
+    pub(crate) memory_read: Instant,
     pub(crate) cleaned: u64,
     pub(crate) janitor: Janitor,
     /// Watches the module processes: an exit wakes the loop at once.
@@ -170,7 +174,9 @@ pub struct Dnm {
     pub(crate) warned_realtime: bool,
     commands: Receiver<Command>,
     command_tx: Option<SyncSender<Command>>,
-    supervision: SupervisionReport,
+    pub(crate) supervision: SupervisionReport,
+    /// When the last snapshot was handed to plugins, and what it watched.
+    pub(crate) published: Option<(Instant, Watched)>,
     last_pass: Option<Instant>,
     last_supervise: Instant,
 }
@@ -271,7 +277,13 @@ impl Dnm {
             switches: VecDeque::new(),
             cpu: CpuMeter::default(),
             memory: None,
-            proc_read: Instant::now() - Duration::from_secs(2),
+            // Read at the first pass.
+            proc_read: Instant::now()
+                .checked_sub(Duration::from_secs(2))
+                .unwrap_or_else(Instant::now),
+            memory_read: Instant::now()
+                .checked_sub(MEMORY_EVERY)
+                .unwrap_or_else(Instant::now),
             cleaned,
             janitor: Janitor::start(name, config.clone(), prompt.clone()),
             exits: Exits::start(name, config.clone(), prompt.clone()),
@@ -292,6 +304,7 @@ impl Dnm {
             commands,
             command_tx: Some(command_tx),
             supervision: SupervisionReport::default(),
+            published: None,
             last_pass: None,
             last_supervise: Instant::now(),
         })
@@ -593,8 +606,8 @@ impl Dnm {
         }
     }
 
-    /// The periodic part of supervision: CPU and memory readings and a fresh snapshot for plugins
-    /// (exits, hangs and restarts are checked on every wake).
+    /// The periodic part of supervision: CPU and memory readings, and a snapshot for plugins
+    /// when one is due (exits, hangs and restarts are checked on every wake).
     fn pass(&mut self) {
         let now = Instant::now();
         if let Some(last) = self.last_pass {
@@ -604,21 +617,7 @@ impl Dnm {
         self.last_pass = Some(now);
         self.supervision.passes += 1;
         self.meter();
-        self.publish();
-    }
-
-    /// Hands plugins the DNM's newest state.
-    pub(crate) fn publish(&mut self) {
-        if self.plugins.is_empty() {
-            return;
-        }
-        let snapshot = Arc::new(Snapshot {
-            report: self.report(),
-            netlist: self.netlist_state(),
-        });
-        for p in &mut self.plugins {
-            p.published(&snapshot);
-        }
+        self.publish_if_due();
     }
 
     pub(crate) fn answered(&self, key: &CommandKey) -> Option<Outcome> {
@@ -641,6 +640,7 @@ impl Dnm {
             match cmd {
                 Command::Status(reply) => reply.send(self.report()),
                 Command::Netlist(reply) => reply.send(self.netlist_state()),
+                Command::Refresh => {}
                 Command::Switch { reply, .. } => reply.send(Err(DnmError::Stopped)),
                 Command::Apply { reply, .. } => reply.send(Err(DnmError::Stopped)),
                 Command::Prepare { reply, .. } => reply.send(Err(DnmError::Stopped)),
@@ -655,6 +655,7 @@ impl Dnm {
         match cmd {
             Command::Status(reply) => reply.send(self.report()),
             Command::Netlist(reply) => reply.send(self.netlist_state()),
+            Command::Refresh => self.publish(),
             Command::Switch { task, key, reply } => {
                 if let Some(k) = &key {
                     match self.answered(k) {

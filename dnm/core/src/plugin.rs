@@ -61,7 +61,10 @@ pub trait Plugin {
     fn report(&self, report: &mut DnmReport) {
         let _ = report;
     }
-    /// The DNM's newest state, after every supervision pass and command.
+    /// The DNM's newest state: after every command that changes it, on the supervision tick
+    /// when anything a reader acts on changed, when a tool asked for one
+    /// ([`Command::Refresh`](crate::Command::Refresh)), and at least once every
+    /// [`SNAPSHOT_EVERY`](crate::SNAPSHOT_EVERY).
     fn published(&mut self, snapshot: &Arc<Snapshot>) {
         let _ = snapshot;
     }
@@ -72,4 +75,6 @@ pub trait Plugin {
 pub struct Snapshot {
     pub report: DnmReport,
     pub netlist: NetlistState,
+    /// When it was taken.
+    pub taken: std::time::Instant,
 }

@@ -10,7 +10,7 @@ use dnm_proto::{ModuleEvent, ModuleRunState};
 use iceoryx2::port::update_connections::UpdateConnections;
 
 use crate::error::DnmError;
-use crate::node::Dnm;
+use crate::node::{Dnm, MEMORY_EVERY};
 use crate::slot::{ModuleSlot, PortServices, Stopping};
 
 /// The largest back-off between restarts.
@@ -329,19 +329,27 @@ impl Dnm {
         }
     }
 
-    /// Rate readings on every pass; CPU and memory from `/proc` once a second (a reading of
-    /// every module's `/proc` files on each pass was most of what an idle DNM's loop cost).
+    /// Rate readings on every pass; CPU from `/proc` once a second, memory once every
+    /// [`MEMORY_EVERY`] (and at the first second of a process): a reading of every module's
+    /// `/proc` files on each pass was most of what an idle DNM's loop cost, and memory moves
+    /// slowly.
     pub(crate) fn meter(&mut self) {
         let read_proc = self.proc_read.elapsed() >= Duration::from_secs(1);
+        let read_memory = read_proc && self.memory_read.elapsed() >= MEMORY_EVERY;
         if read_proc {
             self.proc_read = Instant::now();
             self.cpu.sample(std::process::id());
+        }
+        if read_memory {
+            self.memory_read = Instant::now();
             self.memory = crate::procfs::memory(std::process::id());
         }
         for slot in self.modules.values_mut() {
             if let Some(pid) = slot.pid() {
                 if read_proc {
                     slot.cpu.sample(pid);
+                }
+                if read_memory || read_proc && slot.memory.is_none() {
                     slot.memory = crate::procfs::memory(pid);
                 }
             } else {

@@ -179,6 +179,10 @@ pub struct SupervisionReport {
     pub passes: u64,
     /// Longest time between two passes since the DNM started, ms.
     pub max_gap_ms: u64,
+    /// Snapshots handed to the DNM's plugins so far (on changes, on request, and at least one
+    /// a second).
+    #[serde(default)]
+    pub snapshots: u64,
 }
 
 /// A DNM on the task its netlist names for loss of signal because it was told to or by itself:

@@ -154,7 +154,8 @@ impl Bridge {
             .create::<TsSvc>()
             .map_err(BridgeStartError::Node)?;
         let shared = Arc::new(Shared::default());
-        let (query_thread, query_tx) = spawn_query_thread(&session, system, dnm, prefix, &shared)?;
+        let (query_thread, query_tx) =
+            spawn_query_thread(&session, system, dnm, prefix, &shared, commander.clone())?;
         let lease_commander = commander.clone();
         let (command_thread, command_tx) =
             spawn_command_thread(system, dnm, &shared, commander, door)?;
@@ -420,6 +421,7 @@ fn spawn_query_thread(
     dnm: &str,
     prefix: &str,
     shared: &Arc<Shared>,
+    commander: Commander,
 ) -> Result<(JoinHandle<()>, QueryQueue), BridgeStartError> {
     let (query_tx, query_rx) = mpsc::sync_channel::<QueryJob>(QUERY_QUEUE + 1);
     let shared = shared.clone();
@@ -427,7 +429,11 @@ fn spawn_query_thread(
     let (system, dnm, prefix) = (system.to_string(), dnm.to_string(), prefix.to_string());
     let thread = std::thread::Builder::new()
         .name(format!("zenoh-queries-{dnm}"))
-        .spawn(move || query_loop(&session, &system, &dnm, &prefix, &shared, &query_rx))
+        .spawn(move || {
+            query_loop(
+                &session, &system, &dnm, &prefix, &shared, &commander, &query_rx,
+            )
+        })
         .map_err(thread_err("query"))?;
     Ok((thread, query_tx))
 }
@@ -743,12 +749,7 @@ impl Plugin for Bridge {
     }
 
     fn published(&mut self, snapshot: &Arc<Snapshot>) {
-        let before = self
-            .shared
-            .snapshot
-            .lock()
-            .ok()
-            .and_then(|mut s| s.replace(snapshot.clone()));
+        let before = self.shared.set_snapshot(snapshot);
         // The query thread follows the running modules: told when they change.
         fn running(s: &Snapshot) -> impl Iterator<Item = &str> {
             s.report

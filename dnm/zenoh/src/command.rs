@@ -27,7 +27,7 @@ pub(crate) enum CommandJob {
 }
 
 /// Takes commands from Zenoh, hands switches and applies to the DNM, and replies when it
-/// answers. Status and netlist requests are answered from the snapshot.
+/// answers. Status and netlist requests are answered from the DNM's snapshots.
 pub(crate) fn command_loop(
     system: &str,
     dnm: &str,
@@ -188,9 +188,13 @@ impl Commands<'_> {
         }
     }
 
-    /// The DNM's report or its netlist, from the latest snapshot.
+    /// The DNM's report (live: a fresh snapshot) or its netlist (the newest).
     fn state(&self, query: Query, request: &Request) {
-        let r = match (self.shared.snapshot(), request) {
+        let snapshot = match request {
+            Request::Status => self.shared.fresh_snapshot(self.commander),
+            _ => self.shared.snapshot(),
+        };
+        let r = match (snapshot, request) {
             (None, _) => Response::error(format!("DNM `{}` is starting", self.dnm)),
             (Some(s), Request::Status) => Response {
                 ok: true,

@@ -241,6 +241,7 @@ mod tests {
         Snapshot {
             report: serde_json::from_value(report).unwrap(),
             netlist: serde_json::from_value(netlist).unwrap(),
+            taken: std::time::Instant::now(),
         }
     }
 

@@ -9,7 +9,7 @@ use std::sync::mpsc::{self, Receiver};
 use std::time::Duration;
 
 use dnm_core::worker::{dbg, err};
-use dnm_core::{DnmReport, Snapshot};
+use dnm_core::{Commander, DnmReport, Snapshot};
 use dnm_module::port_service;
 use dnm_module::protocol::{PortHeader, dnm_config};
 use dnm_netlist::MessageType;
@@ -106,6 +106,7 @@ pub(crate) fn query_loop(
     dnm: &str,
     prefix: &str,
     shared: &Shared,
+    commander: &Commander,
     queries: &Receiver<QueryJob>,
 ) {
     let node = match dnm_config(prefix).map_err(|e| e.to_string()).and_then(|c| {
@@ -181,6 +182,18 @@ pub(crate) fn query_loop(
         }
         let Some(QueryJob::Answer(target, query)) = job else {
             continue;
+        };
+        // The report and a module's figures are asked for live; a brief, the netlist and the
+        // wiring are what the DNM watches, never older than a tick.
+        let live = match target {
+            Target::Dnm => !query.parameters().contains_key("brief"),
+            Target::Module => true,
+            Target::Netlist | Target::Wiring | Target::Port => false,
+        };
+        let snapshot = if live {
+            shared.fresh_snapshot(commander).or(snapshot)
+        } else {
+            snapshot
         };
         answer(
             system,

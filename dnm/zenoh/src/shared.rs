@@ -1,11 +1,11 @@
 //! What the bridge's threads and callbacks share, and the bounds of their queues.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicU64, AtomicUsize};
-use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
 
-use dnm_core::Snapshot;
+use dnm_core::{Command, Commander, Snapshot};
 use dnm_netlist::{MessageType, Wiring};
 use iceoryx2::prelude::*;
 
@@ -21,10 +21,22 @@ pub const COMMAND_QUEUE: usize = 32;
 /// Applies among them at most: applies take seconds, and must leave room for switches.
 pub const APPLIES_IN_FLIGHT: usize = 4;
 
+/// How old a snapshot may be when a tool asks for the DNM's report or a module's figures (the
+/// supervision tick).
+pub(crate) const FRESH: Duration = Duration::from_millis(100);
+/// How long a question waits for the DNM to hand over a fresh snapshot before it is answered
+/// from the newest there is (the DNM may be putting a decision in force).
+const FRESH_WAIT: Duration = Duration::from_millis(500);
+
 /// What the bridge's threads and callbacks share.
 #[derive(Default)]
 pub(crate) struct Shared {
     pub(crate) snapshot: Mutex<Option<Arc<Snapshot>>>,
+    /// Signalled with each new snapshot.
+    pub(crate) fresh: Condvar,
+    /// A fresh snapshot is asked of the DNM and not yet handed over: no second request is
+    /// queued (the DNM's command queue stays free for commands).
+    pub(crate) refresh_asked: AtomicBool,
     pub(crate) peers: Mutex<BTreeMap<String, (bool, Instant)>>,
     /// Peers that announced they stop in order (their leaving token), until they come back.
     pub(crate) leaving: Mutex<std::collections::BTreeSet<String>>,
@@ -51,7 +63,51 @@ pub(crate) struct Shared {
 }
 
 impl Shared {
+    /// The newest snapshot: what readers that act without asking need is never older than a
+    /// tick (see `dnm_core`'s `publish`); the live figures may be up to a second old.
     pub(crate) fn snapshot(&self) -> Option<Arc<Snapshot>> {
         self.snapshot.lock().ok().and_then(|s| s.clone())
+    }
+
+    /// A snapshot at most [`FRESH`] old, for a tool asking for the live figures: the DNM is
+    /// asked for one if the newest is older, and waited for up to [`FRESH_WAIT`]; past that
+    /// (the DNM busy, its queue full) the newest there is.
+    pub(crate) fn fresh_snapshot(&self, commander: &Commander) -> Option<Arc<Snapshot>> {
+        let asked = Instant::now();
+        let current = self.snapshot();
+        if current
+            .as_ref()
+            .is_some_and(|s| asked.saturating_duration_since(s.taken) <= FRESH)
+        {
+            return current;
+        }
+        if !self.refresh_asked.swap(true, Ordering::AcqRel)
+            && commander.send(Command::Refresh).is_err()
+        {
+            self.refresh_asked.store(false, Ordering::Release);
+            return current;
+        }
+        let Ok(guard) = self.snapshot.lock() else {
+            return current;
+        };
+        let waited = self
+            .fresh
+            .wait_timeout_while(guard, FRESH_WAIT, |s| {
+                s.as_ref().is_none_or(|s| s.taken < asked)
+            })
+            .map(|(guard, _)| guard.clone());
+        waited.ok().flatten().or(current)
+    }
+
+    /// The DNM handed over `snapshot`.
+    pub(crate) fn set_snapshot(&self, snapshot: &Arc<Snapshot>) -> Option<Arc<Snapshot>> {
+        let before = self
+            .snapshot
+            .lock()
+            .ok()
+            .and_then(|mut s| s.replace(snapshot.clone()));
+        self.refresh_asked.store(false, Ordering::Release);
+        self.fresh.notify_all();
+        before
     }
 }
