@@ -28,9 +28,8 @@ use crate::exits::Exits;
 use crate::janitor::Janitor;
 use crate::options::DnmOptions;
 use crate::pending::{Decided, HeldSwitch, NEAR, Outcome, PendingApply, QueuedApply, Scheduled};
-use crate::plugin::Plugin;
+use crate::plugin::{Plugin, Watched};
 use crate::procfs::CpuMeter;
-use crate::publish::Watched;
 use crate::slot::{ModuleSlot, PortServices, Stopping, Svc};
 
 type TsSvc = ipc_threadsafe::Service;

@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 use std::sync::Arc;
 
 use dnm_netlist::Netlist;
-use dnm_proto::{DnmReport, ModuleEvent, NetlistState, SwitchRecord};
+use dnm_proto::{DnmReport, ModuleEvent, ModuleRunState, NetlistState, Safed, SwitchRecord};
 use iceoryx2::prelude::*;
 
 /// What a [`Plugin`] sees of its DNM.
@@ -77,4 +77,24 @@ pub struct Snapshot {
     pub netlist: NetlistState,
     /// When it was taken.
     pub taken: std::time::Instant,
+}
+
+/// What the DNM's readers act on without asking for a fresh snapshot: a change of any of it
+/// is published on the tick it is seen (or at once, by the command that made it).
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Watched {
+    pub(crate) revision: u64,
+    pub(crate) last_attempt: u64,
+    pub(crate) active: Option<String>,
+    pub(crate) preparing: Option<u64>,
+    pub(crate) holding: Option<u64>,
+    pub(crate) scheduled_at: Option<u64>,
+    pub(crate) stopping: usize,
+    pub(crate) safed: Option<Safed>,
+    /// Per module, in name order: state, process, restarts, hangs, the revision it follows.
+    pub(crate) modules: Vec<(ModuleRunState, Option<u32>, u32, u32, u64)>,
+    /// The newest switch and module event (both logs keep a bounded tail, so their lengths
+    /// stop changing).
+    pub(crate) last_switch_ns: Option<u64>,
+    pub(crate) last_event_ns: Option<u64>,
 }

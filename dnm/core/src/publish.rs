@@ -12,33 +12,11 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use dnm_proto::{ModuleRunState, Safed};
-
 use crate::node::Dnm;
-use crate::plugin::Snapshot;
+use crate::plugin::{Snapshot, Watched};
 
 /// Longest time between two snapshots when nothing watched changes and nobody asks.
 pub const SNAPSHOT_EVERY: Duration = Duration::from_secs(1);
-
-/// What the DNM's readers act on without asking for a fresh snapshot: a change of any of it
-/// is published on the tick it is seen (or at once, by the command that made it).
-#[derive(Debug, Clone, PartialEq)]
-pub(crate) struct Watched {
-    revision: u64,
-    last_attempt: u64,
-    active: Option<String>,
-    preparing: Option<u64>,
-    holding: Option<u64>,
-    scheduled_at: Option<u64>,
-    stopping: usize,
-    safed: Option<Safed>,
-    /// Per module, in name order: state, process, restarts, hangs, the revision it follows.
-    modules: Vec<(ModuleRunState, Option<u32>, u32, u32, u64)>,
-    /// The newest switch and module event (both logs keep a bounded tail, so their lengths
-    /// stop changing).
-    last_switch_ns: Option<u64>,
-    last_event_ns: Option<u64>,
-}
 
 impl Dnm {
     pub(crate) fn watched(&self) -> Watched {

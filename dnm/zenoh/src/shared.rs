@@ -1,7 +1,7 @@
 //! What the bridge's threads and callbacks share, and the bounds of their queues.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
@@ -34,9 +34,10 @@ pub(crate) struct Shared {
     pub(crate) snapshot: Mutex<Option<Arc<Snapshot>>>,
     /// Signalled with each new snapshot.
     pub(crate) fresh: Condvar,
-    /// A fresh snapshot is asked of the DNM and not yet handed over: no second request is
-    /// queued (the DNM's command queue stays free for commands).
-    pub(crate) refresh_asked: AtomicBool,
+    /// Since when a fresh snapshot is asked of the DNM and not yet handed over: no second
+    /// request is queued (the DNM's command queue stays free for commands), and once the DNM
+    /// has let one wait [`FRESH_WAIT`], questions are answered at once from the newest.
+    pub(crate) refresh_asked: Mutex<Option<Instant>>,
     pub(crate) peers: Mutex<BTreeMap<String, (bool, Instant)>>,
     /// Peers that announced they stop in order (their leaving token), until they come back.
     pub(crate) leaving: Mutex<std::collections::BTreeSet<String>>,
@@ -74,27 +75,36 @@ impl Shared {
     /// (the DNM busy, its queue full) the newest there is.
     pub(crate) fn fresh_snapshot(&self, commander: &Commander) -> Option<Arc<Snapshot>> {
         let asked = Instant::now();
+        let stale = |s: &Option<Arc<Snapshot>>| {
+            s.as_ref()
+                .is_none_or(|s| asked.saturating_duration_since(s.taken) > FRESH)
+        };
         let current = self.snapshot();
-        if current
-            .as_ref()
-            .is_some_and(|s| asked.saturating_duration_since(s.taken) <= FRESH)
-        {
+        if !stale(&current) {
             return current;
         }
-        if !self.refresh_asked.swap(true, Ordering::AcqRel)
-            && commander.send(Command::Refresh).is_err()
         {
-            self.refresh_asked.store(false, Ordering::Release);
-            return current;
+            let Ok(mut since) = self.refresh_asked.lock() else {
+                return current;
+            };
+            match *since {
+                // The DNM is busy (a decision coming into force): do not wait on it again.
+                Some(at) if at.elapsed() >= FRESH_WAIT => return current,
+                Some(_) => {}
+                None => {
+                    if commander.send(Command::Refresh).is_err() {
+                        return current;
+                    }
+                    *since = Some(asked);
+                }
+            }
         }
         let Ok(guard) = self.snapshot.lock() else {
             return current;
         };
         let waited = self
             .fresh
-            .wait_timeout_while(guard, FRESH_WAIT, |s| {
-                s.as_ref().is_none_or(|s| s.taken < asked)
-            })
+            .wait_timeout_while(guard, FRESH_WAIT, |s| stale(s))
             .map(|(guard, _)| guard.clone());
         waited.ok().flatten().or(current)
     }
@@ -106,7 +116,9 @@ impl Shared {
             .lock()
             .ok()
             .and_then(|mut s| s.replace(snapshot.clone()));
-        self.refresh_asked.store(false, Ordering::Release);
+        if let Ok(mut since) = self.refresh_asked.lock() {
+            *since = None;
+        }
         self.fresh.notify_all();
         before
     }
