@@ -176,6 +176,8 @@ pub struct Dnm {
     pub(crate) supervision: SupervisionReport,
     /// When the last snapshot was handed to plugins, and what it watched.
     pub(crate) published: Option<(Instant, Watched)>,
+    /// A tool asked for a fresh snapshot ([`Command::Refresh`]).
+    pub(crate) refresh: bool,
     last_pass: Option<Instant>,
     last_supervise: Instant,
 }
@@ -304,6 +306,7 @@ impl Dnm {
             command_tx: Some(command_tx),
             supervision: SupervisionReport::default(),
             published: None,
+            refresh: false,
             last_pass: None,
             last_supervise: Instant::now(),
         })
@@ -568,6 +571,11 @@ impl Dnm {
             self.give_up_stale_hold();
             self.retry_deferred_prepare();
             if self.quiet() {
+                // No statuses are read while a switch is held: a snapshot asked for is made
+                // from the last ones rather than waiting for the hold to end.
+                if self.refresh {
+                    self.publish();
+                }
                 continue;
             }
             self.read_statuses();
@@ -586,6 +594,10 @@ impl Dnm {
                 .is_none_or(|t| t.elapsed() + Duration::from_millis(1) >= self.options.tick);
             if due {
                 self.pass();
+            }
+            // Asked for by a tool: made once this wake's statuses are read.
+            if self.refresh {
+                self.publish();
             }
         }
         Ok(())
@@ -654,7 +666,7 @@ impl Dnm {
         match cmd {
             Command::Status(reply) => reply.send(self.report()),
             Command::Netlist(reply) => reply.send(self.netlist_state()),
-            Command::Refresh => self.publish(),
+            Command::Refresh => self.refresh = true,
             Command::Switch { task, key, reply } => {
                 if let Some(k) = &key {
                     match self.answered(k) {

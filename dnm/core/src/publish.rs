@@ -49,6 +49,7 @@ impl Dnm {
 
     /// Hands plugins the DNM's newest state.
     pub(crate) fn publish(&mut self) {
+        self.refresh = false;
         if self.plugins.is_empty() {
             return;
         }

@@ -776,6 +776,11 @@ impl Drop for Bridge {
         // Queryables first, so nothing new arrives; then the threads end.
         self._queryables.clear();
         self.shared.stop.store(true, Ordering::Relaxed);
+        // A question waiting for a snapshot this DNM will no longer make is answered now.
+        {
+            let _held = self.shared.snapshot.lock();
+            self.shared.fresh.notify_all();
+        }
         self.query_tx.take();
         if let Some(tx) = self.command_tx.take() {
             let _ = tx.try_send(CommandJob::Stop);

@@ -27,7 +27,8 @@ pub(crate) enum CommandJob {
 }
 
 /// Takes commands from Zenoh, hands switches and applies to the DNM, and replies when it
-/// answers. Status and netlist requests are answered from the DNM's snapshots.
+/// answers. A status request is the DNM's own report; a netlist request is answered from its
+/// snapshot.
 pub(crate) fn command_loop(
     system: &str,
     dnm: &str,
@@ -188,20 +189,21 @@ impl Commands<'_> {
         }
     }
 
-    /// The DNM's report (live: a fresh snapshot) or its netlist (the newest).
+    /// The DNM's report, asked of the DNM (the live figures, as the admin socket answers
+    /// them; the reply comes when the DNM answers, this thread does not wait), or its netlist
+    /// (the newest snapshot's).
     fn state(&self, query: Query, request: &Request) {
-        let snapshot = match request {
-            Request::Status => self.shared.fresh_snapshot(self.commander),
-            _ => self.shared.snapshot(),
-        };
-        let r = match (snapshot, request) {
-            (None, _) => Response::error(format!("DNM `{}` is starting", self.dnm)),
-            (Some(s), Request::Status) => Response {
+        if matches!(request, Request::Status) {
+            let (reply, slot) = answer_slot(self.jobs_tx.clone(), query, |report| Response {
                 ok: true,
-                dnms: vec![s.report.clone()],
+                dnms: vec![report],
                 ..Response::default()
-            },
-            (Some(s), _) => Response {
+            });
+            return self.hand(Command::Status(reply), slot);
+        }
+        let r = match self.shared.snapshot() {
+            None => Response::error(format!("DNM `{}` is starting", self.dnm)),
+            Some(s) => Response {
                 ok: true,
                 revision: Some(s.netlist.revision),
                 netlist: s.netlist.text.clone(),

@@ -268,11 +268,14 @@ pub(crate) fn answer(
                         &dnm_proto::DnmGlance::of(&s.report),
                     );
                 } else if query.parameters().contains_key("brief") {
-                    reply_json(
-                        query,
-                        keys::dnm(system, dnm),
-                        &dnm_proto::DnmBrief::of(&s.report),
-                    );
+                    let mut brief = dnm_proto::DnmBrief::of(&s.report);
+                    // Everything else in a brief is watched (never older than a tick); the
+                    // clock offset moves with every beat of the authority: read it live.
+                    if shared.authority.get().is_some() {
+                        brief.clock_offset_ms =
+                            shared.lease.lock().ok().and_then(|l| l.clock_offset_ms());
+                    }
+                    reply_json(query, keys::dnm(system, dnm), &brief);
                 } else {
                     reply_json(query, keys::dnm(system, dnm), &s.report);
                 }

@@ -1,7 +1,7 @@
 //! What the bridge's threads and callbacks share, and the bounds of their queues.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicU64, AtomicUsize};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
@@ -80,7 +80,7 @@ impl Shared {
                 .is_none_or(|s| asked.saturating_duration_since(s.taken) > FRESH)
         };
         let current = self.snapshot();
-        if !stale(&current) {
+        if !stale(&current) || self.stop.load(Ordering::Relaxed) {
             return current;
         }
         {
@@ -104,7 +104,9 @@ impl Shared {
         };
         let waited = self
             .fresh
-            .wait_timeout_while(guard, FRESH_WAIT, |s| stale(s))
+            .wait_timeout_while(guard, FRESH_WAIT, |s| {
+                stale(s) && !self.stop.load(Ordering::Relaxed)
+            })
             .map(|(guard, _)| guard.clone());
         waited.ok().flatten().or(current)
     }
