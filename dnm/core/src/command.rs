@@ -47,9 +47,10 @@ impl<T: Send + 'static> Reply<T> {
 #[derive(Debug)]
 pub enum Command {
     Status(Reply<DnmReport>),
-    /// Hand the plugins a fresh snapshot now: a tool asks for the live figures (steps, rates,
-    /// CPU), which a snapshot otherwise carries at most [`SNAPSHOT_EVERY`](crate::SNAPSHOT_EVERY)
-    /// old.
+    /// Hand the plugins a fresh snapshot in this wake, once its module statuses are read
+    /// (unless a command of the same wake made one): a tool asks for the live figures (steps,
+    /// rates, CPU), which a snapshot otherwise carries at most
+    /// [`SNAPSHOT_EVERY`](crate::SNAPSHOT_EVERY) old.
     Refresh,
     Netlist(Reply<NetlistState>),
     Switch {

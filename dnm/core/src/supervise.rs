@@ -380,6 +380,8 @@ impl Dnm {
         }
         let deadline = Instant::now() + self.options.stop_grace;
         while !self.stopping.is_empty() {
+            // What the bridge still hands over while modules stop is answered, not dropped.
+            self.refuse_queued_commands();
             self.stopping
                 .retain_mut(|s| !matches!(s.child.try_wait(), Ok(Some(_)) | Err(_)));
             if Instant::now() >= deadline {
@@ -391,6 +393,7 @@ impl Dnm {
             }
             std::thread::sleep(Duration::from_millis(10));
         }
+        self.refuse_queued_commands();
         // Plugins finish (the recorder writes its summary and footer).
         self.plugins.clear();
         tracing::info!(dnm = %self.name, "stopped");
