@@ -22,8 +22,8 @@ pub const COMMAND_QUEUE: usize = 32;
 pub const APPLIES_IN_FLIGHT: usize = 4;
 
 /// How old a snapshot may be when a tool asks for the DNM's report or a module's figures (the
-/// supervision tick).
-pub(crate) const FRESH: Duration = Duration::from_millis(100);
+/// default supervision tick: as fresh as when every tick made one).
+const FRESH: Duration = Duration::from_millis(100);
 /// How long a question waits for the DNM to hand over a fresh snapshot before it is answered
 /// from the newest there is (the DNM may be putting a decision in force).
 const FRESH_WAIT: Duration = Duration::from_millis(500);
