@@ -1100,7 +1100,8 @@ fn recordings(dir: Option<PathBuf>, write: bool, json: bool) -> anyhow::Result<E
         let mut m = dnm::session::manifest(&dir).map_err(anyhow::Error::msg)?;
         if write {
             if m.files.iter().all(|f| f.complete) {
-                m = dnm::session::write_manifest(&dir).map_err(anyhow::Error::msg)?;
+                dnm::session::write_manifest(&dir).map_err(anyhow::Error::msg)?;
+                m = dnm::session::manifest(&dir).map_err(anyhow::Error::msg)?;
             } else {
                 bail!(
                     "{}: not every file is closed (still recording, or cut short): the manifest is left as it is",

@@ -5,7 +5,7 @@
 //! the DNM's recording session, read as a stream (never a whole file in memory); the replies
 //! go at the priority of the request (the ground asks at `background`).
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -208,20 +208,24 @@ fn read(files: &Files, request: &HistoryRequest) -> (Vec<(u64, u32, Vec<u8>)>, H
     for dir in files.sessions() {
         // Each session was recorded by a recorder of its own: its decimation starts afresh.
         c.decimator = request.period_ns.map(Decimator::new);
-        let entries = dnm_record::session::index(&dir)
-            .map(|m| m.files)
-            .unwrap_or_default();
+        // Closed files are known by their summaries: what of the topic each holds, its time
+        // range if any (kept per file, not the session's whole manifest).
+        let mut closed: HashMap<String, Option<(u64, u64)>> = HashMap::new();
+        let _ = dnm_record::session::for_each_entry(&dir, |e| {
+            if e.complete && e.error.is_none() {
+                let holds = e.channels.get(&request.topic).is_some_and(|n| *n > 0);
+                let range = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
+                closed.insert(e.name, holds.then_some(range));
+            }
+        });
         for path in files.list(&dir) {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
-            // Closed files are known by their summaries: one that holds nothing of the topic
-            // in the stretch is not read (the first message after it may then be sent though
-            // the live downlink, knowing the one before it, did not keep it).
-            let closed = entries
-                .iter()
-                .find(|e| e.name == name && e.complete && e.error.is_none());
-            if let Some(e) = closed {
-                let (start, end) = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
-                let holds = e.channels.get(&request.topic).is_some_and(|n| *n > 0);
+            // A closed file that holds nothing of the topic in the stretch is not read (the
+            // first message after it may then be sent though the live downlink, knowing the one
+            // before it, did not keep it).
+            if let Some(range) = closed.get(name) {
+                let holds = range.is_some();
+                let (start, end) = range.unwrap_or((0, 0));
                 if holds {
                     c.widen(start, end);
                 }

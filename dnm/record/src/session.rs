@@ -3,7 +3,10 @@
 //! spirit of rosbag2's `metadata.yaml`): the files, the DNMs, the revisions, the time range,
 //! message counts per file and channel, and the netlists. The manifest is built from the files'
 //! own MCAP summaries (read with seeks, so a file of any size costs a few reads), written when a
-//! recorder closes its files, and can be built again at any time (`dnm recordings DIR`).
+//! recorder closes a file, and can be built again at any time (`dnm recordings DIR`). It is one
+//! JSON document with a line per file; it is read and written as a stream (a closed file's
+//! entry carried over from the manifest before), so a session of weeks of files costs each
+//! rotation no more memory than a session of one.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fs::File;
@@ -395,89 +398,289 @@ pub fn files(dir: &Path) -> Result<Vec<PathBuf>, SessionError> {
     Ok(out)
 }
 
-/// The closed files the manifest on disk lists (by name), and its netlists (by revision): a
-/// closed file does not change, so its entry is taken from there instead of read again. Nothing
-/// is kept between two manifests: a long session's files cost memory only while one is built.
-fn previous(dir: &Path) -> (BTreeMap<String, FileEntry>, BTreeMap<u64, RecordedNetlist>) {
-    let Ok(text) = std::fs::read(dir.join(MANIFEST)) else {
-        return Default::default();
+/// A session's files in order, each with its entry: a closed file's taken from the manifest on
+/// disk when it lists that file at its size (a closed file does not change), every other read
+/// from the file. The manifest on disk is read as a stream and its entries are handed on one at
+/// a time, so a session's files cost memory only for their names while it is walked, whatever
+/// the session's length; `netlists` gets the netlists of every revision the entries name.
+fn walk(
+    dir: &Path,
+    netlists: &mut BTreeMap<u64, RecordedNetlist>,
+    mut emit: impl FnMut(FileEntry),
+) -> Result<(), SessionError> {
+    // The first file naming each revision: where its netlist is said to be found.
+    let mut first: BTreeMap<u64, String> = BTreeMap::new();
+    let mut emit = |e: FileEntry| {
+        for r in &e.revisions {
+            first.entry(*r).or_insert_with(|| e.name.clone());
+        }
+        emit(e);
     };
-    let Ok(m) = serde_json::from_slice::<Manifest>(&text) else {
-        return Default::default();
-    };
-    let files = m
-        .files
-        .into_iter()
-        .filter(|f| f.complete && f.error.is_none())
-        .map(|f| (f.name.clone(), f))
-        .collect();
-    let netlists = m.netlists.into_iter().map(|n| (n.revision, n)).collect();
-    (files, netlists)
+    let on_disk = files(dir)?;
+    let mut disk = on_disk.iter().peekable();
+    // Revisions of reused entries, and a file each was found in, for a netlist the manifest
+    // on disk does not hold.
+    let mut named: BTreeMap<u64, PathBuf> = BTreeMap::new();
+    let mut listed: Vec<RecordedNetlist> = Vec::new();
+    if let Ok(file) = File::open(dir.join(MANIFEST)) {
+        let mut on_entry = |e: FileEntry| {
+            let key = order_key(Path::new(&e.name));
+            while let Some(p) = disk.next_if(|p| order_key(p) < key) {
+                emit(file_entry(p, netlists));
+            }
+            let Some(p) = disk.next_if(|p| p.file_name().is_some_and(|n| *n == *e.name)) else {
+                return; // no longer in the folder, or listed out of order: read when reached
+            };
+            let size = std::fs::metadata(p).map_or(0, |m| m.len());
+            if e.complete && e.error.is_none() && e.bytes == size {
+                for r in &e.revisions {
+                    named.entry(*r).or_insert_with(|| p.clone());
+                }
+                emit(e);
+            } else {
+                emit(file_entry(p, netlists));
+            }
+        };
+        let seed = Previous {
+            on_entry: &mut on_entry,
+            netlists: &mut listed,
+        };
+        let mut reader = serde_json::Deserializer::from_reader(std::io::BufReader::new(file));
+        if let Err(e) = serde::de::DeserializeSeed::deserialize(seed, &mut reader) {
+            tracing::debug!(
+                "{}: {e}: the rest read from the files",
+                dir.join(MANIFEST).display()
+            );
+        }
+    }
+    for p in disk {
+        emit(file_entry(p, netlists));
+    }
+    // A reused entry's netlist: from the manifest on disk, else read again from its file.
+    for n in listed {
+        if named.contains_key(&n.revision) {
+            netlists.entry(n.revision).or_insert(n);
+        }
+    }
+    for (revision, p) in named {
+        if !netlists.contains_key(&revision) {
+            file_entry(&p, netlists);
+        }
+    }
+    for (revision, n) in netlists.iter_mut() {
+        if let Some(f) = first.get(revision) {
+            n.file.clone_from(f);
+        }
+    }
+    Ok(())
+}
+
+/// Reads a manifest's entries one at a time, and its netlists.
+struct Previous<'a, F> {
+    on_entry: &'a mut F,
+    netlists: &'a mut Vec<RecordedNetlist>,
+}
+
+impl<'de, F: FnMut(FileEntry)> serde::de::DeserializeSeed<'de> for Previous<'_, F> {
+    type Value = ();
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_map(self)
+    }
+}
+
+impl<'de, F: FnMut(FileEntry)> serde::de::Visitor<'de> for Previous<'_, F> {
+    type Value = ();
+    fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("a session's manifest")
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut map: A) -> Result<(), A::Error> {
+        while let Some(key) = map.next_key::<String>()? {
+            match key.as_str() {
+                "files" => map.next_value_seed(Entries(&mut *self.on_entry))?,
+                "netlists" => *self.netlists = map.next_value()?,
+                _ => {
+                    map.next_value::<serde::de::IgnoredAny>()?;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A manifest's `files`, each handed on as it is read.
+struct Entries<'a, F>(&'a mut F);
+
+impl<'de, F: FnMut(FileEntry)> serde::de::DeserializeSeed<'de> for Entries<'_, F> {
+    type Value = ();
+    fn deserialize<D: serde::Deserializer<'de>>(self, d: D) -> Result<(), D::Error> {
+        d.deserialize_seq(self)
+    }
+}
+
+impl<'de, F: FnMut(FileEntry)> serde::de::Visitor<'de> for Entries<'_, F> {
+    type Value = ();
+    fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("a list of files")
+    }
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        while let Some(e) = seq.next_element::<FileEntry>()? {
+            (self.0)(e);
+        }
+        Ok(())
+    }
+}
+
+/// What a manifest says of all its files together, gathered one file at a time.
+#[derive(Default)]
+struct Totals {
+    dnms: BTreeSet<String>,
+    revisions: BTreeSet<u64>,
+    start_unix_ns: Option<u64>,
+    end_unix_ns: Option<u64>,
+    messages: u64,
+    bytes: u64,
+    files: usize,
+}
+
+impl Totals {
+    fn add(&mut self, f: &FileEntry) {
+        self.dnms.extend(f.dnm.clone());
+        self.revisions.extend(f.revisions.iter().copied());
+        self.start_unix_ns = self.start_unix_ns.into_iter().chain(f.start_unix_ns).min();
+        self.end_unix_ns = self.end_unix_ns.into_iter().chain(f.end_unix_ns).max();
+        self.messages += f.messages;
+        self.bytes += f.bytes;
+        self.files += 1;
+    }
+}
+
+fn session_name_of(dir: &Path) -> String {
+    dir.file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default()
 }
 
 /// The manifest of a session folder, built from its files.
 pub fn index(dir: &Path) -> Result<Manifest, SessionError> {
-    let (mut known, known_netlists) = previous(dir);
     let mut netlists = BTreeMap::new();
-    let files: Vec<FileEntry> = files(dir)?
-        .iter()
-        .map(|p| {
-            let name = p
-                .file_name()
-                .map(|n| n.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            let size = std::fs::metadata(p).map_or(0, |m| m.len());
-            match known.remove(&name) {
-                Some(e)
-                    if e.bytes == size
-                        && e.revisions.iter().all(|r| known_netlists.contains_key(r)) =>
-                {
-                    for r in &e.revisions {
-                        if let Some(n) = known_netlists.get(r) {
-                            netlists.entry(*r).or_insert_with(|| n.clone());
-                        }
-                    }
-                    e
-                }
-                _ => file_entry(p, &mut netlists),
-            }
-        })
-        .collect();
-    let dnms: BTreeSet<String> = files.iter().filter_map(|f| f.dnm.clone()).collect();
-    let revisions: BTreeSet<u64> = files.iter().flat_map(|f| f.revisions.clone()).collect();
+    let mut totals = Totals::default();
+    let mut files = Vec::new();
+    walk(dir, &mut netlists, |e| {
+        totals.add(&e);
+        files.push(e);
+    })?;
     Ok(Manifest {
         format: 1,
-        session: dir
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default(),
-        start_unix_ns: files.iter().filter_map(|f| f.start_unix_ns).min(),
-        end_unix_ns: files.iter().filter_map(|f| f.end_unix_ns).max(),
-        messages: files.iter().map(|f| f.messages).sum(),
-        bytes: files.iter().map(|f| f.bytes).sum(),
-        dnms: dnms.into_iter().collect(),
-        revisions: revisions.into_iter().collect(),
+        session: session_name_of(dir),
+        start_unix_ns: totals.start_unix_ns,
+        end_unix_ns: totals.end_unix_ns,
+        messages: totals.messages,
+        bytes: totals.bytes,
+        dnms: totals.dnms.into_iter().collect(),
+        revisions: totals.revisions.into_iter().collect(),
         netlists: netlists.into_values().collect(),
         files,
     })
+}
+
+/// Each file of a session with its entry, in order, as [`index`] lists them, without holding
+/// them all (a reader that needs only a few of each entry's figures).
+pub fn for_each_entry(dir: &Path, emit: impl FnMut(FileEntry)) -> Result<(), SessionError> {
+    walk(dir, &mut BTreeMap::new(), emit)
+}
+
+/// What a manifest written says of its session (its files are in the file).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Written {
+    pub files: usize,
+    pub messages: u64,
+    pub bytes: u64,
 }
 
 /// Manifests are written one at a time in a process.
 static WRITING: Mutex<()> = Mutex::new(());
 
 /// Builds the manifest of `dir` and writes it there (atomically: a reader never sees half).
-pub fn write_manifest(dir: &Path) -> Result<Manifest, SessionError> {
+///
+/// It is written as it is built: one line per file, the totals and netlists after the files.
+/// What it holds in memory at once is one entry, the netlists and the folder's file names, so
+/// a session of weeks of files costs a rotation no more memory than a session of one; its time
+/// grows with the files (a stream of their entries through, each file's size looked up).
+pub fn write_manifest(dir: &Path) -> Result<Written, SessionError> {
+    use std::io::Write;
     let _one = WRITING.lock().unwrap_or_else(|e| e.into_inner());
-    let m = index(dir)?;
+    let path = dir.join(MANIFEST);
     let tmp = dir.join(format!(".{MANIFEST}.{}", std::process::id()));
-    let json = serde_json::to_vec_pretty(&m).map_err(SessionError::Serialize)?;
-    std::fs::write(&tmp, json)
-        .and_then(|_| std::fs::rename(&tmp, dir.join(MANIFEST)))
-        .map_err(|source| SessionError::WriteManifest {
-            path: dir.join(MANIFEST),
-            source,
-        })?;
-    Ok(m)
+    let fail = |source: std::io::Error| SessionError::WriteManifest {
+        path: path.clone(),
+        source,
+    };
+    let mut out = std::io::BufWriter::new(File::create(&tmp).map_err(fail)?);
+    let mut netlists = BTreeMap::new();
+    let mut totals = Totals::default();
+    let mut failed: Option<SessionError> = None;
+    let line = |out: &mut std::io::BufWriter<File>, lead: &str, value: &dyn erased::Json| {
+        out.write_all(lead.as_bytes())
+            .map_err(fail)
+            .and_then(|_| value.write(out).map_err(SessionError::Serialize))
+    };
+    let head = format!(
+        "{{\n\"format\": 1,\n\"session\": {},\n\"files\": [",
+        serde_json::to_string(&session_name_of(dir)).map_err(SessionError::Serialize)?
+    );
+    out.write_all(head.as_bytes()).map_err(fail)?;
+    walk(dir, &mut netlists, |e| {
+        if failed.is_none() {
+            let lead = if totals.files == 0 { "\n" } else { ",\n" };
+            failed = line(&mut out, lead, &e).err();
+        }
+        totals.add(&e);
+    })?;
+    if let Some(e) = failed {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
+    let dnms: Vec<String> = totals.dnms.iter().cloned().collect();
+    let revisions: Vec<u64> = totals.revisions.iter().copied().collect();
+    let rest = (|| {
+        line(&mut out, "\n],\n\"dnms\": ", &dnms)?;
+        line(&mut out, ",\n\"revisions\": ", &revisions)?;
+        line(&mut out, ",\n\"start_unix_ns\": ", &totals.start_unix_ns)?;
+        line(&mut out, ",\n\"end_unix_ns\": ", &totals.end_unix_ns)?;
+        line(&mut out, ",\n\"messages\": ", &totals.messages)?;
+        line(&mut out, ",\n\"bytes\": ", &totals.bytes)?;
+        out.write_all(b",\n\"netlists\": [").map_err(fail)?;
+        for (i, n) in netlists.values().enumerate() {
+            line(&mut out, if i == 0 { "\n" } else { ",\n" }, n)?;
+        }
+        out.write_all(b"\n]\n}\n").map_err(fail)?;
+        out.into_inner()
+            .map_err(|e| fail(e.into_error()))?
+            .sync_data()
+            .map_err(fail)
+    })();
+    if let Err(e) = rest {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
+    }
+    std::fs::rename(&tmp, &path).map_err(fail)?;
+    Ok(Written {
+        files: totals.files,
+        messages: totals.messages,
+        bytes: totals.bytes,
+    })
+}
+
+/// A value written as compact JSON into a manifest being written.
+mod erased {
+    pub(super) trait Json {
+        fn write(&self, out: &mut dyn std::io::Write) -> serde_json::Result<()>;
+    }
+    impl<T: serde::Serialize> Json for T {
+        fn write(&self, out: &mut dyn std::io::Write) -> serde_json::Result<()> {
+            serde_json::to_writer(out, self)
+        }
+    }
 }
 
 /// Session folders whose manifest is to be written again, and whether a write is under way.
