@@ -5,7 +5,7 @@
 //! the DNM's recording session, read as a stream (never a whole file in memory); the replies
 //! go at the priority of the request (the ground asks at `background`).
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -210,15 +210,20 @@ fn read(files: &Files, request: &HistoryRequest) -> (Vec<(u64, u32, Vec<u8>)>, H
         c.decimator = request.period_ns.map(Decimator::new);
         // Closed files are known by their summaries: what of the topic each holds, its time
         // range if any (kept per file, not the session's whole manifest).
+        let list = files.list(&dir);
+        let mine: HashSet<&str> = list
+            .iter()
+            .filter_map(|p| p.file_name().and_then(|n| n.to_str()))
+            .collect();
         let mut closed: HashMap<String, Option<(u64, u64)>> = HashMap::new();
         let _ = dnm_record::session::for_each_entry(&dir, |e| {
-            if e.complete && e.error.is_none() {
+            if e.complete && e.error.is_none() && mine.contains(e.name.as_str()) {
                 let holds = e.channels.get(&request.topic).is_some_and(|n| *n > 0);
                 let range = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
                 closed.insert(e.name, holds.then_some(range));
             }
         });
-        for path in files.list(&dir) {
+        for path in &list {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
             // A closed file that holds nothing of the topic in the stretch is not read (the
             // first message after it may then be sent though the live downlink, knowing the one
@@ -234,7 +239,7 @@ fn read(files: &Files, request: &HistoryRequest) -> (Vec<(u64, u32, Vec<u8>)>, H
                     continue;
                 }
             }
-            let Ok(file) = File::open(&path) else {
+            let Ok(file) = File::open(path) else {
                 continue;
             };
             for m in Stream::new(file).filter(|m| m.topic == request.topic) {

@@ -58,7 +58,7 @@ pub struct FileEntry {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RecordedNetlist {
     pub revision: u64,
-    /// The file it was found in first.
+    /// The first file, in the order written, that holds it.
     pub file: String,
     pub text: String,
 }
@@ -607,22 +607,40 @@ static WRITING: Mutex<()> = Mutex::new(());
 /// a session of weeks of files costs a rotation no more memory than a session of one; its time
 /// grows with the files (a stream of their entries through, each file's size looked up).
 pub fn write_manifest(dir: &Path) -> Result<Written, SessionError> {
-    use std::io::Write;
     let _one = WRITING.lock().unwrap_or_else(|e| e.into_inner());
     let path = dir.join(MANIFEST);
     let tmp = dir.join(format!(".{MANIFEST}.{}", std::process::id()));
+    let written = write_to(dir, &tmp, &path).and_then(|w| {
+        std::fs::rename(&tmp, &path)
+            .map(|_| w)
+            .map_err(|source| SessionError::WriteManifest {
+                path: path.clone(),
+                source,
+            })
+    });
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
+}
+
+/// Writes the manifest of `dir` to `tmp` (errors named after `path`, the manifest's own).
+fn write_to(dir: &Path, tmp: &Path, path: &Path) -> Result<Written, SessionError> {
+    use std::io::Write;
     let fail = |source: std::io::Error| SessionError::WriteManifest {
-        path: path.clone(),
+        path: path.to_path_buf(),
         source,
     };
-    let mut out = std::io::BufWriter::new(File::create(&tmp).map_err(fail)?);
+    let mut out = std::io::BufWriter::new(File::create(tmp).map_err(fail)?);
     let mut netlists = BTreeMap::new();
     let mut totals = Totals::default();
     let mut failed: Option<SessionError> = None;
     let line = |out: &mut std::io::BufWriter<File>, lead: &str, value: &dyn erased::Json| {
-        out.write_all(lead.as_bytes())
-            .map_err(fail)
-            .and_then(|_| value.write(out).map_err(SessionError::Serialize))
+        out.write_all(lead.as_bytes()).map_err(fail)?;
+        value.write(out).map_err(|e| match e.io_error_kind() {
+            Some(kind) => fail(std::io::Error::new(kind, e)),
+            None => SessionError::Serialize(e),
+        })
     };
     let head = format!(
         "{{\n\"format\": 1,\n\"session\": {},\n\"files\": [",
@@ -637,33 +655,25 @@ pub fn write_manifest(dir: &Path) -> Result<Written, SessionError> {
         totals.add(&e);
     })?;
     if let Some(e) = failed {
-        let _ = std::fs::remove_file(&tmp);
         return Err(e);
     }
     let dnms: Vec<String> = totals.dnms.iter().cloned().collect();
     let revisions: Vec<u64> = totals.revisions.iter().copied().collect();
-    let rest = (|| {
-        line(&mut out, "\n],\n\"dnms\": ", &dnms)?;
-        line(&mut out, ",\n\"revisions\": ", &revisions)?;
-        line(&mut out, ",\n\"start_unix_ns\": ", &totals.start_unix_ns)?;
-        line(&mut out, ",\n\"end_unix_ns\": ", &totals.end_unix_ns)?;
-        line(&mut out, ",\n\"messages\": ", &totals.messages)?;
-        line(&mut out, ",\n\"bytes\": ", &totals.bytes)?;
-        out.write_all(b",\n\"netlists\": [").map_err(fail)?;
-        for (i, n) in netlists.values().enumerate() {
-            line(&mut out, if i == 0 { "\n" } else { ",\n" }, n)?;
-        }
-        out.write_all(b"\n]\n}\n").map_err(fail)?;
-        out.into_inner()
-            .map_err(|e| fail(e.into_error()))?
-            .sync_data()
-            .map_err(fail)
-    })();
-    if let Err(e) = rest {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(e);
+    line(&mut out, "\n],\n\"dnms\": ", &dnms)?;
+    line(&mut out, ",\n\"revisions\": ", &revisions)?;
+    line(&mut out, ",\n\"start_unix_ns\": ", &totals.start_unix_ns)?;
+    line(&mut out, ",\n\"end_unix_ns\": ", &totals.end_unix_ns)?;
+    line(&mut out, ",\n\"messages\": ", &totals.messages)?;
+    line(&mut out, ",\n\"bytes\": ", &totals.bytes)?;
+    out.write_all(b",\n\"netlists\": [").map_err(fail)?;
+    for (i, n) in netlists.values().enumerate() {
+        line(&mut out, if i == 0 { "\n" } else { ",\n" }, n)?;
     }
-    std::fs::rename(&tmp, &path).map_err(fail)?;
+    out.write_all(b"\n]\n}\n").map_err(fail)?;
+    out.into_inner()
+        .map_err(|e| fail(e.into_error()))?
+        .sync_data()
+        .map_err(fail)?;
     Ok(Written {
         files: totals.files,
         messages: totals.messages,
@@ -750,8 +760,8 @@ fn manifest_loop() {
 }
 
 /// Returns the heap's free pages to the system. A manifest is built on this thread alone, and
-/// its transient memory grows with the session's files: without this, the allocator keeps the
-/// largest one built so far, and a long session's process grows at every rotation.
+/// what it frees (the files' summaries read, the entries passed through) is given back at once
+/// rather than kept by the allocator among pages other threads still use.
 fn give_back_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: malloc_trim only releases free memory of the allocator's own arenas.

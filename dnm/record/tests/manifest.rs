@@ -4,17 +4,29 @@
 #![allow(clippy::unwrap_used)]
 
 use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
 
 use dnm_record::session::{self, MANIFEST, Manifest};
 
-/// The system's allocator, counting the bytes held and the most held since the last reset.
+/// The system's allocator, counting the bytes each thread holds and the most it held since the
+/// last reset (per thread: the tests of this file run side by side).
 struct Counting;
 
-static HELD: AtomicUsize = AtomicUsize::new(0);
-static PEAK: AtomicUsize = AtomicUsize::new(0);
+thread_local! {
+    static HELD: Cell<isize> = const { Cell::new(0) };
+    static PEAK: Cell<isize> = const { Cell::new(0) };
+}
+
+fn count(bytes: isize) {
+    // A thread being torn down has no counters left: what it frees then is not counted.
+    let _ = HELD.try_with(|held| {
+        let now = held.get() + bytes;
+        held.set(now);
+        let _ = PEAK.try_with(|peak| peak.set(peak.get().max(now)));
+    });
+}
 
 // SAFETY: every call is passed on to the system's allocator unchanged; only counted.
 unsafe impl GlobalAlloc for Counting {
@@ -22,27 +34,26 @@ unsafe impl GlobalAlloc for Counting {
         // SAFETY: as the caller promised for `layout`.
         let p = unsafe { System.alloc(layout) };
         if !p.is_null() {
-            let now = HELD.fetch_add(layout.size(), Ordering::Relaxed) + layout.size();
-            PEAK.fetch_max(now, Ordering::Relaxed);
+            count(layout.size() as isize);
         }
         p
     }
     unsafe fn dealloc(&self, p: *mut u8, layout: Layout) {
         // SAFETY: `p` was allocated by `alloc` with `layout`.
         unsafe { System.dealloc(p, layout) };
-        HELD.fetch_sub(layout.size(), Ordering::Relaxed);
+        count(-(layout.size() as isize));
     }
 }
 
 #[global_allocator]
 static ALLOCATOR: Counting = Counting;
 
-/// Heap held at most while `f` ran, beyond what was held when it started.
+/// Heap this thread held at most while `f` ran, beyond what it held when it started.
 fn peak_of<T>(f: impl FnOnce() -> T) -> (T, usize) {
-    let before = HELD.load(Ordering::Relaxed);
-    PEAK.store(before, Ordering::Relaxed);
+    let before = HELD.with(Cell::get);
+    PEAK.with(|p| p.set(before));
     let out = f();
-    (out, PEAK.load(Ordering::Relaxed) - before)
+    (out, (PEAK.with(Cell::get) - before).max(0) as usize)
 }
 
 const TOPICS: [&str; 12] = [
@@ -172,8 +183,7 @@ fn a_manifest_written_at_a_rotation_says_what_one_read_from_the_files_says() {
     write_file(&dir.join("rec-drive.3.mcap"), "drive", 10, 5);
     std::fs::remove_file(dir.join("rec-nav.10.mcap")).unwrap();
     session::write_manifest(&dir).unwrap();
-    let at_rotation: Manifest =
-        serde_json::from_slice(&std::fs::read(dir.join(MANIFEST)).unwrap()).unwrap();
+    let at_rotation = written(&dir);
     // The same session indexed from its files alone.
     std::fs::remove_file(dir.join(MANIFEST)).unwrap();
     let from_files = session::index(&dir).unwrap();
@@ -199,7 +209,7 @@ fn a_manifest_written_at_a_rotation_says_what_one_read_from_the_files_says() {
 }
 
 #[test]
-fn a_manifest_of_the_earlier_layout_or_without_its_netlists_is_taken_up() {
+fn a_manifest_of_the_earlier_layout_without_its_netlists_cut_short_or_out_of_order_is_taken_up() {
     let dir = session("earlier", 20);
     let whole = session::index(&dir).unwrap();
     // As manifests were written before (one JSON document, indented), with its netlists lost:
@@ -212,11 +222,26 @@ fn a_manifest_of_the_earlier_layout_or_without_its_netlists_is_taken_up() {
     )
     .unwrap();
     session::write_manifest(&dir).unwrap();
-    assert_same(&session::manifest(&dir).unwrap(), &whole);
+    assert_same(&written(&dir), &whole);
     // A manifest cut short (a disk filled up): what it lists is used, the rest read.
     let text = std::fs::read(dir.join(MANIFEST)).unwrap();
     std::fs::write(dir.join(MANIFEST), &text[..text.len() / 2]).unwrap();
     session::write_manifest(&dir).unwrap();
-    assert_same(&session::manifest(&dir).unwrap(), &whole);
+    assert_same(&written(&dir), &whole);
+    // Its entries out of order, one twice, one of a file gone: the folder's files, once each.
+    let mut shuffled = whole.clone();
+    shuffled.files.reverse();
+    shuffled.files.push(whole.files[3].clone());
+    let mut gone = whole.files[4].clone();
+    gone.name = "rec-drive.77.mcap".into();
+    shuffled.files.insert(5, gone);
+    std::fs::write(dir.join(MANIFEST), serde_json::to_vec(&shuffled).unwrap()).unwrap();
+    session::write_manifest(&dir).unwrap();
+    assert_same(&written(&dir), &whole);
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The manifest written in `dir`, read as any JSON reader reads it.
+fn written(dir: &Path) -> Manifest {
+    serde_json::from_slice(&std::fs::read(dir.join(MANIFEST)).unwrap()).unwrap()
 }
