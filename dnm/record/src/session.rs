@@ -624,56 +624,25 @@ pub fn write_manifest(dir: &Path) -> Result<Written, SessionError> {
     written
 }
 
-/// Writes the manifest of `dir` to `tmp` (errors named after `path`, the manifest's own).
+/// Writes the manifest of `dir` to `tmp` (errors named after `path`, the manifest's own): its
+/// head, each file's entry as the walk hands it on, then the totals and the netlists.
 fn write_to(dir: &Path, tmp: &Path, path: &Path) -> Result<Written, SessionError> {
-    use std::io::Write;
-    let fail = |source: std::io::Error| SessionError::WriteManifest {
-        path: path.to_path_buf(),
-        source,
-    };
-    let mut out = std::io::BufWriter::new(File::create(tmp).map_err(fail)?);
+    let mut out = ManifestWriter::create(tmp, path)?;
+    out.head(&session_name_of(dir))?;
     let mut netlists = BTreeMap::new();
     let mut totals = Totals::default();
     let mut failed: Option<SessionError> = None;
-    let line = |out: &mut std::io::BufWriter<File>, lead: &str, value: &dyn erased::Json| {
-        out.write_all(lead.as_bytes()).map_err(fail)?;
-        value.write(out).map_err(|e| match e.io_error_kind() {
-            Some(kind) => fail(std::io::Error::new(kind, e)),
-            None => SessionError::Serialize(e),
-        })
-    };
-    let head = format!(
-        "{{\n\"format\": 1,\n\"session\": {},\n\"files\": [",
-        serde_json::to_string(&session_name_of(dir)).map_err(SessionError::Serialize)?
-    );
-    out.write_all(head.as_bytes()).map_err(fail)?;
     walk(dir, &mut netlists, |e| {
         if failed.is_none() {
-            let lead = if totals.files == 0 { "\n" } else { ",\n" };
-            failed = line(&mut out, lead, &e).err();
+            failed = out.entry(&e).err();
         }
         totals.add(&e);
     })?;
     if let Some(e) = failed {
         return Err(e);
     }
-    let dnms: Vec<String> = totals.dnms.iter().cloned().collect();
-    let revisions: Vec<u64> = totals.revisions.iter().copied().collect();
-    line(&mut out, "\n],\n\"dnms\": ", &dnms)?;
-    line(&mut out, ",\n\"revisions\": ", &revisions)?;
-    line(&mut out, ",\n\"start_unix_ns\": ", &totals.start_unix_ns)?;
-    line(&mut out, ",\n\"end_unix_ns\": ", &totals.end_unix_ns)?;
-    line(&mut out, ",\n\"messages\": ", &totals.messages)?;
-    line(&mut out, ",\n\"bytes\": ", &totals.bytes)?;
-    out.write_all(b",\n\"netlists\": [").map_err(fail)?;
-    for (i, n) in netlists.values().enumerate() {
-        line(&mut out, if i == 0 { "\n" } else { ",\n" }, n)?;
-    }
-    out.write_all(b"\n]\n}\n").map_err(fail)?;
-    out.into_inner()
-        .map_err(|e| fail(e.into_error()))?
-        .sync_data()
-        .map_err(fail)?;
+    out.tail(&totals, netlists.values())?;
+    out.finish()?;
     Ok(Written {
         files: totals.files,
         messages: totals.messages,
@@ -681,15 +650,92 @@ fn write_to(dir: &Path, tmp: &Path, path: &Path) -> Result<Written, SessionError
     })
 }
 
-/// A value written as compact JSON into a manifest being written.
-mod erased {
-    pub(super) trait Json {
-        fn write(&self, out: &mut dyn std::io::Write) -> serde_json::Result<()>;
+/// The braces of the manifest's JSON object.
+const OBJECT: (&str, &str) = ("{", "}");
+
+/// A manifest written as a stream: one line per file, compact JSON each.
+struct ManifestWriter<'p> {
+    out: std::io::BufWriter<File>,
+    /// The manifest's own path, for errors.
+    path: &'p Path,
+    /// Entries written so far.
+    entries: usize,
+}
+
+impl<'p> ManifestWriter<'p> {
+    fn create(tmp: &Path, path: &'p Path) -> Result<Self, SessionError> {
+        let file = File::create(tmp).map_err(|e| Self::failed(path, e))?;
+        Ok(Self {
+            out: std::io::BufWriter::new(file),
+            path,
+            entries: 0,
+        })
     }
-    impl<T: serde::Serialize> Json for T {
-        fn write(&self, out: &mut dyn std::io::Write) -> serde_json::Result<()> {
-            serde_json::to_writer(out, self)
+
+    fn failed(path: &Path, source: std::io::Error) -> SessionError {
+        SessionError::WriteManifest {
+            path: path.to_path_buf(),
+            source,
         }
+    }
+
+    fn raw(&mut self, text: &str) -> Result<(), SessionError> {
+        use std::io::Write;
+        self.out
+            .write_all(text.as_bytes())
+            .map_err(|e| Self::failed(self.path, e))
+    }
+
+    /// `lead`, then `value` as compact JSON.
+    fn value(&mut self, lead: &str, value: &impl Serialize) -> Result<(), SessionError> {
+        self.raw(lead)?;
+        serde_json::to_writer(&mut self.out, value).map_err(|e| match e.io_error_kind() {
+            Some(kind) => Self::failed(self.path, std::io::Error::new(kind, e)),
+            None => SessionError::Serialize(e),
+        })
+    }
+
+    fn head(&mut self, session: &str) -> Result<(), SessionError> {
+        self.raw(OBJECT.0)?;
+        self.value("\n\"format\": ", &1)?;
+        self.value(",\n\"session\": ", &session)?;
+        self.raw(",\n\"files\": [")
+    }
+
+    fn entry(&mut self, e: &FileEntry) -> Result<(), SessionError> {
+        let lead = if self.entries == 0 { "\n" } else { ",\n" };
+        self.entries += 1;
+        self.value(lead, e)
+    }
+
+    fn tail<'n>(
+        &mut self,
+        totals: &Totals,
+        netlists: impl Iterator<Item = &'n RecordedNetlist>,
+    ) -> Result<(), SessionError> {
+        self.value("\n],\n\"dnms\": ", &totals.dnms)?;
+        self.value(",\n\"revisions\": ", &totals.revisions)?;
+        self.value(",\n\"start_unix_ns\": ", &totals.start_unix_ns)?;
+        self.value(",\n\"end_unix_ns\": ", &totals.end_unix_ns)?;
+        self.value(",\n\"messages\": ", &totals.messages)?;
+        self.value(",\n\"bytes\": ", &totals.bytes)?;
+        self.raw(",\n\"netlists\": [")?;
+        for (i, n) in netlists.enumerate() {
+            self.value(if i == 0 { "\n" } else { ",\n" }, n)?;
+        }
+        self.raw("\n]\n")?;
+        self.raw(OBJECT.1)?;
+        self.raw("\n")
+    }
+
+    /// Flushes the manifest and syncs it to the disk.
+    fn finish(self) -> Result<(), SessionError> {
+        let path = self.path;
+        self.out
+            .into_inner()
+            .map_err(|e| Self::failed(path, e.into_error()))?
+            .sync_data()
+            .map_err(|e| Self::failed(path, e))
     }
 }
 
