@@ -35,6 +35,35 @@ pub fn eventually_within<T>(what: &str, guard: Duration, mut f: impl FnMut() -> 
     }
 }
 
+/// Polls `f` until it returns `Ok`, failing with `what` and the last state `f` reported
+/// (`Err((progress, state))`) once `progress` has not grown for `idle`: a hang guard for what
+/// advances in bursts at its own pace (a backfill through a link that is down two thirds of the
+/// time), so a loaded machine that is slower, but still advancing, is not taken for a hang.
+pub fn eventually_progressing<T>(
+    what: &str,
+    idle: Duration,
+    mut f: impl FnMut() -> Result<T, (u64, String)>,
+) -> T {
+    let mut best = None;
+    let mut deadline = Instant::now() + idle;
+    loop {
+        match f() {
+            Ok(v) => return v,
+            Err((progress, state)) => {
+                if best.is_none_or(|b| progress > b) {
+                    best = Some(progress);
+                    deadline = Instant::now() + idle;
+                }
+                assert!(
+                    Instant::now() < deadline,
+                    "gave up waiting: {what}: no progress for {idle:?}; {state}"
+                );
+            }
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 /// The MCAP files in `dir` and in its session folders (`<system>-<time>/`), by path.
 pub fn mcap_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
     let mut out = Vec::new();
