@@ -48,6 +48,13 @@ struct Secured {
     endpoint: String,
 }
 
+impl Drop for Secured {
+    fn drop(&mut self) {
+        // (A test's processes are its locals, declared after the system: gone by now.)
+        support::remove_unless_failed(&self.dir);
+    }
+}
+
 impl Secured {
     fn new() -> Self {
         Self::with("sec", &netlist_template())

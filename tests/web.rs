@@ -58,6 +58,13 @@ struct Rig {
     _procs: Vec<Proc>,
 }
 
+impl Drop for Rig {
+    fn drop(&mut self) {
+        self._procs.clear();
+        support::remove_unless_failed(&self.dir);
+    }
+}
+
 impl Rig {
     fn start(tag: &str, netlist: &str) -> Self {
         let system = format!("w{tag}{}", std::process::id());

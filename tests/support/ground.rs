@@ -428,6 +428,13 @@ pub struct Rig {
     pub http: String,
 }
 
+impl Drop for Rig {
+    fn drop(&mut self) {
+        // (A test's processes are its locals, declared after the rig: gone by now.)
+        super::remove_unless_failed(&self.dir);
+    }
+}
+
 impl Rig {
     pub fn new(tag: &str, loss_line: &str) -> Self {
         let system = format!("g{tag}{}", std::process::id());

@@ -64,6 +64,16 @@ pub fn eventually_progressing<T>(
     }
 }
 
+/// Removes a test's folder once the test has passed; a failing test's is kept for a look, and
+/// its path printed.
+pub fn remove_unless_failed(dir: &std::path::Path) {
+    if std::thread::panicking() {
+        eprintln!("kept for a look: {}", dir.display());
+    } else {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}
+
 /// The MCAP files in `dir` and in its session folders (`<system>-<time>/`), by path.
 pub fn mcap_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
     let mut out = Vec::new();

@@ -758,7 +758,16 @@ mod tests {
     use super::*;
     use dnm_proto::station::Order;
 
-    fn store() -> (Store, std::path::PathBuf) {
+    /// A test's folder, removed with it.
+    struct Scratch(std::path::PathBuf);
+
+    impl Drop for Scratch {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    fn store() -> (Store, Scratch) {
         let dir = std::env::temp_dir().join(format!(
             "dnm-authority-store-{}-{:?}",
             std::process::id(),
@@ -766,7 +775,7 @@ mod tests {
         ));
         let _ = std::fs::remove_dir_all(&dir);
         let s = Store::open(&dir.join("a.redb")).unwrap();
-        (s, dir)
+        (s, Scratch(dir))
     }
 
     fn sent(seq: u64, id: &str) -> Sent {
