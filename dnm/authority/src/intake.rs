@@ -80,12 +80,14 @@ pub(crate) fn take_uplink(s: &Shared, q: &Query) -> Downlink {
             up.commands.len()
         ));
     }
-    match s.store.admits(&up.station) {
+    match s.store.admits(&up.station, keyed) {
         Ok(true) => {}
         Ok(false) => {
             return refuse(format!(
-                "the rover keeps a record of at most {} stations; `{}` is not one of them",
+                "the rover keeps a record of at most {} stations and {} outboxes of each; \
+                 `{}` is not one of them",
                 store::MAX_STATIONS,
+                store::MAX_OUTBOXES,
                 up.station
             ));
         }

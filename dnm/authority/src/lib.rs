@@ -459,7 +459,9 @@ fn decided_state(
                 .map(|r| r.last_attempt.max(r.revision))
                 .max()
                 .unwrap_or(0);
-            let revision = used + 1;
+            // (A DNM claiming the last revision there is gets it shared, and is never followed
+            // past it: see `reconcile::renumber`.)
+            let revision = used.saturating_add(1);
             // A rover already running (this store was lost or replaced) goes on with what
             // it runs: the newest netlist in force on its DNMs, in its task.
             let (file, text, task) = match running(session, door) {

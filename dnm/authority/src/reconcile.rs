@@ -206,7 +206,16 @@ pub(crate) fn renumber(s: &Shared, used: u64) {
         return;
     }
     let from = core.state.revision;
-    core.state.burned = core.state.burned.max(used) + 1;
+    // A DNM reporting the last revision there is (it cannot have been given it) is not
+    // followed past it: revisions are never used twice.
+    let Some(next) = core.state.burned.max(used).checked_add(1) else {
+        tracing::error!(
+            used,
+            "a DNM reports a revision no netlist can follow: ignored"
+        );
+        return;
+    };
+    core.state.burned = next;
     core.state.revision = core.state.burned;
     if let Err(e) = s.store.save_state(&core.state) {
         tracing::error!("renumbering the decided revision: {e}");

@@ -42,6 +42,10 @@ const DECISIONS_STORED: u64 = 1024;
 const FATES_KEPT: u64 = 4096;
 /// Stations the rover keeps a record of; a new one beyond is refused.
 pub(crate) const MAX_STATIONS: usize = 64;
+/// Outboxes of one station the rover keeps a record of (a station whose outbox is made anew
+/// speaks as `<station>.<epoch>`, a record of its own); a new one beyond is refused. A station
+/// fills only its own room, never another's.
+pub(crate) const MAX_OUTBOXES: usize = 32;
 /// Commands of one station taken and not yet run, at most; more are refused when taken (a
 /// station must not fill the rover's disk while its worker waits for a DNM).
 pub(crate) const MAX_PENDING: usize = 256;
@@ -410,8 +414,17 @@ impl Store {
         let mut out = std::collections::BTreeMap::new();
         for row in t.iter().map_err(db)? {
             let (k, v) = row.map_err(db)?;
-            let run: SequenceRun = serde_json::from_slice(v.value()).map_err(rec)?;
-            out.insert(k.value().to_string(), run);
+            // One record that cannot be read (written by another version, or damaged) costs
+            // that sequence, never the authority's start.
+            match serde_json::from_slice::<SequenceRun>(v.value()) {
+                Ok(run) => {
+                    out.insert(k.value().to_string(), run);
+                }
+                Err(e) => tracing::error!(
+                    sequence = k.value(),
+                    "the stored sequence cannot be read, left out: {e}; upload it again"
+                ),
+            }
         }
         Ok(out)
     }
@@ -579,20 +592,35 @@ impl Store {
         self.meta("contact")
     }
 
-    /// Whether the rover keeps a record of `station`, or has room for one more.
-    pub(crate) fn admits(&self, station: &str) -> Result<bool, AuthorityError> {
+    /// Whether the rover keeps a record of `station` (an outbox of the station `keyed`, whose
+    /// key it speaks on), or has room for one more: [`MAX_STATIONS`] stations, each with
+    /// [`MAX_OUTBOXES`] outboxes at most.
+    pub(crate) fn admits(&self, station: &str, keyed: &str) -> Result<bool, AuthorityError> {
         let rx = self.db.begin_read().map_err(db)?;
         let meta = rx.open_table(META).map_err(db)?;
         let recv_key = format!("recv\0{station}");
         if meta.get(recv_key.as_str()).map_err(db)?.is_some() {
             return Ok(true);
         }
-        let known = meta
+        let mine = format!("{keyed}.");
+        let mut stations = std::collections::BTreeSet::new();
+        let mut outboxes = 0;
+        for row in meta
             .range("recv\0".."recv\u{1}")
             .map_err(db)?
-            .take(MAX_STATIONS)
-            .count();
-        Ok(known < MAX_STATIONS)
+            .take(MAX_STATIONS * MAX_OUTBOXES)
+        {
+            let (k, _) = row.map_err(db)?;
+            let name = k.value().trim_start_matches("recv\0");
+            if name == keyed || name.starts_with(&mine) {
+                outboxes += 1;
+                stations.insert(keyed.to_string());
+            } else {
+                stations.insert(station_of_outbox(name).to_string());
+            }
+        }
+        let room = stations.contains(keyed) || stations.len() < MAX_STATIONS;
+        Ok(room && outboxes < MAX_OUTBOXES)
     }
 
     /// The fate of one command, if it has one.
@@ -752,6 +780,19 @@ impl Store {
     }
 }
 
+/// The station an outbox's name belongs to: `<station>.<epoch in hex>`, or the station's own
+/// name (how a record written by another station is counted; its key is not known here).
+fn station_of_outbox(name: &str) -> &str {
+    match name.rsplit_once('.') {
+        Some((station, epoch))
+            if !epoch.is_empty() && epoch.chars().all(|c| c.is_ascii_hexdigit()) =>
+        {
+            station
+        }
+        _ => name,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -895,8 +936,8 @@ mod tests {
         for i in 0..MAX_STATIONS {
             s.intake(&format!("s{i}"), &[], 1, &[]).unwrap();
         }
-        assert!(s.admits("s0").unwrap());
-        assert!(!s.admits("one-too-many").unwrap());
+        assert!(s.admits("s0", "s0").unwrap());
+        assert!(!s.admits("one-too-many", "one-too-many").unwrap());
         // A station's commands not yet run are bounded too.
         let many: Vec<Sent> = (2..=MAX_PENDING as u64 + 2)
             .map(|i| sent(i, &format!("m{i}")))
@@ -911,6 +952,24 @@ mod tests {
             s.fate("g", last - 1).unwrap().is_none(),
             "taken, not refused"
         );
+    }
+
+    #[test]
+    fn a_station_whose_outboxes_fill_its_room_leaves_the_others_theirs() {
+        let (s, _dir) = store();
+        for epoch in 1..=MAX_OUTBOXES {
+            let outbox = format!("x.{epoch:x}");
+            assert!(s.admits(&outbox, "x").unwrap(), "{outbox}");
+            s.intake(&outbox, &[], 1, &[]).unwrap();
+        }
+        // Its outboxes known stay known; one more of it is refused.
+        assert!(s.admits("x.1", "x").unwrap());
+        assert!(!s.admits("x.ffff", "x").unwrap());
+        // Another station, and its own outboxes, still have room.
+        assert!(s.admits("y", "y").unwrap());
+        assert!(s.admits("y.1", "y").unwrap());
+        assert_eq!(station_of_outbox("ground-1.19ac4e"), "ground-1");
+        assert_eq!(station_of_outbox("ground.one"), "ground.one");
     }
 
     #[test]

@@ -283,7 +283,7 @@ pub(crate) fn channel_statuses(copies: &Copies, settled_ns: u64) -> Vec<ChannelS
             let missing: u64 = period.map_or(0, |p| {
                 gaps.iter()
                     .map(|g| g.to_ns.saturating_sub(g.from_ns.max(floor)) / p.max(1))
-                    .sum::<u64>()
+                    .fold(0, u64::saturating_add)
             });
             let received = c.held.len() as u64;
             let average = c.bytes.checked_div(received).unwrap_or(0);
@@ -292,7 +292,7 @@ pub(crate) fn channel_statuses(copies: &Copies, settled_ns: u64) -> Vec<ChannelS
                 dnm: c.announce.as_ref().map(|a| a.dnm.clone()),
                 rate_hz: period.map(|p| 1e9 / p as f64),
                 received,
-                expected: received + missing,
+                expected: received.saturating_add(missing),
                 first_unix_ns: c.held.first().map(|h| h.0),
                 last_unix_ns: c.held.last().map(|h| h.0),
                 // From where the rover's recording starts, once it said.
@@ -304,7 +304,7 @@ pub(crate) fn channel_statuses(copies: &Copies, settled_ns: u64) -> Vec<ChannelS
                     })
                     .find(|g| g.from_ns < g.to_ns),
                 gaps: gaps.len(),
-                backlog_bytes: missing * average,
+                backlog_bytes: missing.saturating_mul(average),
                 unrecorded: c.unrecorded.clone(),
                 duplicates: c.duplicates,
                 timeline: c.timeline(settled_ns),

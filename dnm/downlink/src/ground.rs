@@ -28,8 +28,14 @@ pub(crate) type Unknown = Arc<Mutex<std::collections::BTreeSet<String>>>;
 /// Messages received and not written yet, at most; beyond it the newest are let go (a plan
 /// entry's show as a gap, filled in from the recording; a switch or an event is lost).
 const QUEUE: usize = 65_536;
-/// Messages of a channel whose description has not arrived yet, kept until it does.
+/// Messages of a channel whose description has not arrived yet, kept until it does...
 const PENDING: usize = 10_000;
+/// ...of such channels at most, and their bytes together at most (beyond, what arrives is let
+/// go, and filled in from the rover's recording once the channel is known).
+const PENDING_TOPICS: usize = 256;
+const PENDING_BYTES: usize = 64 << 20;
+/// Channels a session holds at most (an announcement beyond is ignored, and said so).
+const TOPICS: usize = 4096;
 /// Longest a chunk of the ground's file stays open: what a killed station loses (and gets
 /// again from the caches when it restarts).
 const CHUNK_PERIOD: Duration = Duration::from_secs(1);
@@ -139,6 +145,7 @@ impl GroundRecord {
                 netlist: None,
                 announces,
                 pending: HashMap::new(),
+                pending_bytes: 0,
                 unknown: unknown.clone(),
                 copies: copies.clone(),
             };
@@ -382,8 +389,9 @@ struct Writer {
     netlist: Option<(u64, String, String)>,
     /// Each channel's announcement (the newest heard, or as the session's files hold it).
     announces: HashMap<String, Announce>,
-    /// Messages of channels whose description has not arrived yet.
+    /// Messages of channels whose description has not arrived yet, and their bytes.
     pending: HashMap<String, Vec<Pending>>,
+    pending_bytes: usize,
     /// Their topics, for the backfill to ask for their announcements.
     unknown: Unknown,
     copies: Arc<Mutex<Copies>>,
@@ -409,46 +417,71 @@ impl Writer {
                         self.write_netlist()?;
                     }
                 }
-                Ok(Item::Announce(a)) => {
-                    let topic = a.desc.topic.clone();
-                    self.announces.insert(topic.clone(), a.clone());
-                    if let Ok(mut u) = self.unknown.lock() {
-                        u.remove(&topic);
-                    }
-                    if let Ok(mut copies) = self.copies.lock() {
-                        copies.entry(topic.clone()).or_default().announce = Some(a);
-                    }
-                    for (time, seq, data, backfilled) in
-                        self.pending.remove(&topic).unwrap_or_default()
-                    {
-                        self.write(&topic, time, seq, &data, backfilled)?;
-                    }
-                }
+                Ok(Item::Announce(a)) => self.announce(a)?,
                 Ok(Item::Message {
                     topic,
                     log_time,
                     sequence,
                     data,
                     backfilled,
-                }) => {
-                    if self.announces.contains_key(&topic) {
-                        self.write(&topic, log_time, sequence, &data, backfilled)?;
-                    } else {
-                        if let Ok(mut u) = self.unknown.lock() {
-                            u.insert(topic.clone());
-                        }
-                        let p = self.pending.entry(topic).or_default();
-                        if p.len() < PENDING {
-                            p.push((log_time, sequence, data, backfilled));
-                        }
-                    }
-                }
+                }) => self.message(topic, log_time, sequence, data, backfilled)?,
                 Err(mpsc::RecvTimeoutError::Timeout) => {}
                 Err(mpsc::RecvTimeoutError::Disconnected) => break,
             }
             self.flush_if_due()?;
         }
         self.close()
+    }
+
+    /// A channel described: kept, and what of it waited is written.
+    fn announce(&mut self, a: Announce) -> Result<(), String> {
+        let topic = a.desc.topic.clone();
+        if !self.announces.contains_key(&topic) && self.announces.len() >= TOPICS {
+            tracing::warn!(
+                %topic,
+                "the ground's record holds {TOPICS} channels: this one is not kept"
+            );
+            return Ok(());
+        }
+        self.announces.insert(topic.clone(), a.clone());
+        if let Ok(mut u) = self.unknown.lock() {
+            u.remove(&topic);
+        }
+        if let Ok(mut copies) = self.copies.lock() {
+            copies.entry(topic.clone()).or_default().announce = Some(a);
+        }
+        for (time, seq, data, backfilled) in self.pending.remove(&topic).unwrap_or_default() {
+            self.pending_bytes = self.pending_bytes.saturating_sub(data.len());
+            self.write(&topic, time, seq, &data, backfilled)?;
+        }
+        Ok(())
+    }
+
+    /// A message: written if its channel is described, else kept until it is (within
+    /// [`PENDING`], [`PENDING_TOPICS`] and [`PENDING_BYTES`]).
+    fn message(
+        &mut self,
+        topic: String,
+        time: u64,
+        seq: u32,
+        data: Vec<u8>,
+        backfilled: bool,
+    ) -> Result<(), String> {
+        if self.announces.contains_key(&topic) {
+            return self.write(&topic, time, seq, &data, backfilled);
+        }
+        if !self.pending.contains_key(&topic) && self.pending.len() >= PENDING_TOPICS {
+            return Ok(());
+        }
+        if let Ok(mut u) = self.unknown.lock() {
+            u.insert(topic.clone());
+        }
+        let p = self.pending.entry(topic).or_default();
+        if p.len() < PENDING && self.pending_bytes + data.len() <= PENDING_BYTES {
+            self.pending_bytes += data.len();
+            p.push((time, seq, data, backfilled));
+        }
+        Ok(())
     }
 
     /// Writes one message, unless the session holds it already.
@@ -594,5 +627,79 @@ impl Writer {
         self.finish_file()?;
         dnm_record::session::write_manifest(&self.dir).map_err(|e| e.to_string())?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use zenoh::Wait;
+
+    #[test]
+    fn what_waits_for_its_channel_is_bounded_in_channels_and_bytes() {
+        let dir = std::env::temp_dir().join(format!("dnm-ground-pending-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut c = zenoh::Config::default();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        c.insert_json5("listen/endpoints", "[]").unwrap();
+        let session = zenoh::open(c).wait().unwrap();
+        let mut w = Writer {
+            teller: Teller::start(&session, "pending").unwrap(),
+            dir: dir.clone(),
+            index: 0,
+            file: None,
+            netlist: None,
+            announces: HashMap::new(),
+            pending: HashMap::new(),
+            pending_bytes: 0,
+            unknown: Unknown::default(),
+            copies: Arc::default(),
+        };
+        let held = |w: &Writer| -> usize { w.pending.values().flatten().map(|p| p.2.len()).sum() };
+        // Messages on more channels than are kept waiting: the ones beyond are let go.
+        for i in 0..PENDING_TOPICS + 10 {
+            w.message(format!("/t{i}"), 1, 1, vec![0; 8], false)
+                .unwrap();
+        }
+        assert_eq!(w.pending.len(), PENDING_TOPICS);
+        // Large messages on one channel: kept up to the bytes allowed.
+        for seq in 0..100u32 {
+            w.message(
+                "/t0".into(),
+                2 + u64::from(seq),
+                seq,
+                vec![0; 1 << 20],
+                false,
+            )
+            .unwrap();
+        }
+        assert!(w.pending_bytes <= PENDING_BYTES, "{}", w.pending_bytes);
+        assert!(w.pending_bytes > PENDING_BYTES - (2 << 20));
+        assert_eq!(w.pending_bytes, held(&w));
+        // Its description arrives: what waited is written, and its bytes are free again.
+        w.announce(Announce {
+            dnm: "rover".into(),
+            desc: dnm_record::tap::ChannelDesc {
+                topic: "/t0".into(),
+                schema_name: "blob".into(),
+                schema_encoding: String::new(),
+                schema: String::new(),
+                message_encoding: "application/octet-stream".into(),
+                metadata: Default::default(),
+            },
+            period_ns: None,
+            priority: 1,
+            newest_first: true,
+        })
+        .unwrap();
+        assert!(!w.pending.contains_key("/t0"));
+        assert_eq!(w.pending_bytes, held(&w));
+        assert_eq!(w.pending_bytes, (PENDING_TOPICS - 1) * 8);
+        w.close().unwrap();
+        drop(w);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

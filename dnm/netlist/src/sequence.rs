@@ -189,6 +189,14 @@ impl std::fmt::Display for FieldRef {
 }
 
 impl Condition {
+    /// Levels of `and`/`or` (a comparison is 0).
+    pub fn levels(&self) -> usize {
+        match self {
+            Condition::Compare { .. } => 0,
+            Condition::And(a, b) | Condition::Or(a, b) => 1 + a.levels().max(b.levels()),
+        }
+    }
+
     /// Every field the condition reads.
     pub fn fields(&self) -> Vec<&FieldRef> {
         match self {
@@ -874,6 +882,10 @@ enum Token {
 const MAX_CONDITION: usize = 4096;
 /// Nesting of parentheses, at most.
 const MAX_DEPTH: usize = 32;
+/// Levels of `and`/`or` a condition may have, parentheses and chains together (a chain of `n`
+/// is `log2 n` levels): what is stored with a sequence stays well inside the 128 levels of
+/// nesting its JSON may have.
+const MAX_LEVELS: usize = 40;
 
 fn tokens(text: &str) -> Result<Vec<(Token, usize)>, ConditionError> {
     let err = |at: usize, message: String| Err(ConditionError { at, message });
@@ -970,6 +982,42 @@ fn parse_condition(text: &str) -> Result<Parsed, ConditionError> {
     })
 }
 
+/// `a op b op c …` as a tree of `join` as shallow as it can be (both operators are
+/// associative): a long chain is a few levels, not one per term. Refused past [`MAX_LEVELS`].
+fn balanced(
+    mut terms: Vec<Condition>,
+    join: &dyn Fn(Box<Condition>, Box<Condition>) -> Condition,
+    at: usize,
+) -> Result<Condition, ConditionError> {
+    fn build(
+        terms: &mut std::vec::Drain<'_, Condition>,
+        n: usize,
+        join: &dyn Fn(Box<Condition>, Box<Condition>) -> Condition,
+    ) -> Option<Condition> {
+        if n <= 1 {
+            return terms.next();
+        }
+        let left = build(terms, n / 2, join)?;
+        let right = build(terms, n - n / 2, join)?;
+        Some(join(Box::new(left), Box::new(right)))
+    }
+    let n = terms.len();
+    let tree = build(&mut terms.drain(..), n, join).ok_or(ConditionError {
+        at,
+        message: "expected a comparison here".into(),
+    })?;
+    if tree.levels() > MAX_LEVELS {
+        return Err(ConditionError {
+            at,
+            message: format!(
+                "the condition nests more than {MAX_LEVELS} levels of `and`, `or` and \
+                 parentheses; split it into steps"
+            ),
+        });
+    }
+    Ok(tree)
+}
+
 struct Parser<'t> {
     toks: &'t [(Token, usize)],
     pos: usize,
@@ -991,19 +1039,21 @@ impl Parser<'_> {
     }
 
     fn or(&mut self, depth: usize) -> Result<Condition, ConditionError> {
-        let mut left = self.and(depth)?;
+        let at = self.at();
+        let mut terms = vec![self.and(depth)?];
         while self.keyword("or") {
-            left = Condition::Or(Box::new(left), Box::new(self.and(depth)?));
+            terms.push(self.and(depth)?);
         }
-        Ok(left)
+        balanced(terms, &Condition::Or, at)
     }
 
     fn and(&mut self, depth: usize) -> Result<Condition, ConditionError> {
-        let mut left = self.primary(depth)?;
+        let at = self.at();
+        let mut terms = vec![self.primary(depth)?];
         while self.keyword("and") {
-            left = Condition::And(Box::new(left), Box::new(self.primary(depth)?));
+            terms.push(self.primary(depth)?);
         }
-        Ok(left)
+        balanced(terms, &Condition::And, at)
     }
 
     fn primary(&mut self, depth: usize) -> Result<Condition, ConditionError> {
@@ -1117,6 +1167,42 @@ mod tests {
         assert_eq!(p.comparisons.len(), 3);
         assert_eq!(p.comparisons[2].0.field.index, None);
         assert_eq!(p.comparisons[2].1, 30);
+    }
+
+    #[test]
+    fn a_long_chain_is_a_shallow_tree_that_a_store_reads_back() {
+        // As long as a condition may be: about 300 comparisons joined by `or`.
+        let mut text = String::new();
+        let mut n = 0;
+        while text.len() + 24 < MAX_CONDITION {
+            if n > 0 {
+                text.push_str(if n % 7 == 0 { " and " } else { " or " });
+            }
+            text.push_str(&format!("o.p.x == {n}"));
+            n += 1;
+        }
+        let p = parse_condition(&text).unwrap();
+        assert_eq!(p.comparisons.len(), n);
+        assert!(p.condition.levels() <= 12, "{}", p.condition.levels());
+        // The order of the terms is kept.
+        let literals: Vec<_> = p.comparisons.iter().map(|c| c.0.literal.clone()).collect();
+        assert_eq!(literals[..2], [Literal::Number(0.0), Literal::Number(1.0)]);
+        // Stored as JSON with a sequence and read back (serde_json reads 128 levels at most).
+        let json = serde_json::to_string(&p.condition).unwrap();
+        let back: Condition = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, p.condition);
+        // It holds as the chain says: x == 1 is in an `or` term of its own.
+        let x = |v: f64| move |_: &FieldRef| Some(v);
+        assert!(p.condition.holds(&x(1.0)));
+        assert!(!p.condition.holds(&x(-1.0)));
+        // Parentheses and chains together, past the levels allowed: refused, with the fix.
+        let deep = format!(
+            "{}o.p.x == 1{}",
+            "(o.p.x == 1 or o.p.x == 2 or o.p.x == 3 or ".repeat(30),
+            ")".repeat(30)
+        );
+        let e = parse_condition(&deep).unwrap_err();
+        assert!(e.message.contains("split it into steps"), "{e:?}");
     }
 
     #[test]

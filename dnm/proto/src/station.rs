@@ -312,7 +312,7 @@ impl SequenceStatus {
         // since (a new store): it gets this one from its start.
         let seen = if seen > self.events_total { 0 } else { seen };
         let len = self.history.len() as u64;
-        let first = self.events_total.saturating_sub(len) + 1;
+        let first = self.events_total.saturating_sub(len).saturating_add(1);
         let skip = seen.saturating_add(1).saturating_sub(first).min(len) as usize;
         self.history.drain(..skip);
         self.history.truncate(EVENTS_PER_ANSWER);
@@ -326,12 +326,15 @@ impl SequenceStatus {
     pub fn merge(&mut self, newer: SequenceStatus, keep: usize) {
         let mut history = std::mem::take(&mut self.history);
         let (held, total) = (self.events_total, newer.events_total);
-        let first = total.saturating_sub(newer.history.len() as u64) + 1;
+        let first = total
+            .saturating_sub(newer.history.len() as u64)
+            .saturating_add(1);
         if total < held {
             // The rover's record of it started over (a new store): take it as it is.
             history.clear();
         }
-        for (n, e) in (first..).zip(newer.history.iter().cloned()) {
+        for (i, e) in newer.history.iter().cloned().enumerate() {
+            let n = first.saturating_add(i as u64);
             if n > held || total < held {
                 history.push(e);
             }
@@ -448,6 +451,22 @@ mod tests {
         held.merge(answer, 256);
         assert_eq!(held.events_total, 3);
         assert_eq!(held.history.len(), 3);
+    }
+
+    /// A rover's answer numbering its events at the end of the counter is taken without harm.
+    #[test]
+    fn sequence_events_numbered_at_the_end_of_the_counter_are_taken() {
+        let mut answer = status(u64::MAX, 1..1);
+        answer.after(0);
+        let mut held = status(0, 1..1);
+        held.merge(answer, 256);
+        let mut answer = status(0, 1..=5);
+        answer.events_total = u64::MAX;
+        answer.after(3);
+        assert_eq!(answer.history.len(), 5);
+        held.merge(answer, 256);
+        // (The station held the counter's end already: nothing after it is new.)
+        assert_eq!(held.events_total, u64::MAX);
     }
 
     /// Every fate survives the trip inside an outcome (its fields sit beside the outcome's).

@@ -583,7 +583,8 @@ impl Reader<'_> {
             };
             while let Ok(Some(s)) = subscriber.receive() {
                 let header = *s.user_header();
-                if let Some(expected) = port.next_seq.insert(s.origin(), header.seq + 1) {
+                if let Some(expected) = port.next_seq.insert(s.origin(), header.seq.wrapping_add(1))
+                {
                     // Samples overwritten before we read them.
                     self.counters
                         .dropped

@@ -537,7 +537,7 @@ fn watch_peers(
             };
             if leaving_token {
                 // Its presence goes next: that is a DNM stopping in order.
-                if put {
+                if put && leaving.len() < MAX_PEERS {
                     leaving.insert(name);
                 }
                 return;
@@ -556,11 +556,30 @@ fn watch_peers(
                     (false, true) => tracing::info!(dnm = %me, peer = %name, "DNM left"),
                     (false, false) => tracing::warn!(dnm = %me, peer = %name, "DNM lost"),
                 }
-                peers.insert(name, (put, Instant::now()));
+                if peers.contains_key(&name) || make_room(&mut peers) {
+                    peers.insert(name, (put, Instant::now()));
+                }
             }
         })
         .wait()
         .map_err(zenoh_err("watching DNMs"))
+}
+
+/// DNMs of the system a DNM keeps track of, at most (a netlist names far fewer; tokens of
+/// other names past it are not followed).
+const MAX_PEERS: usize = 256;
+
+/// Whether `peers` has room for one more, after forgetting the DNM gone longest ago if full.
+fn make_room(peers: &mut BTreeMap<String, (bool, Instant)>) -> bool {
+    if peers.len() < MAX_PEERS {
+        return true;
+    }
+    let oldest_gone = peers
+        .iter()
+        .filter(|(_, (alive, _))| !alive)
+        .min_by_key(|(_, (_, since))| *since)
+        .map(|(name, _)| name.clone());
+    oldest_gone.is_some_and(|name| peers.remove(&name).is_some())
 }
 
 /// The egress thread and the watch thread, each serving the set of ports it is sent.
@@ -822,4 +841,32 @@ pub(crate) fn newest_netlist_impl(
         }
     }
     best
+}
+
+#[cfg(test)]
+mod peer_tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn the_peers_kept_are_bounded_and_the_longest_gone_make_room() {
+        let mut peers = BTreeMap::new();
+        let t0 = Instant::now();
+        for i in 0..MAX_PEERS {
+            let since = t0 + Duration::from_millis(i as u64);
+            // Every tenth is gone; the first of them went longest ago.
+            peers.insert(format!("dnm{i}"), (i % 10 != 0, since));
+        }
+        assert!(make_room(&mut peers));
+        assert!(!peers.contains_key("dnm0"));
+        assert!(peers.contains_key("dnm10"));
+        assert_eq!(peers.len(), MAX_PEERS - 1);
+        // All alive: no room is made, nobody is forgotten.
+        for (_, (alive, _)) in peers.iter_mut() {
+            *alive = true;
+        }
+        peers.insert("another".into(), (true, t0));
+        assert!(!make_room(&mut peers));
+        assert_eq!(peers.len(), MAX_PEERS);
+    }
 }

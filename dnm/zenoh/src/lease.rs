@@ -80,7 +80,7 @@ impl Lease {
         // lowers it), so a backlog never passes for a clock that is off.
         let burst = self.last.as_ref().is_some_and(|(t, b)| {
             now.duration_since(*t) < BURST
-                && beat.at_unix_ns > b.at_unix_ns + BURST.as_nanos() as u64
+                && beat.at_unix_ns > b.at_unix_ns.saturating_add(BURST.as_nanos() as u64)
         });
         if !burst {
             let offset_ms = (beat.at_unix_ns as f64 - now_unix_ns() as f64) / 1e6;
@@ -338,6 +338,16 @@ mod tests {
         std::thread::sleep(BURST * 2);
         l.heard("rover", beat(0, None));
         assert_eq!(l.clock_refusal("drive"), None, "{:?}", l.offsets);
+    }
+
+    #[test]
+    fn a_beat_from_the_end_of_time_is_heard_without_harm() {
+        let mut l = lease(1000);
+        let mut b = beat(0, None);
+        b.at_unix_ns = u64::MAX;
+        l.heard("rover", b.clone());
+        l.heard("rover", b);
+        assert!(l.clock_refusal("drive").is_some(), "{:?}", l.offsets);
     }
 
     #[test]
