@@ -849,6 +849,16 @@ fn the_station_answers_only_its_own_page_and_a_token_guards_it_on_the_network() 
         ),
     );
     assert_eq!(status, 403, "{answer}");
+    // An old browser's form says neither where it comes from nor JSON: refused as well.
+    let (status, _, answer) = raw_http(
+        &local,
+        &format!(
+            "POST /commands HTTP/1.1\r\nHost: {local}\r\nContent-Type: text/plain\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+            body.len()
+        ),
+    );
+    assert_eq!(status, 415, "{answer}");
+    assert!(answer.contains("application/json"), "{answer}");
     assert!(rig_entries(&local).is_empty(), "nothing was queued");
 
     // On the network: refused without a token; with one, a bearer or the login's cookie.

@@ -15,6 +15,9 @@
 //! page elsewhere cannot reach it through its own domain) and a browser's request must come
 //! from the station's own page (its `Origin`). Bound to another address, a token is required:
 //! `Authorization: Bearer TOKEN`, or once in a browser `/?token=TOKEN`, which sets a cookie.
+//! The server speaks plain HTTP: the token crosses the network as it is (README: reach a
+//! loopback-bound station through an SSH tunnel or a TLS proxy instead). A request that is not
+//! a GET must carry JSON (`Content-Type: application/json`), which another site's form cannot.
 
 use std::io::Read;
 use std::net::SocketAddr;
@@ -296,6 +299,21 @@ fn refusal(ctx: &Ctx, request: &tiny_http::Request, path: &str, query: &str) -> 
             return Some(error(403, "requests from an opaque origin are refused"));
         }
     }
+    // A form of another site's page can post `text/plain` without asking: what changes the
+    // rover comes as JSON, which a page can send only to its own origin.
+    if *request.method() != Method::Get {
+        let json = header(request, "Content-Type").is_some_and(|c| {
+            c.split(';')
+                .next()
+                .is_some_and(|t| t.trim().eq_ignore_ascii_case("application/json"))
+        });
+        if !json {
+            return Some(error(
+                415,
+                "send the body as JSON, with `Content-Type: application/json`",
+            ));
+        }
+    }
     let token = ctx.token.as_deref()?;
     let bearer = header(request, "Authorization").and_then(|v| v.strip_prefix("Bearer "));
     let cookie = header(request, "Cookie").and_then(|c| {
@@ -348,7 +366,8 @@ fn asset(body: &'static str, content_type: &'static str) -> Resp {
             (
                 "Content-Security-Policy",
                 "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; \
-                 img-src 'self' blob: data:; connect-src 'self'; frame-ancestors 'none'",
+                 img-src 'self' blob: data:; connect-src 'self'; frame-ancestors 'none'; \
+                 base-uri 'none'; form-action 'self'",
             ),
         ],
     )

@@ -560,7 +560,7 @@ function renderConnections() {
     const state = shown.state;
     counts[state] = (counts[state] || 0) + 1;
     const line = st ? `${shown.note ? `${shown.note} · ` : ''}${m.kind} · ${st.rate_hz.toFixed(1)} Hz · ${st.cpu_percent.toFixed(1)}% CPU${st.restarts ? ` · ${st.restarts} restart${st.restarts === 1 ? '' : 's'}` : ''}${st.hangs ? ` · hung ${st.hangs}×` : ''}` : `${m.kind} · no answer`;
-    if (L.at[m.name]) boxes += drawModule(L.at[m.name], state, line).replace('<g class="module', `<g data-state="${state}" data-restarts="${st ? st.restarts : 0}" class="module`);
+    if (L.at[m.name]) boxes += drawModule(L.at[m.name], state, line).replace('<g class="module', `<g data-state="${esc(state)}" data-restarts="${esc(st ? st.restarts : 0)}" class="module`);
   }
   svg.setAttribute('width', L.width);
   svg.setAttribute('height', L.height);
@@ -579,7 +579,7 @@ function renderHierarchy() {
   const tree = (parent) => w.dnms.filter((d) => (d.parent || null) === parent).map((d) => {
     const g = S.live.live.glances[d.name];
     const n = w.modules.filter((m) => m.dnm === d.name).length;
-    return `<li class="${silent.has(d.name) ? 'silent' : ''}" data-dnm="${esc(d.name)}">${esc(d.name)}${d.radio ? ' (radio)' : ''} · ${n} modules${g ? ` · rev ${g.revision} · ${esc(g.active_task || '—')}` : ' · silent'}<ul>${tree(d.name)}</ul></li>`;
+    return `<li class="${silent.has(d.name) ? 'silent' : ''}" data-dnm="${esc(d.name)}">${esc(d.name)}${d.radio ? ' (radio)' : ''} · ${n} modules${g ? ` · rev ${esc(g.revision)} · ${esc(g.active_task || '—')}` : ' · silent'}<ul>${tree(d.name)}</ul></li>`;
   }).join('');
   $('hierarchy').innerHTML = tree(null);
   const l = S.live.link;
@@ -601,7 +601,7 @@ function renderHierarchy() {
   const commanded = S.outbox.filter((e) => e.order.cmd !== 'cancel').slice(-12).reverse().map((e) => {
     const o = e.order;
     const f = e.fate || {};
-    return `<li>${new Date(e.queued_unix_ns / 1e6).toLocaleTimeString()} #${e.seq} ${esc(orderText(o))}: <span class="state ${esc(e.state)}">${esc(e.state)}</span>${f.revision ? ` rev ${f.revision}` : ''}${f.reason ? ` — <span class="reason">${esc(f.reason)}</span>` : ''}</li>`;
+    return `<li>${new Date(e.queued_unix_ns / 1e6).toLocaleTimeString()} #${esc(e.seq)} ${esc(orderText(o))}: <span class="state ${esc(e.state)}">${esc(e.state)}</span>${f.revision ? ` rev ${esc(f.revision)}` : ''}${f.reason ? ` — <span class="reason">${esc(f.reason)}</span>` : ''}</li>`;
   });
   const switches = new Map();
   for (const g of Object.values(S.live.live.glances)) {
@@ -613,7 +613,7 @@ function renderHierarchy() {
     }
   }
   const performed = [...switches.values()].sort((a, b) => b.s.revision - a.s.revision || b.at - a.at).slice(0, 12)
-    .map((e) => `<li class="switch">rev ${e.s.revision}: ${esc(e.s.from || '—')} → <b>${esc(e.s.to)}</b> on ${esc(e.dnms.sort().join(', '))}</li>`);
+    .map((e) => `<li class="switch">rev ${esc(e.s.revision)}: ${esc(e.s.from || '—')} → <b>${esc(e.s.to)}</b> on ${esc(e.dnms.sort().join(', '))}</li>`);
   const events = [];
   for (const g of Object.values(S.live.live.glances)) for (const e of g.events || []) events.push(e);
   events.sort((a, b) => b.at_ns - a.at_ns);
@@ -746,16 +746,16 @@ function renderWatch() {
   if (!w) return;
   let h = `<p><b id="watch-title">${esc(w.module)}.${esc(w.port)}</b> ${w.schema ? `<span class="hint">${esc(w.schema)} at ${esc(w.rate)}</span>` : ''} <button id="watch-stop">stop</button></p>`;
   if (w.error) h += `<p class="hint">${esc(w.error)}</p>`;
-  if (w.frame) h += `<img id="watch-frame" alt="camera" src="/api/frame?module=${encodeURIComponent(w.module)}&port=${encodeURIComponent(w.port)}&n=${w.frame}">`;
+  if (w.frame) h += `<img id="watch-frame" alt="camera" src="/api/frame?module=${encodeURIComponent(w.module)}&port=${encodeURIComponent(w.port)}&n=${encodeURIComponent(w.frame)}">`;
   const last = w.samples[w.samples.length - 1];
   if (last) {
     const fields = [];
     flatten('', last.value, fields);
     const series = (f) => w.samples.map((s) => { const o = []; flatten('', s.value, o); const x = o.find((p) => p[0] === f); return x ? x[1] : 0; });
     h += `<p class="hint">${w.samples.length} samples, latest ${new Date(last.unix_ns / 1e6).toLocaleTimeString()}</p><table id="watch-values">`
-      + fields.slice(0, 24).map(([f, v], i) => `<tr><td>${esc(f || 'value')}</td><td class="v">${Number.isInteger(v) ? v : v.toFixed(4)}</td><td>${i < 12 ? spark(series(f)) : ''}</td></tr>`).join('')
+      + fields.slice(0, 24).map(([f, v], i) => `<tr><td>${esc(f || 'value')}</td><td class="v">${esc(Number.isInteger(v) ? v : Number(v).toFixed(4))}</td><td>${i < 12 ? spark(series(f)) : ''}</td></tr>`).join('')
       + '</table>';
-    if (!fields.length) h += `<pre>${esc(JSON.stringify(last.value, null, 1)).slice(0, 2000)}</pre>`;
+    if (!fields.length) h += `<pre>${esc(JSON.stringify(last.value, null, 1).slice(0, 2000))}</pre>`;
   } else if (!w.frame && !w.error) {
     h += '<p class="hint">waiting for the first sample…</p>';
   }
@@ -910,7 +910,7 @@ function sequenceStep(q) {
 
 function sequenceEvent(e) {
   const f = e.in_force;
-  return `<li data-what="${esc(e.what)}"><span class="when">${esc(new Date(e.at_unix_ns / 1e6).toLocaleTimeString())}</span> ${esc(e.what)}${e.step == null ? '' : ` (step ${e.step + 1})`}: ${esc(e.detail)}${f ? ` <span class="hint">→ ${esc(`revision ${f.revision}${f.task ? `, task ${f.task}` : ''}`)}</span>` : ''}</li>`;
+  return `<li data-what="${esc(e.what)}"><span class="when">${esc(new Date(e.at_unix_ns / 1e6).toLocaleTimeString())}</span> ${esc(e.what)}${e.step == null ? '' : ` (step ${esc(Number(e.step) + 1)})`}: ${esc(e.detail)}${f ? ` <span class="hint">→ ${esc(`revision ${f.revision}${f.task ? `, task ${f.task}` : ''}`)}</span>` : ''}</li>`;
 }
 
 // A sequence's card, part by part: each part is redrawn only when it changed (a button redrawn
@@ -1036,7 +1036,7 @@ function recordRow(c, now) {
   const cls = c.gaps ? 'gappy' : 'whole';
   return `<tr class="${cls}" data-topic="${esc(c.topic)}"><td>${esc(c.topic)}</td><td>${esc(c.dnm || '')}</td>`
     + `<td>${c.rate_hz == null ? 'all' : `${c.rate_hz.toFixed(c.rate_hz < 1 ? 2 : 0)} Hz`}</td>`
-    + `<td>${c.received} / ${c.expected}${pct}</td><td>${timelineSvg(c.timeline)}</td><td>${esc(gap)}</td>`
+    + `<td>${esc(c.received)} / ${esc(c.expected)}${pct}</td><td>${timelineSvg(c.timeline)}</td><td>${esc(gap)}</td>`
     + `<td>${(c.backlog_bytes / 1024).toFixed(1)} KiB</td><td>${esc(unrec)}</td></tr>`;
 }
 
@@ -1075,7 +1075,7 @@ function outboxItem(e) {
   const detail = f.reason ? ` — <span class="reason">${esc(f.reason)}</span>`
     : f.revision ? ` — ${esc(`revision ${f.revision}${f.task ? `, task ${f.task}` : ''}`)}`
       : f.detail ? ` — ${esc(f.detail)}` : '';
-  return `<li data-seq="${e.seq}" data-state="${esc(e.state)}">#${e.seq} ${esc(orderText(e.order))} <span class="state ${esc(e.state)}">${esc(e.state)}</span>${detail}</li>`;
+  return `<li data-seq="${esc(e.seq)}" data-state="${esc(e.state)}">#${esc(e.seq)} ${esc(orderText(e.order))} <span class="state ${esc(e.state)}">${esc(e.state)}</span>${detail}</li>`;
 }
 
 // Which revision the draft was taken from, and what applying it would do to the task in force.
