@@ -5,7 +5,7 @@
 //! the DNM's recording session, read as a stream (never a whole file in memory); the replies
 //! go at the priority of the request (the ground asks at `background`).
 
-use std::collections::{HashMap, HashSet, VecDeque};
+use std::collections::{HashMap, VecDeque};
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -23,6 +23,10 @@ use crate::protocol::{HistoryAnswer, HistoryRequest, MAX_ANSWER_BYTES};
 const WAITING: usize = 8;
 /// Longest record a recording file may hold, as the recorder writes them.
 const MAX_RECORD: usize = 256 << 20;
+/// Sessions and topics whose manifest's word on this DNM's closed files is kept between
+/// requests, at most; and their files together, at most (about 60 bytes each: a few MB).
+const KNOWN: usize = 16;
+const KNOWN_FILES: usize = 50_000;
 
 /// Why a history server did not start.
 #[derive(Debug, thiserror::Error)]
@@ -79,8 +83,9 @@ impl HistoryServer {
                 // Reading recordings gives way to the modules, as the recorder's writer does.
                 // SAFETY: setpriority(2) on the calling thread (Linux: `who` 0 is the thread).
                 unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, 10) };
+                let mut known = Known::default();
                 while let Ok(q) = rx.recv() {
-                    serve(&files, &q);
+                    serve(&files, &mut known, &q);
                 }
             })
             .map_err(HistoryStartError::Thread)?;
@@ -139,26 +144,115 @@ impl Files {
 
     /// The DNM's files of session `dir`, in the order written.
     fn list(&self, dir: &Path) -> Vec<PathBuf> {
-        let first = format!("rec-{}.mcap", self.dnm);
-        let later = format!("rec-{}.", self.dnm);
         dnm_record::session::files(dir)
             .unwrap_or_default()
             .into_iter()
             .filter(|p| {
-                p.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
-                    n == first
-                        || n.strip_prefix(&later)
-                            .and_then(|r| r.strip_suffix(".mcap"))
-                            .is_some_and(|n| n.parse::<u64>().is_ok())
-                })
+                p.file_name()
+                    .and_then(|n| n.to_str())
+                    .is_some_and(|n| self.mine(n))
             })
             .collect()
+    }
+
+    /// Whether file `name` is one of the DNM's: `rec-<dnm>.mcap`, `rec-<dnm>.<n>.mcap`.
+    fn mine(&self, name: &str) -> bool {
+        name.strip_prefix("rec-")
+            .and_then(|n| n.strip_prefix(self.dnm.as_str()))
+            .and_then(|n| n.strip_suffix(".mcap"))
+            .is_some_and(|n| {
+                n.is_empty()
+                    || n.strip_prefix('.')
+                        .is_some_and(|k| k.parse::<u64>().is_ok())
+            })
+    }
+}
+
+/// What each session's manifest says of the DNM's closed files for a topic: per file, the
+/// topic's time range in it (none: it holds none of it). Walking a manifest is tens of
+/// milliseconds once a session has weeks of files, and the ground asks a few times a second
+/// while it fills a gap; a manifest changes only when a file closes (it is written anew, a new
+/// file: its size, time and inode say so), so each is walked once per topic between rotations.
+#[derive(Default)]
+struct Known {
+    walked: HashMap<(PathBuf, String), Walked>,
+    /// Walks made (for the tests).
+    walks: u64,
+    /// Requests served: how recently each was used.
+    clock: u64,
+}
+
+struct Walked {
+    manifest: (u64, std::time::SystemTime, u64),
+    closed: std::sync::Arc<HashMap<String, Option<(u64, u64)>>>,
+    used: u64,
+}
+
+impl Known {
+    /// The closed files of session `dir` for `topic`, as its manifest says.
+    fn closed(
+        &mut self,
+        files: &Files,
+        dir: &Path,
+        topic: &str,
+    ) -> std::sync::Arc<HashMap<String, Option<(u64, u64)>>> {
+        use std::os::unix::fs::MetadataExt;
+        self.clock += 1;
+        let manifest = std::fs::metadata(dir.join(dnm_record::session::MANIFEST))
+            .ok()
+            .and_then(|m| Some((m.len(), m.modified().ok()?, m.ino())));
+        let key = (dir.to_path_buf(), topic.to_string());
+        if let (Some(m), Some(w)) = (manifest, self.walked.get_mut(&key))
+            && w.manifest == m
+        {
+            w.used = self.clock;
+            return w.closed.clone();
+        }
+        self.walks += 1;
+        let mut closed = HashMap::new();
+        let _ = dnm_record::session::for_each_entry(dir, |e| {
+            if e.complete && e.error.is_none() && files.mine(&e.name) {
+                let holds = e.channels.get(topic).is_some_and(|n| *n > 0);
+                let range = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
+                closed.insert(e.name, holds.then_some(range));
+            }
+        });
+        let closed = std::sync::Arc::new(closed);
+        self.walked.remove(&key);
+        if let Some(m) = manifest
+            && closed.len() <= KNOWN_FILES
+        {
+            // The least recently used give way.
+            while self.walked.len() >= KNOWN
+                || self.walked.values().map(|w| w.closed.len()).sum::<usize>() + closed.len()
+                    > KNOWN_FILES
+            {
+                let Some(oldest) = self
+                    .walked
+                    .iter()
+                    .min_by_key(|(_, w)| w.used)
+                    .map(|(k, _)| k.clone())
+                else {
+                    break;
+                };
+                self.walked.remove(&oldest);
+            }
+            self.walked.insert(
+                key,
+                Walked {
+                    manifest: m,
+                    closed: closed.clone(),
+                    used: self.clock,
+                },
+            );
+        }
+        closed
     }
 }
 
 /// Answers one request: the messages, then the [`HistoryAnswer`]. A request that cannot be
 /// read is answered with an error.
-fn serve(files: &Files, q: &Query) {
+fn serve(files: &Files, known: &mut Known, q: &Query) {
     let request = q
         .payload()
         .map(|p| p.to_bytes())
@@ -170,7 +264,7 @@ fn serve(files: &Files, q: &Query) {
         return;
     };
     let started = std::time::Instant::now();
-    let (kept, answer) = read(files, &request);
+    let (kept, answer) = read(files, known, &request);
     tracing::debug!(
         topic = %request.topic,
         messages = answer.messages,
@@ -195,7 +289,11 @@ fn serve(files: &Files, q: &Query) {
 
 /// The messages `request` asks for (log time, sequence, bytes), oldest first, and the answer
 /// that ends them: every session of the system in turn, each DNM's files in the order written.
-fn read(files: &Files, request: &HistoryRequest) -> (Vec<(u64, u32, Vec<u8>)>, HistoryAnswer) {
+fn read(
+    files: &Files,
+    known: &mut Known,
+    request: &HistoryRequest,
+) -> (Vec<(u64, u32, Vec<u8>)>, HistoryAnswer) {
     let mut c = Collect {
         request,
         budget: request.max_bytes.clamp(1, MAX_ANSWER_BYTES),
@@ -209,20 +307,9 @@ fn read(files: &Files, request: &HistoryRequest) -> (Vec<(u64, u32, Vec<u8>)>, H
         // Each session was recorded by a recorder of its own: its decimation starts afresh.
         c.decimator = request.period_ns.map(Decimator::new);
         // Closed files are known by their summaries: what of the topic each holds, its time
-        // range if any (kept per file, not the session's whole manifest).
+        // range if any (as the session's manifest says; a file closed since is read).
         let list = files.list(&dir);
-        let mine: HashSet<&str> = list
-            .iter()
-            .filter_map(|p| p.file_name().and_then(|n| n.to_str()))
-            .collect();
-        let mut closed: HashMap<String, Option<(u64, u64)>> = HashMap::new();
-        let _ = dnm_record::session::for_each_entry(&dir, |e| {
-            if e.complete && e.error.is_none() && mine.contains(e.name.as_str()) {
-                let holds = e.channels.get(&request.topic).is_some_and(|n| *n > 0);
-                let range = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
-                closed.insert(e.name, holds.then_some(range));
-            }
-        });
+        let closed = known.closed(files, &dir, &request.topic);
         for path in &list {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
             // A closed file that holds nothing of the topic in the stretch is not read (the
@@ -364,6 +451,131 @@ impl Iterator for Stream {
                     });
                 }
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    const TOPIC: &str = "/rover/src/out";
+
+    /// Writes `rec-rover[.n].mcap` with messages of `TOPIC` at `times` (s), and another topic.
+    fn write_file(dir: &Path, n: u64, times: std::ops::Range<u64>) {
+        let name = if n == 0 {
+            "rec-rover.mcap".to_string()
+        } else {
+            format!("rec-rover.{n}.mcap")
+        };
+        let file = File::create(dir.join(name)).unwrap();
+        let mut w = mcap::WriteOptions::new()
+            .create(std::io::BufWriter::new(file))
+            .unwrap();
+        let mine = w
+            .add_channel(0, TOPIC, "application/octet-stream", &Default::default())
+            .unwrap();
+        let other = w
+            .add_channel(
+                0,
+                "/rover/other/out",
+                "application/octet-stream",
+                &Default::default(),
+            )
+            .unwrap();
+        for t in times {
+            for channel_id in [mine, other] {
+                let header = mcap::records::MessageHeader {
+                    channel_id,
+                    sequence: t as u32,
+                    log_time: t * 1_000_000_000,
+                    publish_time: t * 1_000_000_000,
+                };
+                w.write_to_known_channel(&header, &t.to_le_bytes()).unwrap();
+            }
+        }
+        w.finish().unwrap();
+    }
+
+    fn request(from_s: u64, to_s: u64) -> HistoryRequest {
+        HistoryRequest {
+            topic: TOPIC.into(),
+            from_ns: from_s * 1_000_000_000,
+            to_ns: to_s * 1_000_000_000,
+            period_ns: None,
+            max_bytes: 1 << 20,
+            newest_first: false,
+        }
+    }
+
+    #[test]
+    fn a_manifest_is_walked_once_per_topic_until_a_file_closes() {
+        let root = std::env::temp_dir().join(format!("dnm-history-known-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let dir = root.join("sys-20261127T000000Z");
+        std::fs::create_dir_all(&dir).unwrap();
+        write_file(&dir, 0, 0..10);
+        write_file(&dir, 1, 10..20);
+        dnm_record::session::write_manifest(&dir).unwrap();
+        let files = Files {
+            dir: dir.clone(),
+            system: "sys".into(),
+            dnm: "rover".into(),
+        };
+        let mut known = Known::default();
+        // The same answer as a walk of its own each time; one walk for three requests.
+        for (from, to) in [(0, 100), (12, 15), (3, 4)] {
+            let cached = read(&files, &mut known, &request(from, to));
+            let fresh = read(&files, &mut Known::default(), &request(from, to));
+            assert_eq!(cached.0, fresh.0);
+            assert_eq!(cached.1.recorded, fresh.1.recorded);
+            assert_eq!(
+                cached.0.len() as u64,
+                to.min(19) - from + 1,
+                "{from}..{to}: {:?}",
+                cached.1
+            );
+        }
+        assert_eq!(known.walks, 1);
+        // A file closes and the manifest is written anew: walked again, and the file is in.
+        write_file(&dir, 2, 20..30);
+        dnm_record::session::write_manifest(&dir).unwrap();
+        let (kept, answer) = read(&files, &mut known, &request(0, 100));
+        assert_eq!(kept.len(), 30);
+        assert_eq!(answer.recorded, Some((0, 29_000_000_000)));
+        assert_eq!(known.walks, 2);
+        // A file closed and not yet in the manifest is read all the same.
+        write_file(&dir, 3, 30..40);
+        let (kept, _) = read(&files, &mut known, &request(25, 35));
+        assert_eq!(kept.len(), 11);
+        assert_eq!(known.walks, 2);
+        // Another topic is walked for once.
+        let mut other = request(0, 100);
+        other.topic = "/rover/other/out".into();
+        assert_eq!(read(&files, &mut known, &other).0.len(), 40);
+        assert_eq!(known.walks, 3);
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn only_the_dnms_own_files_are_its() {
+        let files = Files {
+            dir: PathBuf::new(),
+            system: "sys".into(),
+            dnm: "rover".into(),
+        };
+        for name in ["rec-rover.mcap", "rec-rover.1.mcap", "rec-rover.12.mcap"] {
+            assert!(files.mine(name), "{name}");
+        }
+        for name in [
+            "rec-rover-2.mcap",
+            "rec-rover.x.mcap",
+            "rec-rover..mcap",
+            "rec-drive.mcap",
+            "rec-rover.mcap.tmp",
+        ] {
+            assert!(!files.mine(name), "{name}");
         }
     }
 }

@@ -394,7 +394,7 @@ pub fn files(dir: &Path) -> Result<Vec<PathBuf>, SessionError> {
         .map(|e| e.path())
         .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
         .collect();
-    out.sort_by_key(|p| order_key(p));
+    out.sort_by_cached_key(|p| order_key(p));
     Ok(out)
 }
 
