@@ -9,6 +9,7 @@ use std::sync::Mutex;
 use std::time::Duration;
 
 use dnm_ground::CommandState;
+use dnm_ground::Entry;
 use dnm_proto::station::{Fate, ModuleEdit, Order};
 use support::ground::{Poller, ROVER, Rig, TASKS, report, slot, text, wait_in_step};
 use support::{eventually, eventually_within, zenoh_client};
@@ -108,6 +109,14 @@ fn a_hundred_commands_over_a_bad_radio_apply_once_in_order_on_every_dnm() {
     let entries = api.all_final();
     let (seen, splits) = poller.finish();
     assert_eq!(entries.len(), 100);
+    // A page polling the outbox gets the last few, in order, as the whole list has them.
+    let last: Vec<Entry> =
+        serde_json::from_value(api.get_json("/commands?since=40&last=3&brief")).unwrap();
+    let seqs: Vec<u64> = last.iter().map(|e| e.seq).collect();
+    assert_eq!(seqs, [98, 99, 100]);
+    let early: Vec<Entry> =
+        serde_json::from_value(api.get_json("/commands?since=99&last=30")).unwrap();
+    assert_eq!(early.iter().map(|e| e.seq).collect::<Vec<_>>(), [99, 100]);
 
     // Every command has the fate it should: applied, or the cancel and what it cancelled.
     let mut decided: Vec<(u64, u64, String)> = Vec::new();

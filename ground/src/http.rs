@@ -537,11 +537,8 @@ fn handle(ctx: &Ctx, mut request: tiny_http::Request) {
             },
         },
         (Method::Get, "/commands") => {
-            let mut entries = station.entries(query_u64(query, "since").unwrap_or(1));
-            if let Some(last) = query_u64(query, "last") {
-                let skip = entries.len().saturating_sub(last as usize);
-                entries.drain(..skip);
-            }
+            let last = query_u64(query, "last").map(|n| usize::try_from(n).unwrap_or(usize::MAX));
+            let mut entries = station.entries(query_u64(query, "since").unwrap_or(1), last);
             // `brief`: applies and sequence uploads without their text (a page polling its
             // outbox).
             if query.split('&').any(|kv| kv == "brief") {

@@ -353,13 +353,20 @@ impl Station {
         self.shared.inner.lock().ok()?.entries.get(&seq).cloned()
     }
 
-    /// Commands from `since` on, oldest first.
-    pub fn entries(&self, since: u64) -> Vec<Entry> {
-        self.shared
-            .inner
-            .lock()
-            .map(|i| i.entries.range(since..).map(|(_, e)| e.clone()).collect())
-            .unwrap_or_default()
+    /// Commands from `since` on, oldest first; only the `last` of them if given (a page
+    /// polling its outbox copies what it shows, not the mission's every command).
+    pub fn entries(&self, since: u64, last: Option<usize>) -> Vec<Entry> {
+        let Ok(i) = self.shared.inner.lock() else {
+            return Vec::new();
+        };
+        let from = i
+            .entries
+            .range(since..)
+            .rev()
+            .take(last.unwrap_or(usize::MAX));
+        let mut out: Vec<Entry> = from.map(|(_, e)| e.clone()).collect();
+        out.reverse();
+        out
     }
 
     pub fn link(&self) -> LinkStatus {
