@@ -406,6 +406,85 @@ fn a_replacement_whose_executable_cannot_run_is_refused_before_the_commit() {
 }
 
 #[test]
+fn what_a_module_starts_goes_with_it_when_it_dies_or_is_replaced() {
+    let sys = System::start(CHAIN);
+    let relay = sys.subscribe::<Tick>("relay", "out");
+    // src_a becomes a module that starts a helper process of its own (as a wrapper script or a
+    // Python module's workers do), then runs as the ticker.
+    std::fs::write(sys.dir.join("fixed"), "").unwrap();
+    let forking = fake_ticker(&sys.dir, "forking", 0);
+    let helpers = sys.dir.join("helpers");
+    std::fs::create_dir_all(&helpers).unwrap();
+    let script = std::fs::read_to_string(&forking).unwrap().replacen(
+        "exec '",
+        &format!("sleep 600 & echo $! > '{}/'$$\nexec '", helpers.display()),
+        1,
+    );
+    std::fs::write(&forking, script).unwrap();
+    let with_helper = CHAIN.replace(
+        "name = \"src_a\"\nkind = \"ticker\"",
+        "name = \"src_a\"\nkind = \"forking\"",
+    ) + &format!("\n[kind.forking]\nexec = \"{}\"\n", forking.display());
+    let out = apply(&sys, &with_helper, "forking.toml");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The helper of the module process now running.
+    let helper_of = |pid: u32| -> u32 {
+        support::eventually("the module's helper started", || {
+            std::fs::read_to_string(helpers.join(pid.to_string()))
+                .ok()?
+                .trim()
+                .parse()
+                .ok()
+        })
+    };
+    let alive = |pid: u32| {
+        std::fs::read_to_string(format!("/proc/{pid}/stat")).is_ok_and(|s| {
+            !s.rsplit(')')
+                .next()
+                .unwrap_or("")
+                .trim_start()
+                .starts_with('Z')
+        })
+    };
+    sys.wait_for("src_a running as the forking kind", |r| {
+        let m = module(&r.dnms[0], "src_a");
+        m.kind == "forking" && m.state == ModuleRunState::Running
+    });
+    let first = module(&sys.status(), "src_a").pid.unwrap();
+    let helper = helper_of(first);
+    assert!(alive(helper));
+    // The module dies (killed from outside): its helper goes with it, and it is restarted.
+    signal(first, libc::SIGKILL);
+    support::eventually("the dead module's helper gone", || {
+        (!alive(helper)).then_some(())
+    });
+    sys.wait_for("src_a restarted", |r| {
+        let m = module(&r.dnms[0], "src_a");
+        m.restarts >= 1 && m.state == ModuleRunState::Running
+    });
+    let second = module(&sys.status(), "src_a").pid.unwrap();
+    let helper = helper_of(second);
+    assert!(alive(helper));
+    // Replaced by the plain ticker: the stopped module's helper goes too, and data flows.
+    let out = apply(&sys, CHAIN, "plain.toml");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    support::eventually("the replaced module's helper gone", || {
+        (!alive(helper)).then_some(())
+    });
+    drain(&relay);
+    let ticks = collect::<Tick>(&relay, |t| t.len() >= 10);
+    assert!(ticks.iter().all(|t| t.origin == 1), "{ticks:?}");
+}
+
+#[test]
 fn a_replacement_that_cannot_start_still_commits_routes_and_recording() {
     let sys = System::start(CHAIN);
     let before = sys.status();

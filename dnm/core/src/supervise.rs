@@ -95,8 +95,7 @@ impl Dnm {
         held_slot: Option<ModuleSlot>,
         held_ports: Vec<PortServices>,
     ) {
-        // SAFETY: kill(2) with the pid of a child we have not reaped yet.
-        unsafe { libc::kill(child.id() as i32, libc::SIGTERM) };
+        crate::group::signal(child.id(), libc::SIGTERM);
         self.stopping.push(Stopping {
             module: module.to_string(),
             child,
@@ -179,9 +178,8 @@ impl Dnm {
         let mut pass = Pass::default();
         self.check_processes(now, &mut pass);
         for pid in std::mem::take(&mut pass.to_kill) {
-            // SAFETY: kill(2) with the pid of a child we have not reaped yet. SIGKILL also ends
-            // a stopped process.
-            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+            // (SIGKILL also ends a stopped process.)
+            crate::group::signal(pid, libc::SIGKILL);
         }
         self.wake_starting();
         pass.any_died |= self.reap_stopping(now);
@@ -206,7 +204,9 @@ impl Dnm {
             let Some(child) = slot.child.as_mut() else {
                 continue;
             };
-            match child.try_wait() {
+            // (Reaped only once it exited, its leftovers killed first.)
+            let gone = crate::group::kill_leftovers(child.id());
+            match if gone { child.try_wait() } else { Ok(None) } {
                 Ok(Some(exit)) => {
                     pass.any_died = true;
                     pass.events.push(exited(&self.name, name, slot, exit, now));
@@ -245,6 +245,7 @@ impl Dnm {
         let mut i = 0;
         while i < self.stopping.len() {
             let s = &mut self.stopping[i];
+            crate::group::kill_leftovers(s.child.id());
             let gone = match s.child.try_wait() {
                 Ok(Some(status)) => Some(status.to_string()),
                 // Not ours to wait for any more: gone either way.
@@ -258,7 +259,7 @@ impl Dnm {
                 continue;
             }
             if now >= s.kill_at {
-                let _ = s.child.kill();
+                crate::group::signal(s.child.id(), libc::SIGKILL);
             }
             i += 1;
         }
@@ -382,11 +383,13 @@ impl Dnm {
         while !self.stopping.is_empty() {
             // What the bridge still hands over while modules stop is answered, not dropped.
             self.refuse_queued_commands();
-            self.stopping
-                .retain_mut(|s| !matches!(s.child.try_wait(), Ok(Some(_)) | Err(_)));
+            self.stopping.retain_mut(|s| {
+                crate::group::kill_leftovers(s.child.id());
+                !matches!(s.child.try_wait(), Ok(Some(_)) | Err(_))
+            });
             if Instant::now() >= deadline {
                 for s in &mut self.stopping {
-                    let _ = s.child.kill();
+                    crate::group::signal(s.child.id(), libc::SIGKILL);
                     let _ = s.child.wait();
                 }
                 self.stopping.clear();

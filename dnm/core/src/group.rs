@@ -1,0 +1,47 @@
+//! A module's process group: the module process and whatever it starts (a wrapper script's
+//! real module, a Python module's worker processes). Each module is spawned as the leader of a
+//! group of its own, so signals meant for the module reach all of it: a module stopped, killed
+//! as hung or exited on its own leaves nothing behind that would go on publishing as it.
+//!
+//! The group's id is the leader's pid, which stays the module's while the leader is not
+//! reaped: everything here is done before the DNM waits for it.
+
+/// Sends `signal` to module process `pid` and every process of its group.
+pub(crate) fn signal(pid: u32, signal: i32) {
+    let Ok(pid) = i32::try_from(pid) else {
+        return;
+    };
+    // SAFETY: kill(2) with a pid (and its group) of a child not reaped yet; the leader also
+    // on its own, in case it left its group.
+    unsafe {
+        libc::kill(-pid, signal);
+        libc::kill(pid, signal);
+    }
+}
+
+/// Whether module process `pid` has exited (or cannot be asked: its reaping will say),
+/// without reaping it.
+fn exited(pid: u32) -> bool {
+    // SAFETY: an all-zero siginfo_t is valid; waitid(2) with WNOWAIT only reads the child's
+    // state and leaves it to be reaped.
+    unsafe {
+        let mut info: libc::siginfo_t = std::mem::zeroed();
+        let r = libc::waitid(
+            libc::P_PID,
+            pid,
+            &mut info,
+            libc::WEXITED | libc::WNOHANG | libc::WNOWAIT,
+        );
+        r != 0 || info.si_pid() != 0
+    }
+}
+
+/// Whether module process `pid` has exited; if it has, what is left of it (the helpers it
+/// started) is killed, before the process is reaped.
+pub(crate) fn kill_leftovers(pid: u32) -> bool {
+    let gone = exited(pid);
+    if gone {
+        signal(pid, libc::SIGKILL);
+    }
+    gone
+}
