@@ -4,6 +4,7 @@
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
 
 use bytes::Bytes;
 use dnm_core::worker::{Control, Sets, dbg, err};
@@ -106,16 +107,17 @@ impl OpenRoute {
         })
     }
 
-    /// Publishes every sample waiting, each lent to Zenoh from shared memory.
-    fn forward(&self) {
+    /// Publishes the samples waiting, each lent to Zenoh from shared memory, [`PER_WAKE`] at
+    /// most. Whether some may be left.
+    fn forward(&self) -> bool {
         let _ = self.listener.try_wait(|_| ());
-        loop {
+        for _ in 0..PER_WAKE {
             let s = match self.subscriber.receive() {
                 Ok(Some(s)) => s,
-                Ok(None) => return,
+                Ok(None) => return false,
                 Err(e) => {
                     tracing::debug!("egress receive: {e:?}");
-                    return;
+                    return false;
                 }
             };
             let header = keys::encode_header(&to_wire(s.user_header()));
@@ -133,8 +135,14 @@ impl OpenRoute {
                 }
             }
         }
+        true
     }
 }
+
+/// Samples of one route forwarded per wake-up at most: a module publishing without pause (a
+/// loop gone wrong) shares the thread with the other routes and the DNM's route sets, and
+/// never takes it from them.
+const PER_WAKE: usize = 32;
 
 /// Forwards local samples of the routed outputs to Zenoh as they are sent. Reopens its ports
 /// when the DNM sends a new route set; returns when the DNM drops its sender.
@@ -196,19 +204,26 @@ pub(crate) fn egress_loop(
                     Sets::Same => {}
                 }
             }
-            waitset
-                .wait_and_process_once(|id| {
-                    if id.has_event_from(&control_guard) {
-                        control_fired = true;
-                    } else if let Some(i) = guards.iter().position(|g| id.has_event_from(g)) {
-                        fired[i] = true;
-                    }
-                    CallbackProgression::Continue
-                })
-                .map_err(dbg("egress wait"))?;
+            let leftover = fired.iter().any(|f| *f);
+            let on_event = |id: WaitSetAttachmentId<TsSvc>| {
+                if id.has_event_from(&control_guard) {
+                    control_fired = true;
+                } else if let Some(i) = guards.iter().position(|g| id.has_event_from(g)) {
+                    fired[i] = true;
+                }
+                CallbackProgression::Continue
+            };
+            // A route with samples left from its last turn: the others' events are looked at
+            // without waiting, then it goes on.
+            if leftover {
+                waitset.wait_and_process_once_with_timeout(on_event, Duration::ZERO)
+            } else {
+                waitset.wait_and_process_once(on_event)
+            }
+            .map_err(dbg("egress wait"))?;
             for (o, f) in open.iter().zip(fired.iter_mut()) {
                 if std::mem::take(f) {
-                    o.forward();
+                    *f = o.forward();
                 }
             }
         }
@@ -236,4 +251,104 @@ pub(crate) fn room(
          so that the mirror is made anew",
         dnm_netlist::DNM_SUBSCRIBERS
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use std::sync::atomic::AtomicBool;
+
+    /// A module publishing without pause does not keep the egress thread to its route: a turn
+    /// forwards [`PER_WAKE`] samples at most, and says that more may be waiting.
+    #[test]
+    fn a_module_publishing_without_pause_gets_turns_not_the_thread() {
+        let name = format!("dnm_egress_turns_{}", std::process::id());
+        let node = NodeBuilder::new().create::<TsSvc>().unwrap();
+        let message = MessageType {
+            schema_name: "dnm_msgs/Tick".into(),
+            encoding: dnm_netlist::POD_ENCODING.into(),
+            schema: "uint64 seq\n".into(),
+            payload: dnm_netlist::Payload::Fixed { size_bytes: 8 },
+            standard: None,
+        };
+        let service = format!("{name}/out");
+        let event = format!("{name}/out/ev");
+        let mut c = zenoh::Config::default();
+        c.insert_json5("scouting/multicast/enabled", "false")
+            .unwrap();
+        c.insert_json5("listen/endpoints", "[]").unwrap();
+        let session = zenoh::open(c).wait().unwrap();
+        let route = EgressRoute {
+            service: service.clone(),
+            event: event.clone(),
+            key: format!("{name}/key"),
+            message: message.clone(),
+            counters: Arc::default(),
+        };
+        // A reader in this process, as another DNM's mirror is, slower than the module: each
+        // put waits for it.
+        let _reader = session
+            .declare_subscriber(route.key.clone())
+            .callback(|_| std::thread::sleep(std::time::Duration::from_micros(50)))
+            .wait()
+            .unwrap();
+        let open = OpenRoute::open(&node, &session, &route).unwrap();
+        // The module: publishes and notifies as fast as it can, until told to stop or a bound
+        // (reached only if a turn never ends while it publishes).
+        let stop = Arc::new(AtomicBool::new(false));
+        let module = {
+            let (stop, service, event) = (stop.clone(), service.clone(), event.clone());
+            std::thread::spawn(move || {
+                let node = NodeBuilder::new().create::<TsSvc>().unwrap();
+                let publisher = port_service(&node, &service, &message.payload)
+                    .unwrap()
+                    .publisher_builder()
+                    .initial_max_slice_len(8)
+                    .create()
+                    .unwrap();
+                let notifier = event_service(&node, &event)
+                    .unwrap()
+                    .notifier_builder()
+                    .create()
+                    .unwrap();
+                let mut n = 0u64;
+                while !stop.load(Ordering::Relaxed) && n < 300_000 {
+                    let s = publisher.loan_slice_uninit(8).unwrap();
+                    let s = s.write_from_slice(&n.to_le_bytes());
+                    s.send().unwrap();
+                    let _ = notifier.notify();
+                    n += 1;
+                }
+                n
+            })
+        };
+        let forwarded = || route.counters.messages.load(Ordering::Relaxed);
+        // (A hang guard, not a performance limit.)
+        let guard = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        while forwarded() == 0 {
+            assert!(
+                std::time::Instant::now() < guard,
+                "the module's samples never came"
+            );
+            open.forward();
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        // Turns while it publishes: each ends after its share, saying more is waiting.
+        for _ in 0..20 {
+            let before = forwarded();
+            let more = open.forward();
+            assert_eq!(forwarded() - before, PER_WAKE as u64);
+            assert!(more);
+        }
+        stop.store(true, Ordering::Relaxed);
+        let published = module.join().unwrap();
+        assert!(
+            published < 300_000,
+            "a turn lasted as long as the module published"
+        );
+        // Drained once the module stops: a turn that finds nothing says so.
+        while open.forward() {}
+        assert!(!open.forward());
+    }
 }
