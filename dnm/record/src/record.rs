@@ -575,13 +575,21 @@ impl Reader<'_> {
         self.wanted = set;
     }
 
-    /// Takes every sample waiting on `ports` (the wanted ones, in order).
+    /// Takes the samples waiting on `ports` (the wanted ones, in order): what a port's
+    /// subscriber holds, twice over at most, so a module publishing without pause costs its
+    /// own port samples (counted as dropped) and never the other ports theirs.
     fn drain(&mut self, ports: &mut [Subscribed]) {
         for (i, port) in ports.iter_mut().enumerate() {
             let Some(subscriber) = &port.subscriber else {
                 continue;
             };
-            while let Ok(Some(s)) = subscriber.receive() {
+            let most = self.wanted.get(i).map_or(1, |p| {
+                2 * dnm_module::protocol::recorder_buffer(&p.message.payload)
+            });
+            for _ in 0..most {
+                let Ok(Some(s)) = subscriber.receive() else {
+                    break;
+                };
                 let header = *s.user_header();
                 if let Some(expected) = port.next_seq.insert(s.origin(), header.seq.wrapping_add(1))
                 {
