@@ -67,44 +67,57 @@ const DESCRIBE_MAX_BYTES: u64 = 1 << 20;
 /// [`DESCRIBE_MAX_BYTES`] of output.
 pub fn describe_exec(path: &Path) -> Result<KindSpec, DescribeError> {
     use std::io::Read;
+    use std::os::unix::process::CommandExt;
+    use std::time::Instant;
+    // A group of its own: whatever it starts goes with it.
     let mut child = std::process::Command::new(path)
         .arg("describe")
         .stdin(std::process::Stdio::null())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
+        .process_group(0)
         .spawn()?;
     let mut stdout = child.stdout.take().ok_or("no output")?;
     let mut stderr = child.stderr.take().ok_or("no error output")?;
-    let reader = std::thread::spawn(move || {
+    let (out_tx, out_rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
         let mut out = Vec::new();
         let r = (&mut stdout)
             .take(DESCRIBE_MAX_BYTES + 1)
             .read_to_end(&mut out);
-        r.map(|_| out)
+        let _ = out_tx.send(r.map(|_| out));
     });
-    let errors = std::thread::spawn(move || {
+    let (err_tx, err_rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
         let mut err = Vec::new();
         let _ = (&mut stderr).take(DESCRIBE_MAX_BYTES).read_to_end(&mut err);
-        err
+        let _ = err_tx.send(err);
     });
-    let deadline = std::time::Instant::now() + DESCRIBE_TIMEOUT;
+    let deadline = Instant::now() + DESCRIBE_TIMEOUT;
+    let timeout = || DescribeError::Timeout(DESCRIBE_TIMEOUT.as_secs());
     let status = loop {
-        if let Some(s) = child.try_wait()? {
-            break s;
+        // Exited: what it left running (holding its output open) is killed, then it is reaped.
+        if dnm_core::group::kill_leftovers(child.id()) {
+            break child.wait()?;
         }
-        if std::time::Instant::now() >= deadline {
-            let _ = child.kill();
+        if Instant::now() >= deadline {
+            dnm_core::group::signal(child.id(), libc::SIGKILL);
             let _ = child.wait();
-            return Err(DescribeError::Timeout(DESCRIBE_TIMEOUT.as_secs()));
+            return Err(timeout());
         }
         std::thread::sleep(std::time::Duration::from_millis(10));
     };
-    let out = reader.join().map_err(|_| "reading `describe`")??;
+    // (A process of its that left its group may still hold the output: not waited for.)
+    let left = || deadline.saturating_duration_since(Instant::now());
+    let out = out_rx
+        .recv_timeout(left())
+        .map_err(|_| timeout())?
+        .map_err(DescribeError::from)?;
     if out.len() as u64 > DESCRIBE_MAX_BYTES {
         return Err(DescribeError::TooMuchOutput(DESCRIBE_MAX_BYTES));
     }
     if !status.success() {
-        let err = errors.join().unwrap_or_default();
+        let err = err_rx.recv_timeout(left()).unwrap_or_default();
         return Err(DescribeError::Failed {
             status,
             stderr: last_lines(&String::from_utf8_lossy(&err), DESCRIBE_ERROR_LINES),
@@ -291,6 +304,47 @@ mod describe_tests {
         let e = describe_exec(&hang).unwrap_err();
         assert!(matches!(e, DescribeError::Timeout(_)), "{e}");
         assert!(e.to_string().contains("did not finish"), "{e}");
+        // Its kind printed and gone, a process of its left holding the output open: answered
+        // at once, and what it left is gone too.
+        let spec = serde_json::to_string(&dnm_netlist::KindSpec {
+            name: "lingering".into(),
+            summary: String::new(),
+            inputs: Vec::new(),
+            outputs: Vec::new(),
+            params: Vec::new(),
+            trigger: dnm_netlist::Trigger::OnInput,
+        })
+        .unwrap();
+        let pids = std::env::temp_dir().join(format!("dnm-describe-left-{}", std::process::id()));
+        let lingering = script(
+            "lingering",
+            &format!(
+                "sleep 100000 &\necho $! > '{}'\necho '{spec}'",
+                pids.display()
+            ),
+        );
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(describe_exec(&lingering));
+        });
+        // (A hang guard: a describe that waits for what it left would wait for a day.)
+        let kind = rx
+            .recv_timeout(std::time::Duration::from_secs(60))
+            .expect("describe waited for the process it left")
+            .unwrap();
+        assert_eq!(kind.name, "lingering");
+        let left: u32 = std::fs::read_to_string(&pids)
+            .unwrap()
+            .trim()
+            .parse()
+            .unwrap();
+        let _ = std::fs::remove_file(&pids);
+        let gone = (0..6000).any(|_| {
+            std::thread::sleep(std::time::Duration::from_millis(10));
+            std::fs::read_to_string(format!("/proc/{left}/stat"))
+                .map_or(true, |s| s.contains(") Z "))
+        });
+        assert!(gone, "the process it left runs on");
         let flood = script("flood", "yes");
         let e = describe_exec(&flood).unwrap_err();
         assert!(

@@ -1,4 +1,4 @@
-//! A module's process group: the module process and whatever it starts (a wrapper script's
+//! A child's process group (a module's, or a module executable asked to describe itself): the module process and whatever it starts (a wrapper script's
 //! real module, a Python module's worker processes). Each module is spawned as the leader of a
 //! group of its own, so signals meant for the module reach all of it: a module stopped, killed
 //! as hung or exited on its own leaves nothing behind that would go on publishing as it.
@@ -7,7 +7,7 @@
 //! reaped: everything here is done before the DNM waits for it.
 
 /// Sends `signal` to module process `pid` and every process of its group.
-pub(crate) fn signal(pid: u32, signal: i32) {
+pub fn signal(pid: u32, signal: i32) {
     let Ok(pid) = i32::try_from(pid) else {
         return;
     };
@@ -38,7 +38,7 @@ fn exited(pid: u32) -> bool {
 
 /// Whether module process `pid` has exited; if it has, what is left of it (the helpers it
 /// started) is killed, before the process is reaped.
-pub(crate) fn kill_leftovers(pid: u32) -> bool {
+pub fn kill_leftovers(pid: u32) -> bool {
     let gone = exited(pid);
     if gone {
         signal(pid, libc::SIGKILL);

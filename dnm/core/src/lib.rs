@@ -30,7 +30,7 @@ mod apply;
 mod command;
 mod error;
 mod exits;
-mod group;
+pub mod group;
 mod janitor;
 mod node;
 mod options;
