@@ -6,7 +6,7 @@
 //! $ echo '{"cmd":"status"}' | socat - UNIX-CONNECT:/tmp/dnm-run-0/beetle/rover+drive+vision+ground.sock
 //! ```
 
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -211,11 +211,24 @@ pub(crate) fn serve(
     serving
 }
 
+/// Bytes of one request on the admin socket, at most.
+const MAX_REQUEST_BYTES: u64 = 8 << 20;
+
 fn serve_one(stream: &UnixStream, system: &str, authority: Option<&str>, dnms: &[Commander]) {
     let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
-    let mut reader = BufReader::new(stream);
+    // One request, a line: no longer than the longest a netlist may make (8 MiB).
+    let mut reader = BufReader::new(stream).take(MAX_REQUEST_BYTES);
     let mut line = String::new();
     if reader.read_line(&mut line).is_err() {
+        return;
+    }
+    if !line.ends_with('\n') && line.len() as u64 >= MAX_REQUEST_BYTES {
+        answer(
+            stream,
+            &Response::error(format!(
+                "the request is longer than {MAX_REQUEST_BYTES} bytes: send one JSON request on a line"
+            )),
+        );
         return;
     }
     let response = match serde_json::from_str::<Request>(&line) {
@@ -363,5 +376,27 @@ mod tests {
             assert!(e.contains("refusing"), "{e}");
         }
         let _ = std::fs::remove_dir_all(&base);
+    }
+
+    #[test]
+    fn a_request_that_never_ends_is_answered_not_kept() {
+        let (ours, theirs) = UnixStream::pair().unwrap();
+        // A client streaming bytes without a newline, past what a request may be.
+        let writer = std::thread::spawn(move || {
+            let chunk = vec![b'x'; 1 << 20];
+            let mut theirs = theirs;
+            for _ in 0..(MAX_REQUEST_BYTES >> 20) + 2 {
+                if theirs.write_all(&chunk).is_err() {
+                    break;
+                }
+            }
+            let mut reply = String::new();
+            let _ = std::io::BufReader::new(&theirs).read_line(&mut reply);
+            reply
+        });
+        serve_one(&ours, "s", None, &[]);
+        drop(ours);
+        let reply = writer.join().unwrap();
+        assert!(reply.contains("longer than"), "{reply}");
     }
 }
