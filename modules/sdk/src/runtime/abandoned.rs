@@ -39,6 +39,9 @@ struct Abandoned {
     removed: Result<(), std::io::Error>,
 }
 
+/// Longest a sweep waits for another process's to finish.
+const LOCK_WAIT: Duration = Duration::from_secs(2);
+
 /// What [`remove_abandoned_services`] did.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct AbandonedSweep {
@@ -83,9 +86,22 @@ fn find_and_remove(config: &Config, timeout: Duration) -> (Vec<Abandoned>, usize
     let Ok(dir) = std::fs::File::open(&names.services) else {
         return (Vec::new(), 0);
     };
-    // SAFETY: flock(2) on a descriptor this function owns; released when `dir` closes.
-    if unsafe { libc::flock(dir.as_raw_fd(), libc::LOCK_EX) } != 0 {
-        return (Vec::new(), 0);
+    // One sweep at a time on the machine, waited for [`LOCK_WAIT`] at most (whoever holds the
+    // lock may be stopped, or never let go): then this one is left undecided.
+    let deadline = std::time::Instant::now() + LOCK_WAIT;
+    loop {
+        // SAFETY: flock(2) on a descriptor this function owns; released when `dir` closes.
+        if unsafe { libc::flock(dir.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
+            break;
+        }
+        let busy = std::io::Error::last_os_error().kind() == std::io::ErrorKind::WouldBlock;
+        if !busy {
+            return (Vec::new(), 0);
+        }
+        if std::time::Instant::now() >= deadline {
+            return (Vec::new(), 1);
+        }
+        std::thread::sleep(Duration::from_millis(10));
     }
     let Ok(entries) = std::fs::read_dir(&names.services) else {
         return (Vec::new(), 0);
@@ -296,6 +312,40 @@ mod tests {
             remove_abandoned_services(&config),
             AbandonedSweep::default()
         );
+    }
+
+    #[test]
+    fn a_sweep_held_up_elsewhere_is_left_undecided_not_waited_for() {
+        // A root of its own: the lock held here holds up no other test's sweeps.
+        let root = std::env::temp_dir().join(format!("dnm-held-{}", std::process::id()));
+        let mut config = dnm_config(&format!("held{}_", std::process::id())).unwrap();
+        let root_path = iceoryx2::prelude::Path::new(root.to_str().unwrap().as_bytes()).unwrap();
+        config.global.set_root_path(&root_path);
+        let names = Names::of(&config).unwrap();
+        std::fs::create_dir_all(&names.services).unwrap();
+        // Another process's sweep that never lets go (a process stopped in it).
+        let mut holder = std::process::Command::new("flock")
+            .arg(&names.services)
+            .args(["sleep", "600"])
+            .spawn()
+            .unwrap();
+        let held = (0..6000).any(|_| {
+            std::thread::sleep(Duration::from_millis(10));
+            let dir = std::fs::File::open(&names.services).unwrap();
+            // SAFETY: flock(2) on a descriptor this test owns, closed right after.
+            unsafe { libc::flock(dir.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) != 0 }
+        });
+        assert!(held, "the lock was never taken");
+        assert_eq!(
+            remove_abandoned_services(&config),
+            AbandonedSweep {
+                removed: 0,
+                undecided: 1
+            }
+        );
+        let _ = holder.kill();
+        let _ = holder.wait();
+        let _ = std::fs::remove_dir_all(&root);
     }
 
     #[test]
