@@ -211,12 +211,13 @@ pub(crate) fn serve(
     serving
 }
 
-/// Bytes of one request on the admin socket, at most.
-const MAX_REQUEST_BYTES: u64 = 8 << 20;
+/// Bytes of one request on the admin socket, at most: an apply carries a netlist's text,
+/// escaped as JSON, and a recording keeps netlists of up to 16 MiB.
+const MAX_REQUEST_BYTES: u64 = 64 << 20;
 
 fn serve_one(stream: &UnixStream, system: &str, authority: Option<&str>, dnms: &[Commander]) {
     let _ = stream.set_read_timeout(Some(Duration::from_secs(10)));
-    // One request, a line: no longer than the longest a netlist may make (8 MiB).
+    // One request, a line, of [`MAX_REQUEST_BYTES`] at most.
     let mut reader = BufReader::new(stream).take(MAX_REQUEST_BYTES);
     let mut line = String::new();
     if reader.read_line(&mut line).is_err() {

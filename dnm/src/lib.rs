@@ -107,8 +107,14 @@ pub fn describe_exec(path: &Path) -> Result<KindSpec, DescribeError> {
         }
         std::thread::sleep(std::time::Duration::from_millis(10));
     };
-    // (A process of its that left its group may still hold the output: not waited for.)
-    let left = || deadline.saturating_duration_since(Instant::now());
+    // (A process of its that left its group may still hold the output: waited for until the
+    // deadline, then taken for a describe that did not finish; a moment is left to read what
+    // one that finished just before it printed.)
+    let left = || {
+        deadline
+            .saturating_duration_since(Instant::now())
+            .max(std::time::Duration::from_millis(500))
+    };
     let out = out_rx
         .recv_timeout(left())
         .map_err(|_| timeout())?

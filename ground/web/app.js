@@ -112,7 +112,7 @@ async function runCheck() {
     st.textContent = c.ok ? 'valid' : `${c.errors.length} problem${c.errors.length === 1 ? '' : 's'}`;
     $('draft-apply').disabled = !c.ok;
     $('problems').innerHTML = c.errors.map((e) =>
-      `<li><span class="where">${e.line ? `line ${e.line}` : ''}${e.field ? ` ${esc(e.field)}` : ''}</span>: ${esc(e.message)}${e.help ? ` <i>(${esc(e.help)})</i>` : ''}</li>`).join('');
+      `<li><span class="where">${e.line ? `line ${esc(e.line)}` : ''}${e.field ? ` ${esc(e.field)}` : ''}</span>: ${esc(e.message)}${e.help ? ` <i>(${esc(e.help)})</i>` : ''}</li>`).join('');
   } catch (e) {
     if (seq !== S.checkSeq) return;
     S.check = null;

@@ -61,7 +61,13 @@ pub(crate) fn take_uplink(s: &Shared, q: &Query) -> Downlink {
     // A station speaks only for itself: its name is the key's (which the access control binds
     // to its certificate), the outbox's epoch after a `.`.
     let keyed = keys::station_of(&s.system, q.key_expr().as_str()).unwrap_or_default();
-    if up.station != keyed && !up.station.starts_with(&format!("{keyed}.")) {
+    // (An outbox made anew speaks as `<station>.<epoch in hex>`: nothing else is one.)
+    let outbox_of_keyed = up
+        .station
+        .strip_prefix(keyed)
+        .and_then(|r| r.strip_prefix('.'))
+        .is_some_and(|epoch| !epoch.is_empty() && epoch.chars().all(|c| c.is_ascii_hexdigit()));
+    if up.station != keyed && !outbox_of_keyed {
         tracing::warn!(
             key = %q.key_expr(),
             station = %up.station,
@@ -69,7 +75,7 @@ pub(crate) fn take_uplink(s: &Shared, q: &Query) -> Downlink {
         );
         return refuse(format!(
             "uplink of station `{}` on the key of station `{keyed}`: a station sends on \
-             {} only",
+             {} only, as `{keyed}` or, its outbox made anew, `{keyed}.<epoch in hex>`",
             up.station,
             keys::authority_station(&s.system, "<its own name>")
         ));
@@ -85,7 +91,8 @@ pub(crate) fn take_uplink(s: &Shared, q: &Query) -> Downlink {
         Ok(false) => {
             return refuse(format!(
                 "the rover keeps a record of at most {} stations and {} outboxes of each; \
-                 `{}` is not one of them",
+                 `{}` is not one of them (a station whose outbox was made anew that often \
+                 needs a name of its own: a certificate issued for another name)",
                 store::MAX_STATIONS,
                 store::MAX_OUTBOXES,
                 up.station

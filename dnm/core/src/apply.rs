@@ -345,6 +345,7 @@ impl Dnm {
         if let Some(a) = self.apply.as_mut() {
             for (name, slot) in a.staged.iter_mut() {
                 if let Some(child) = slot.child.as_mut()
+                    && crate::group::kill_leftovers(child.id())
                     && let Ok(Some(exit)) = child.try_wait()
                 {
                     // Its last status may say why (a module that failed to build).

@@ -19,9 +19,9 @@ pub fn signal(pid: u32, signal: i32) {
     }
 }
 
-/// Whether module process `pid` has exited (or cannot be asked: its reaping will say),
-/// without reaping it.
-fn exited(pid: u32) -> bool {
+/// Whether child `pid` has exited, without reaping it; `None`: it cannot be asked (not a
+/// child of ours to wait for any more).
+fn exited(pid: u32) -> Option<bool> {
     // SAFETY: an all-zero siginfo_t is valid; waitid(2) with WNOWAIT only reads the child's
     // state and leaves it to be reaped.
     unsafe {
@@ -32,16 +32,20 @@ fn exited(pid: u32) -> bool {
             &mut info,
             libc::WEXITED | libc::WNOHANG | libc::WNOWAIT,
         );
-        r != 0 || info.si_pid() != 0
+        (r == 0).then(|| info.si_pid() != 0)
     }
 }
 
-/// Whether module process `pid` has exited; if it has, what is left of it (the helpers it
-/// started) is killed, before the process is reaped.
+/// Whether child `pid` may have exited (its reaping says for sure); if it has, what is left
+/// of it (the helpers it started) is killed first, while its group is still its own.
 pub fn kill_leftovers(pid: u32) -> bool {
-    let gone = exited(pid);
-    if gone {
-        signal(pid, libc::SIGKILL);
+    match exited(pid) {
+        Some(true) => {
+            signal(pid, libc::SIGKILL);
+            true
+        }
+        Some(false) => false,
+        // Nothing is signalled: its ids may be another's by now.
+        None => true,
     }
-    gone
 }

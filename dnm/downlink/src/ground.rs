@@ -441,6 +441,14 @@ impl Writer {
                 %topic,
                 "the ground's record holds {TOPICS} channels: this one is not kept"
             );
+            // Nor what of it waited, nor is its announcement asked for again.
+            if let Some(p) = self.pending.remove(&topic) {
+                let bytes: usize = p.iter().map(|m| m.2.len()).sum();
+                self.pending_bytes = self.pending_bytes.saturating_sub(bytes);
+            }
+            if let Ok(mut u) = self.unknown.lock() {
+                u.remove(&topic);
+            }
             return Ok(());
         }
         self.announces.insert(topic.clone(), a.clone());
@@ -476,8 +484,11 @@ impl Writer {
         if let Ok(mut u) = self.unknown.lock() {
             u.insert(topic.clone());
         }
+        if self.pending_bytes + data.len() > PENDING_BYTES {
+            return Ok(());
+        }
         let p = self.pending.entry(topic).or_default();
-        if p.len() < PENDING && self.pending_bytes + data.len() <= PENDING_BYTES {
+        if p.len() < PENDING {
             self.pending_bytes += data.len();
             p.push((time, seq, data, backfilled));
         }
