@@ -9,6 +9,7 @@ use std::collections::{HashMap, VecDeque};
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::sync::mpsc;
 use std::thread::JoinHandle;
 
@@ -23,10 +24,11 @@ use crate::protocol::{HistoryAnswer, HistoryRequest, MAX_ANSWER_BYTES};
 const WAITING: usize = 8;
 /// Longest record a recording file may hold, as the recorder writes them.
 const MAX_RECORD: usize = 256 << 20;
-/// Sessions and topics whose manifest's word on this DNM's closed files is kept between
-/// requests, at most; and their files together, at most (about 60 bytes each: a few MB).
-const KNOWN: usize = 16;
-const KNOWN_FILES: usize = 50_000;
+/// Sessions whose manifest's word on this DNM's closed files is kept between requests, at
+/// most; their files together, at most (about 100 bytes each: a few MB); and topic names.
+const KNOWN: usize = 1024;
+const KNOWN_FILES: usize = 30_000;
+const MAX_TOPICS: usize = 4096;
 
 /// Why a history server did not start.
 #[derive(Debug, thiserror::Error)]
@@ -168,80 +170,124 @@ impl Files {
     }
 }
 
-/// What each session's manifest says of the DNM's closed files for a topic: per file, the
-/// topic's time range in it (none: it holds none of it). Walking a manifest is tens of
-/// milliseconds once a session has weeks of files, and the ground asks a few times a second
-/// while it fills a gap; a manifest changes only when a file closes (it is written anew, a new
-/// file: its size, time and inode say so), so each is walked once per topic between rotations.
+/// What each session's manifest says of the DNM's closed files: per file, its time range and
+/// the topics it holds. Walking a manifest is tens of milliseconds once a session has weeks of
+/// files, and the ground asks a few times a second while it fills a gap; a manifest changes
+/// only when a file closes (it is written anew, a new file: its size, time and inode say so),
+/// so each is walked once between rotations, whatever the topics asked for.
 #[derive(Default)]
 struct Known {
-    walked: HashMap<(PathBuf, String), Walked>,
+    sessions: HashMap<PathBuf, Walked>,
+    /// Topic names, numbered as the files' words name them.
+    topics: HashMap<String, u32>,
     /// Walks made (for the tests).
     walks: u64,
-    /// Requests served: how recently each was used.
+    /// Requests served: how recently each session was used.
     clock: u64,
 }
 
 struct Walked {
     manifest: (u64, std::time::SystemTime, u64),
-    closed: std::sync::Arc<HashMap<String, Option<(u64, u64)>>>,
+    files: Arc<HashMap<String, FileWord>>,
     used: u64,
 }
 
+/// A closed file as its session's manifest says.
+struct FileWord {
+    start: u64,
+    end: u64,
+    /// The topics it holds messages of (numbers of [`Known::topics`]).
+    topics: Box<[u32]>,
+}
+
+impl FileWord {
+    /// Its time range, if it holds `topic` (`None`: a topic no file named).
+    fn range_of(&self, topic: Option<u32>) -> Option<(u64, u64)> {
+        topic
+            .is_some_and(|t| self.topics.contains(&t))
+            .then_some((self.start, self.end))
+    }
+}
+
 impl Known {
-    /// The closed files of session `dir` for `topic`, as its manifest says.
-    fn closed(
-        &mut self,
-        files: &Files,
-        dir: &Path,
-        topic: &str,
-    ) -> std::sync::Arc<HashMap<String, Option<(u64, u64)>>> {
+    /// The number of `topic`, if a file walked so far holds it.
+    fn topic(&self, topic: &str) -> Option<u32> {
+        self.topics.get(topic).copied()
+    }
+
+    /// Forgets the sessions not in `sessions` (folders removed since).
+    fn keep_only(&mut self, sessions: &[PathBuf]) {
+        self.sessions.retain(|dir, _| sessions.contains(dir));
+    }
+
+    /// The closed files of session `dir`, as its manifest says.
+    fn closed(&mut self, files: &Files, dir: &Path) -> Arc<HashMap<String, FileWord>> {
         use std::os::unix::fs::MetadataExt;
         self.clock += 1;
         let manifest = std::fs::metadata(dir.join(dnm_record::session::MANIFEST))
             .ok()
             .and_then(|m| Some((m.len(), m.modified().ok()?, m.ino())));
-        let key = (dir.to_path_buf(), topic.to_string());
-        if let (Some(m), Some(w)) = (manifest, self.walked.get_mut(&key))
+        if let (Some(m), Some(w)) = (manifest, self.sessions.get_mut(dir))
             && w.manifest == m
         {
             w.used = self.clock;
-            return w.closed.clone();
+            return w.files.clone();
         }
         self.walks += 1;
         let mut closed = HashMap::new();
+        let topics = &mut self.topics;
         let _ = dnm_record::session::for_each_entry(dir, |e| {
             if e.complete && e.error.is_none() && files.mine(&e.name) {
-                let holds = e.channels.get(topic).is_some_and(|n| *n > 0);
-                let range = (e.start_unix_ns.unwrap_or(0), e.end_unix_ns.unwrap_or(0));
-                closed.insert(e.name, holds.then_some(range));
+                let mut held: Vec<u32> = Vec::new();
+                for (topic, n) in &e.channels {
+                    if *n > 0 && topics.len() < MAX_TOPICS {
+                        let next = topics.len() as u32;
+                        held.push(*topics.entry(topic.clone()).or_insert(next));
+                    } else if *n > 0
+                        && let Some(t) = topics.get(topic)
+                    {
+                        held.push(*t);
+                    }
+                }
+                let word = FileWord {
+                    start: e.start_unix_ns.unwrap_or(0),
+                    end: e.end_unix_ns.unwrap_or(0),
+                    topics: held.into(),
+                };
+                closed.insert(e.name, word);
             }
         });
-        let closed = std::sync::Arc::new(closed);
-        self.walked.remove(&key);
+        let closed = Arc::new(closed);
+        self.sessions.remove(dir);
+        let full = |sessions: &HashMap<PathBuf, Walked>| {
+            sessions.len() >= KNOWN
+                || sessions.values().map(|w| w.files.len()).sum::<usize>() + closed.len()
+                    > KNOWN_FILES
+        };
+        // When full, the session now (the one that changes, and is asked for most) makes room
+        // by the least recently used; an earlier one is then walked each time (every request
+        // goes through the sessions in turn: a rotation among them would walk them all).
+        let current = dir == files.dir;
         if let Some(m) = manifest
             && closed.len() <= KNOWN_FILES
+            && (current || !full(&self.sessions))
         {
-            // The least recently used give way.
-            while self.walked.len() >= KNOWN
-                || self.walked.values().map(|w| w.closed.len()).sum::<usize>() + closed.len()
-                    > KNOWN_FILES
-            {
+            while full(&self.sessions) {
                 let Some(oldest) = self
-                    .walked
+                    .sessions
                     .iter()
                     .min_by_key(|(_, w)| w.used)
                     .map(|(k, _)| k.clone())
                 else {
                     break;
                 };
-                self.walked.remove(&oldest);
+                self.sessions.remove(&oldest);
             }
-            self.walked.insert(
-                key,
+            self.sessions.insert(
+                dir.to_path_buf(),
                 Walked {
                     manifest: m,
-                    closed: closed.clone(),
+                    files: closed.clone(),
                     used: self.clock,
                 },
             );
@@ -303,19 +349,22 @@ fn read(
         cut: false,
         recorded: None,
     };
-    for dir in files.sessions() {
+    let sessions = files.sessions();
+    known.keep_only(&sessions);
+    for dir in sessions {
         // Each session was recorded by a recorder of its own: its decimation starts afresh.
         c.decimator = request.period_ns.map(Decimator::new);
         // Closed files are known by their summaries: what of the topic each holds, its time
         // range if any (as the session's manifest says; a file closed since is read).
         let list = files.list(&dir);
-        let closed = known.closed(files, &dir, &request.topic);
+        let closed = known.closed(files, &dir);
+        let topic = known.topic(&request.topic);
         for path in &list {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
             // A closed file that holds nothing of the topic in the stretch is not read (the
             // first message after it may then be sent though the live downlink, knowing the one
             // before it, did not keep it).
-            if let Some(range) = closed.get(name) {
+            if let Some(range) = closed.get(name).map(|w| w.range_of(topic)) {
                 let holds = range.is_some();
                 let (start, end) = range.unwrap_or((0, 0));
                 if holds {
@@ -550,11 +599,35 @@ mod tests {
         let (kept, _) = read(&files, &mut known, &request(25, 35));
         assert_eq!(kept.len(), 11);
         assert_eq!(known.walks, 2);
-        // Another topic is walked for once.
+        // Another topic needs no walk of its own.
         let mut other = request(0, 100);
         other.topic = "/rover/other/out".into();
         assert_eq!(read(&files, &mut known, &other).0.len(), 40);
-        assert_eq!(known.walks, 3);
+        let fresh = read(&files, &mut Known::default(), &other);
+        assert_eq!(fresh.0.len(), 40);
+        assert_eq!(known.walks, 2);
+        // A topic no file holds: nothing, as a walk of its own finds.
+        let mut none = request(0, 100);
+        none.topic = "/rover/none/out".into();
+        assert!(read(&files, &mut known, &none).0.is_empty());
+        assert_eq!(known.walks, 2);
+        // Earlier sessions of the system beside it: each walked once, then known; one removed
+        // is forgotten.
+        let earlier = root.join("sys-20261126T000000Z");
+        let before = root.join("sys-20261125T000000Z");
+        for (dir, from) in [(&earlier, 100), (&before, 200)] {
+            std::fs::create_dir_all(dir).unwrap();
+            write_file(dir, 0, from..from + 10);
+            dnm_record::session::write_manifest(dir).unwrap();
+        }
+        for _ in 0..3 {
+            assert_eq!(read(&files, &mut known, &request(0, 1000)).0.len(), 60);
+        }
+        assert_eq!(known.walks, 4);
+        std::fs::remove_dir_all(&before).unwrap();
+        assert_eq!(read(&files, &mut known, &request(0, 1000)).0.len(), 50);
+        assert_eq!(known.sessions.len(), 2);
+        assert_eq!(known.walks, 4);
         std::fs::remove_dir_all(&root).unwrap();
     }
 
