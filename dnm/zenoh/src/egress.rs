@@ -198,6 +198,13 @@ pub(crate) fn egress_loop(
                 match control.newest() {
                     Sets::Closed => return Ok(()),
                     Sets::New(set) => {
+                        // A route's samples left from its last turn get one more before its
+                        // port is opened anew (what is older is skipped then).
+                        for (o, f) in open.iter().zip(&fired) {
+                            if *f {
+                                o.forward();
+                            }
+                        }
                         wanted = set;
                         break;
                     }
