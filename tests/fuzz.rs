@@ -272,6 +272,7 @@ fn no_input_from_the_network_or_a_file_panics_a_dnm_or_a_parser() {
     let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
+    let _folder = support::Folder(dir.clone());
     let text = netlist_template().replace("SYSTEM", &system);
     let netlist = dir.join("netlist.toml");
     std::fs::write(&netlist, &text).unwrap();

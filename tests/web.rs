@@ -781,6 +781,7 @@ fn the_station_answers_only_its_own_page_and_a_token_guards_it_on_the_network() 
     let dir = std::env::temp_dir().join(format!("dnm-test-{system}"));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
+    let _folder = support::Folder(dir.clone());
     let port = support::free_port();
     let _router = router(&dir, port);
     let station = |name: &str, http: &str, token: Option<&str>| {

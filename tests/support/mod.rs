@@ -74,6 +74,16 @@ pub fn remove_unless_failed(dir: &std::path::Path) {
     }
 }
 
+/// A test's folder, removed as [`remove_unless_failed`] says when dropped: declared before the
+/// test's processes, it goes after them.
+pub struct Folder(pub std::path::PathBuf);
+
+impl Drop for Folder {
+    fn drop(&mut self) {
+        remove_unless_failed(&self.0);
+    }
+}
+
 /// The MCAP files in `dir` and in its session folders (`<system>-<time>/`), by path.
 pub fn mcap_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
     let mut out = Vec::new();
