@@ -1,21 +1,22 @@
-//! A child's process group (a module's, or a module executable asked to describe itself): the module process and whatever it starts (a wrapper script's
-//! real module, a Python module's worker processes). Each module is spawned as the leader of a
-//! group of its own, so signals meant for the module reach all of it: a module stopped, killed
-//! as hung or exited on its own leaves nothing behind that would go on publishing as it.
+//! A child's process group: a module process and whatever it starts (a wrapper script's real
+//! module, a Python module's worker processes), or a module executable asked to describe
+//! itself. Each is spawned as the leader of a group of its own, so signals meant for it reach
+//! all of it: a module stopped, killed as hung or exited on its own leaves nothing behind that
+//! would go on publishing as it.
 //!
 //! The group's id is the leader's pid, which stays the module's while the leader is not
 //! reaped: everything here is done before the DNM waits for it.
 
-/// Sends `signal` to module process `pid` and every process of its group.
-pub fn signal(pid: u32, signal: i32) {
+/// Sends signal `sig` to child `pid` and every process of its group.
+pub fn signal(pid: u32, sig: i32) {
     let Ok(pid) = i32::try_from(pid) else {
         return;
     };
     // SAFETY: kill(2) with a pid (and its group) of a child not reaped yet; the leader also
     // on its own, in case it left its group.
     unsafe {
-        libc::kill(-pid, signal);
-        libc::kill(pid, signal);
+        libc::kill(-pid, sig);
+        libc::kill(pid, sig);
     }
 }
 
