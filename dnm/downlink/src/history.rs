@@ -559,7 +559,7 @@ mod tests {
     }
 
     #[test]
-    fn a_manifest_is_walked_once_per_topic_until_a_file_closes() {
+    fn a_manifest_is_walked_once_until_a_file_closes_whatever_the_topics() {
         let root = std::env::temp_dir().join(format!("dnm-history-known-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&root);
         let dir = root.join("sys-20261127T000000Z");
