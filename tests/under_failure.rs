@@ -111,6 +111,14 @@ fn fake_ticker(dir: &Path, kind: &str, delay_s: u32) -> PathBuf {
     exe
 }
 
+/// [`CHAIN`] with ticker `module` of kind `kind`, run by executable `exe`.
+fn chain_with(module: &str, kind: &str, exe: &Path) -> String {
+    CHAIN.replace(
+        &format!("name = \"{module}\"\nkind = \"ticker\""),
+        &format!("name = \"{module}\"\nkind = \"{kind}\""),
+    ) + &format!("\n[kind.{kind}]\nexec = \"{}\"\n", exe.display())
+}
+
 fn apply(sys: &System, text: &str, file: &str) -> std::process::Output {
     let path = sys.dir.join(file);
     std::fs::write(&path, text.replace("SYSTEM", &sys.name)).unwrap();
@@ -386,10 +394,7 @@ fn a_replacement_whose_executable_cannot_run_is_refused_before_the_commit() {
             .unwrap()
             .replacen("cat '", "chmod -x \"$0\"; cat '", 1);
     std::fs::write(&broken, script).unwrap();
-    let replaced = CHAIN.replace(
-        "name = \"src_a\"\nkind = \"ticker\"",
-        "name = \"src_a\"\nkind = \"vanishing\"",
-    ) + &format!("\n[kind.vanishing]\nexec = \"{}\"\n", broken.display());
+    let replaced = chain_with("src_a", "vanishing", &broken);
     let out = apply(&sys, &replaced, "replaced.toml");
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
@@ -421,10 +426,7 @@ fn what_a_module_starts_goes_with_it_when_it_dies_or_is_replaced() {
         1,
     );
     std::fs::write(&forking, script).unwrap();
-    let with_helper = CHAIN.replace(
-        "name = \"src_a\"\nkind = \"ticker\"",
-        "name = \"src_a\"\nkind = \"forking\"",
-    ) + &format!("\n[kind.forking]\nexec = \"{}\"\n", forking.display());
+    let with_helper = chain_with("src_a", "forking", &forking);
     let out = apply(&sys, &with_helper, "forking.toml");
     assert!(
         out.status.success(),
@@ -491,10 +493,7 @@ fn a_replacement_that_cannot_start_still_commits_routes_and_recording() {
     let files_before = before.recording.as_ref().unwrap().files;
     // src_b becomes a module whose process exits at once (it is not restarted: "never").
     let broken = fake_ticker(&sys.dir, "broken", 0);
-    let replaced = CHAIN.replace(
-        "name = \"src_b\"\nkind = \"ticker\"",
-        "name = \"src_b\"\nkind = \"broken\"",
-    ) + &format!("\n[kind.broken]\nexec = \"{}\"\n", broken.display());
+    let replaced = chain_with("src_b", "broken", &broken);
     let out = apply(&sys, &replaced, "replaced.toml");
     assert!(
         out.status.success(),

@@ -841,23 +841,23 @@ fn the_station_answers_only_its_own_page_and_a_token_guards_it_on_the_network() 
         200,
         "the station's own page"
     );
-    let body = r#"{"cmd":"switch","task":"t"}"#;
-    let (status, _, answer) = raw_http(
-        &local,
-        &format!(
-            "POST /commands HTTP/1.1\r\nHost: {local}\r\nOrigin: http://evil.example\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-            body.len()
-        ),
-    );
+    // A command posted with `headers` (each ending in CRLF): (status, answer).
+    let post = |headers: &str| {
+        let body = r#"{"cmd":"switch","task":"t"}"#;
+        let (status, _, answer) = raw_http(
+            &local,
+            &format!(
+                "POST /commands HTTP/1.1\r\nHost: {local}\r\n{headers}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                body.len()
+            ),
+        );
+        (status, answer)
+    };
+    let (status, answer) =
+        post("Origin: http://evil.example\r\nContent-Type: application/json\r\n");
     assert_eq!(status, 403, "{answer}");
     // An old browser's form says neither where it comes from nor JSON: refused as well.
-    let (status, _, answer) = raw_http(
-        &local,
-        &format!(
-            "POST /commands HTTP/1.1\r\nHost: {local}\r\nContent-Type: text/plain\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-            body.len()
-        ),
-    );
+    let (status, answer) = post("Content-Type: text/plain\r\n");
     assert_eq!(status, 415, "{answer}");
     assert!(answer.contains("application/json"), "{answer}");
     assert!(rig_entries(&local).is_empty(), "nothing was queued");

@@ -239,15 +239,17 @@ impl Known {
         let _ = dnm_record::session::for_each_entry(dir, |e| {
             if e.complete && e.error.is_none() && files.mine(&e.name) {
                 let mut held: Vec<u32> = Vec::new();
-                for (topic, n) in &e.channels {
-                    if *n > 0 && topics.len() < MAX_TOPICS {
-                        let next = topics.len() as u32;
-                        held.push(*topics.entry(topic.clone()).or_insert(next));
-                    } else if *n > 0
-                        && let Some(t) = topics.get(topic)
-                    {
-                        held.push(*t);
-                    }
+                for (topic, _) in e.channels.iter().filter(|(_, n)| **n > 0) {
+                    let number = match topics.get(topic) {
+                        Some(t) => Some(*t),
+                        None if topics.len() < MAX_TOPICS => {
+                            let next = topics.len() as u32;
+                            topics.insert(topic.clone(), next);
+                            Some(next)
+                        }
+                        None => None,
+                    };
+                    held.extend(number);
                 }
                 let word = FileWord {
                     start: e.start_unix_ns.unwrap_or(0),

@@ -650,9 +650,6 @@ fn write_to(dir: &Path, tmp: &Path, path: &Path) -> Result<Written, SessionError
     })
 }
 
-/// The braces of the manifest's JSON object.
-const OBJECT: (&str, &str) = ("{", "}");
-
 /// A manifest written as a stream: one line per file, compact JSON each.
 struct ManifestWriter<'p> {
     out: std::io::BufWriter<File>,
@@ -696,7 +693,7 @@ impl<'p> ManifestWriter<'p> {
     }
 
     fn head(&mut self, session: &str) -> Result<(), SessionError> {
-        self.raw(OBJECT.0)?;
+        self.raw("{")?;
         self.value("\n\"format\": ", &1)?;
         self.value(",\n\"session\": ", &session)?;
         self.raw(",\n\"files\": [")
@@ -723,9 +720,7 @@ impl<'p> ManifestWriter<'p> {
         for (i, n) in netlists.enumerate() {
             self.value(if i == 0 { "\n" } else { ",\n" }, n)?;
         }
-        self.raw("\n]\n")?;
-        self.raw(OBJECT.1)?;
-        self.raw("\n")
+        self.raw("\n]\n}\n")
     }
 
     /// Flushes the manifest and syncs it to the disk.
